@@ -1,0 +1,514 @@
+"""Antenna power beams in topocentric coordinates.
+
+Convention: a beam is evaluated at directions given by the azimuth ``az`` measured from
+north through east (astropy's convention) and the zenith angle ``za`` in ``[0, pi]``,
+both in radians, and returns the power pattern ``A(nu, az, za)`` (any normalisation:
+Tsky divides by the beam integral). Directions with ``za > pi/2`` are below the horizon;
+their beam weight sees the ground.
+
+Polarisations: ``ee`` is the east-west dipole (the "XX" of older HERA papers), ``nn`` the
+north-south one. An east-west dipole's pattern is wider along north-south (its H-plane).
+
+pyuvdata's UVBeam measures azimuth from east through north, so ``az_uvbeam = pi/2 - az``;
+EDGES FEKO files measure azimuth from the antenna's excitation axis, rotated to true
+azimuth by ``rotation_from_north`` (edges-analysis default: 90 deg).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import healpy as hp
+import numpy as np
+from scipy.interpolate import CubicSpline
+from scipy.special import j1
+
+logger = logging.getLogger(__name__)
+
+C_LIGHT = 299792458.0
+POLS = ("ee", "nn")
+
+
+class BeamError(ValueError):
+    """A beam cannot be built or evaluated as asked."""
+
+
+class BeamEvaluator:
+    """A beam bound to a fixed set of directions, evaluated frequency by frequency.
+
+    Returned by :meth:`Beam.on`; file beams precompute their spatial interpolation here
+    so that evaluating many frequency chunks costs one frequency interpolation each.
+    """
+
+    def __init__(self, beam: Beam, az: np.ndarray, za: np.ndarray) -> None:
+        self.beam = beam
+        self.az = np.asarray(az, dtype=np.float64)
+        self.za = np.asarray(za, dtype=np.float64)
+
+    def __call__(self, freqs: np.ndarray) -> np.ndarray:
+        """Return ``(Nfreq, Ndir)`` beam values at ``freqs`` (Hz)."""
+        return self.beam.power(freqs, self.az, self.za)
+
+
+class Beam(ABC):
+    """A frequency-dependent power beam."""
+
+    name: str = "beam"
+    pol: str = "ee"
+
+    @property
+    def freq_range(self) -> tuple[float, float] | None:
+        """Range of valid frequencies in Hz, or ``None`` if unbounded."""
+        return None
+
+    def check_freqs(self, freqs: np.ndarray) -> np.ndarray:
+        """Validate a frequency array (Hz) against this beam, returning it as float64."""
+        freqs = np.atleast_1d(np.asarray(freqs, dtype=np.float64))
+        if freqs.size == 0:
+            raise BeamError("the frequency grid is empty: give at least one frequency")
+        if not np.all(np.isfinite(freqs)) or np.any(freqs <= 0):
+            raise BeamError("frequencies must be finite and positive (Hz)")
+        rng = self.freq_range
+        if rng is not None:
+            lo, hi = rng
+            tol = 1e-6 * hi
+            if freqs.min() < lo - tol or freqs.max() > hi + tol:
+                raise BeamError(
+                    f"frequencies {freqs.min() / 1e6:.3f}-{freqs.max() / 1e6:.3f} MHz are "
+                    f"outside the {self.name} beam's range {lo / 1e6:.3f}-{hi / 1e6:.3f} MHz"
+                )
+        return freqs
+
+    @abstractmethod
+    def power(self, freqs: np.ndarray, az: np.ndarray, za: np.ndarray) -> np.ndarray:
+        """Return the power beam ``(Nfreq, Ndir)`` at ``freqs`` (Hz) and directions (rad)."""
+
+    def on(self, az: np.ndarray, za: np.ndarray) -> BeamEvaluator:
+        """Bind the beam to fixed directions (see :class:`BeamEvaluator`)."""
+        return BeamEvaluator(self, az, za)
+
+    @abstractmethod
+    def describe(self) -> dict[str, Any]:
+        """Return a JSON-serialisable description (provenance and cache keys)."""
+
+
+def _check_pol(pol: str) -> str:
+    pol = pol.lower()
+    if pol not in POLS:
+        raise BeamError(f"polarisation {pol!r} not supported: use one of {POLS}")
+    return pol
+
+
+@dataclass(frozen=True)
+class GaussianDipoleBeam(Beam):
+    """Gaussian dipole beam with the elliptical azimuth factor of the paper.
+
+    ``A = exp(-(theta/theta0)^2) / (sqrt(pi) theta0) * (cos^2 phi + sin^2 phi cos theta)^2``
+    with ``theta0 = FWHM / (2 sqrt(ln 2))``, ``FWHM = fwhm_ref (nu / nu_ref)^-1`` and ``phi``
+    the azimuth from the dipole's H-plane: from north for ``ee`` (so the beam is wider
+    north-south), from east for ``nn``.
+    """
+
+    pol: str = "ee"
+    fwhm_ref_deg: float = 72.0
+    nu_ref: float = 140e6
+    name: str = "dipole"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "pol", _check_pol(self.pol))
+
+    def fwhm(self, freqs: np.ndarray) -> np.ndarray:
+        """FWHM in radians at ``freqs`` (Hz)."""
+        return np.radians(self.fwhm_ref_deg) * (np.asarray(freqs) / self.nu_ref) ** -1
+
+    def power(self, freqs, az, za):  # noqa: D102
+        freqs = self.check_freqs(freqs)
+        az, za = np.asarray(az), np.asarray(za)
+        theta0 = self.fwhm(freqs)[:, None] / (2 * np.sqrt(np.log(2)))
+        radial = np.exp(-((za[None, :] / theta0) ** 2)) / (np.sqrt(np.pi) * theta0)
+        phi = az if self.pol == "ee" else az - np.pi / 2
+        azfac = (np.cos(phi) ** 2 + np.sin(phi) ** 2 * np.cos(za)) ** 2
+        return radial * azfac[None, :]
+
+    def describe(self):  # noqa: D102
+        return {
+            "beam": "gaussian_dipole",
+            "pol": self.pol,
+            "fwhm_ref_deg": self.fwhm_ref_deg,
+            "nu_ref_Hz": self.nu_ref,
+        }
+
+
+@dataclass(frozen=True)
+class AiryBeam(Beam):
+    """Airy pattern of a uniformly illuminated dish: ``[2 J1(x) / x]^2``.
+
+    ``x = pi D sin(theta) / lambda``. A dish has no back lobe: the pattern is zero below
+    the horizon, reached through a smoothstep over the ``horizon_taper_deg`` above it
+    (a hard edge in the beam would add pixelisation noise to Tsky; the sidelobes there
+    are ~1e-4 of the peak). Polarisation-independent.
+    """
+
+    diameter: float = 14.0
+    pol: str = "ee"
+    horizon_taper_deg: float = 2.0
+    name: str = "airy"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "pol", _check_pol(self.pol))
+        if not self.diameter > 0:
+            raise BeamError("dish diameter must be positive (metres)")
+
+    def power(self, freqs, az, za):  # noqa: D102
+        freqs = self.check_freqs(freqs)
+        za = np.asarray(za)
+        lam = C_LIGHT / freqs
+        x = np.pi * self.diameter * np.sin(za)[None, :] / lam[:, None]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out = np.where(x == 0, 1.0, (2 * j1(x) / np.where(x == 0, 1.0, x)) ** 2)
+        if self.horizon_taper_deg > 0:
+            t = np.clip((np.pi / 2 - za) / np.radians(self.horizon_taper_deg), 0.0, 1.0)
+            taper = t * t * (3 - 2 * t)
+        else:
+            taper = (za <= np.pi / 2).astype(np.float64)
+        return out * taper[None, :]
+
+    def describe(self):  # noqa: D102
+        return {
+            "beam": "airy",
+            "diameter_m": self.diameter,
+            "horizon_taper_deg": self.horizon_taper_deg,
+        }
+
+
+@dataclass(frozen=True)
+class FunctionBeam(Beam):
+    """A beam from any callable ``func(freqs, az, za) -> (Nfreq, Ndir)``.
+
+    ``key`` identifies the function in descriptions and cache keys.
+    """
+
+    func: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] = field(compare=False)
+    key: str = "function"
+    pol: str = "ee"
+    name: str = "function"
+
+    def power(self, freqs, az, za):  # noqa: D102
+        freqs = self.check_freqs(freqs)
+        out = np.asarray(self.func(freqs, np.asarray(az), np.asarray(za)), dtype=np.float64)
+        return np.broadcast_to(out, (freqs.size, np.size(az))).copy()
+
+    def describe(self):  # noqa: D102
+        return {"beam": "function", "key": self.key, "pol": self.pol}
+
+
+# error model ----------------------------------------------------------------------------
+
+
+def s1_airy(freqs: np.ndarray, diameter: float = 14.0) -> np.ndarray:
+    """``s1 = 7.0156 lambda / (pi D)``: sine of the Airy pattern's second null."""
+    return 7.0156 * (C_LIGHT / np.asarray(freqs)) / (np.pi * diameter)
+
+
+def s1_dipole(freqs: np.ndarray, beam: GaussianDipoleBeam | None = None) -> np.ndarray:
+    """``s1 = sin(FWHM / 2)`` of the Gaussian dipole."""
+    beam = beam or GaussianDipoleBeam()
+    return np.sin(beam.fwhm(freqs) / 2)
+
+
+@dataclass(frozen=True)
+class PerturbedBeam(Beam):
+    """The paper's beam error model around any beam: ``A_E = A_0 (1 + f(theta))^2``.
+
+    ``f = 1 - (1 - e_z) exp(-sin^2(theta) / (2 sigma_e^2))`` for ``|sin theta| < s1``,
+    constant (its value at ``s1``) beyond, and below the horizon; ``sigma_e =
+    sigma_scale * s1``. ``s1`` depends on frequency: :func:`s1_airy` for dishes,
+    :func:`s1_dipole` for dipoles.
+    """
+
+    base: Beam = field(default_factory=GaussianDipoleBeam)
+    s1: Callable[[np.ndarray], np.ndarray] = field(default=s1_dipole, compare=False)
+    s1_kind: str = "dipole"
+    e_z: float = 0.06
+    sigma_scale: float = 1.5
+    name: str = "perturbed"
+
+    @property
+    def pol(self) -> str:  # type: ignore[override]
+        """Polarisation of the underlying beam."""
+        return self.base.pol
+
+    @property
+    def freq_range(self):  # noqa: D102
+        return self.base.freq_range
+
+    def factor(self, freqs: np.ndarray, za: np.ndarray) -> np.ndarray:
+        """Return ``(1 + f)^2`` as ``(Nfreq, Ndir)``."""
+        s1 = np.asarray(self.s1(np.asarray(freqs)))[:, None]
+        sig = self.sigma_scale * s1
+        sin_t = np.where(np.asarray(za) <= np.pi / 2, np.sin(za), np.inf)[None, :]
+        s_eff = np.minimum(np.abs(sin_t), s1)
+        f = 1 - (1 - self.e_z) * np.exp(-(s_eff**2) / (2 * sig**2))
+        return (1 + f) ** 2
+
+    def power(self, freqs, az, za):  # noqa: D102
+        freqs = self.check_freqs(freqs)
+        return self.base.power(freqs, az, za) * self.factor(freqs, za)
+
+    def on(self, az, za):  # noqa: D102
+        inner = self.base.on(az, za)
+        outer = self
+
+        class _Eval(BeamEvaluator):
+            def __call__(self, freqs):
+                freqs = outer.check_freqs(freqs)
+                return inner(freqs) * outer.factor(freqs, self.za)
+
+        return _Eval(self, az, za)
+
+    def describe(self):  # noqa: D102
+        return {
+            "beam": "perturbed",
+            "base": self.base.describe(),
+            "s1": self.s1_kind,
+            "e_z": self.e_z,
+            "sigma_scale": self.sigma_scale,
+        }
+
+
+# file beams -----------------------------------------------------------------------------
+
+
+@lru_cache(maxsize=32)
+def _file_sha256(path: str, _mtime: int) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def file_checksum(path: str | Path) -> str:
+    """Return the SHA-256 of a file (memoised on path and modification time)."""
+    path = Path(path).resolve()
+    return _file_sha256(str(path), path.stat().st_mtime_ns)
+
+
+class _GriddedFileBeam(Beam):
+    """Common frequency interpolation of beams tabulated at native frequencies."""
+
+    native_freqs: np.ndarray
+
+    @property
+    def freq_range(self):
+        return float(self.native_freqs[0]), float(self.native_freqs[-1])
+
+    @abstractmethod
+    def _spatial(self, az: np.ndarray, za: np.ndarray) -> np.ndarray:
+        """Beam at native frequencies ``(Nnative, Ndir)``."""
+
+    def _interp_freq(self, native: np.ndarray, freqs: np.ndarray) -> np.ndarray:
+        if self.native_freqs.size == 1:
+            return np.repeat(native, freqs.size, axis=0)
+        spline = CubicSpline(self.native_freqs, native, axis=0)
+        return np.clip(spline(np.clip(freqs, *self.freq_range)), 0.0, None)
+
+    def power(self, freqs, az, za):
+        freqs = self.check_freqs(freqs)
+        return self._interp_freq(self._spatial(np.asarray(az), np.asarray(za)), freqs)
+
+    def on(self, az, za):
+        native = self._spatial(np.asarray(az, dtype=float), np.asarray(za, dtype=float))
+        outer = self
+
+        class _Eval(BeamEvaluator):
+            def __call__(self, freqs):
+                return outer._interp_freq(native, outer.check_freqs(freqs))
+
+        return _Eval(self, az, za)
+
+
+def _upsampled(path: str, pol: str, nside_out: int, mtime: int, maps: np.ndarray) -> np.ndarray:
+    """Harmonic upsampling of beam maps, memoised per file, pol and resolution."""
+    key = (path, pol, nside_out, mtime)
+    if key not in _UPSAMPLED:
+        nside = hp.npix2nside(maps.shape[1])
+        lmax = 3 * nside - 1
+        fine = np.array(
+            [hp.alm2map(hp.map2alm(m, lmax=lmax, iter=3), nside_out, lmax=lmax) for m in maps],
+            dtype=np.float32,
+        )
+        _UPSAMPLED.clear()  # keep one beam's maps (~330 MB at nside 512 for 26 freqs)
+        _UPSAMPLED[key] = np.clip(fine, 0.0, None)
+    return _UPSAMPLED[key]
+
+
+_UPSAMPLED: dict[tuple, np.ndarray] = {}
+
+
+class HealpixFileBeam(_GriddedFileBeam):
+    """A HEALPix power beam read with pyuvdata (e.g. the HERA Fagnoni beamfits).
+
+    The stored maps (zenith at the pole, pyuvdata azimuth from east through north) are
+    upsampled once by spherical-harmonic interpolation (band limit ``3 nside - 1`` of the
+    file) to ``upsample_nside`` (stored as float32), then interpolated bilinearly: the
+    beam is smooth, so evaluating it on rotated grids does not add pixel-scale noise.
+    A cubic spline interpolates in frequency.
+    """
+
+    def __init__(self, path: str | Path, pol: str = "ee", upsample_nside: int = 512) -> None:
+        from autocal.io.beamfits import read_healpix_power_beam
+
+        self.path = Path(path)
+        self.pol = _check_pol(pol)
+        self.data = read_healpix_power_beam(self.path, self.pol)
+        self.native_freqs = self.data.freqs
+        self.name = self.path.name
+        nside = self.data.nside
+        full = np.zeros((self.data.freqs.size, hp.nside2npix(nside)))
+        pix = self.data.pixels
+        if self.data.nest:
+            pix = hp.nest2ring(nside, pix)
+        full[:, pix] = self.data.data
+        if pix.size != hp.nside2npix(nside):
+            logger.warning(
+                "%s covers %d of %d pixels; missing ones are zero",
+                self.path,
+                pix.size,
+                hp.nside2npix(nside),
+            )
+        self.upsample_nside = max(int(upsample_nside), nside)
+        if self.upsample_nside > nside:
+            full = _upsampled(
+                str(self.path.resolve()),
+                self.pol,
+                self.upsample_nside,
+                self.path.stat().st_mtime_ns,
+                full,
+            )
+        self._maps = full
+
+    def _spatial(self, az, za):
+        phi = np.mod(np.pi / 2 - az, 2 * np.pi)  # pyuvdata: azimuth from east to north
+        theta = np.clip(za, 0.0, np.pi)
+        return np.array([hp.get_interp_val(m, theta, phi) for m in self._maps], dtype=np.float64)
+
+    def describe(self):  # noqa: D102
+        return {
+            "beam": "uvbeam_healpix",
+            "file": str(self.path),
+            "pol": self.pol,
+            "upsample_nside": self.upsample_nside,
+            "sha256": file_checksum(self.path),
+        }
+
+
+class FekoFileBeam(_GriddedFileBeam):
+    """An EDGES FEKO beam (gain on a 1-degree azimuth x elevation grid above the horizon).
+
+    The file's azimuth is measured from the antenna excitation axis; true azimuth (east of
+    north) = file azimuth + ``rotation_from_north``. The pattern is bilinear in azimuth
+    and elevation, cubic in frequency, and zero below the horizon (the files do not cover
+    it). Polarisation: the single excitation of the file (``pol`` is recorded only).
+    """
+
+    def __init__(
+        self, path: str | Path, rotation_from_north: float = 90.0, pol: str = "ee"
+    ) -> None:
+        from autocal.io.feko import read_feko_beam
+
+        self.path = Path(path)
+        self.pol = _check_pol(pol)
+        self.rotation_from_north = float(rotation_from_north)
+        self.data = read_feko_beam(self.path)
+        self.native_freqs = self.data.freqs
+        self.name = f"feko:{self.path.parent.name}/{self.path.name}"
+
+    def _spatial(self, az, za):
+        gain = self.data.gain  # (Nf, 360, 91)
+        file_az = np.mod(np.degrees(az) - self.rotation_from_north, 360.0)
+        el = 90.0 - np.degrees(za)
+        above = el >= 0
+        el_c = np.clip(el, 0.0, 90.0)
+        i0 = np.floor(file_az).astype(int) % 360
+        i1 = (i0 + 1) % 360
+        wa = file_az - np.floor(file_az)
+        j0 = np.minimum(np.floor(el_c).astype(int), 89)
+        wb = el_c - j0
+        out = (
+            (1 - wa) * (1 - wb) * gain[:, i0, j0]
+            + wa * (1 - wb) * gain[:, i1, j0]
+            + (1 - wa) * wb * gain[:, i0, j0 + 1]
+            + wa * wb * gain[:, i1, j0 + 1]
+        )
+        return np.where(above[None, :], out, 0.0)
+
+    def describe(self):  # noqa: D102
+        return {
+            "beam": "feko",
+            "file": str(self.path),
+            "pol": self.pol,
+            "rotation_from_north_deg": self.rotation_from_north,
+            "sha256": file_checksum(self.path),
+        }
+
+
+_BEAM_HELP = (
+    "beams: dipole, airy, hera (the Fagnoni beamfits in the data folder), edges-low, "
+    "edges-low-45deg, edges-mid, edges-high (FEKO files in the data folder), or a path to a "
+    "UVBeam file (.beamfits, .fits, .h5) or an EDGES FEKO .txt file"
+)
+
+
+def get_beam(spec: str | Beam, pol: str = "ee") -> Beam:
+    """Resolve a beam specification.
+
+    Parameters
+    ----------
+    spec
+        A :class:`Beam`, a name (see ``_BEAM_HELP``) or a file path.
+    pol
+        ``"ee"`` or ``"nn"``.
+
+    Returns
+    -------
+    Beam
+        The beam.
+
+    Raises
+    ------
+    BeamError
+        For unknown names or unreadable files.
+    """
+    from autocal.io.datasets import EDGES_BEAM_FILES, HERA_BEAM_FILE, data_file
+    from autocal.io.feko import BeamFileError
+
+    if isinstance(spec, Beam):
+        return spec
+    pol = _check_pol(pol)
+    key = str(spec).strip()
+    low = key.lower()
+    try:
+        if low == "dipole":
+            return GaussianDipoleBeam(pol=pol)
+        if low == "airy":
+            return AiryBeam(pol=pol)
+        if low == "hera":
+            return HealpixFileBeam(data_file(HERA_BEAM_FILE, "HERA Fagnoni beam"), pol)
+        if low in EDGES_BEAM_FILES:
+            return FekoFileBeam(data_file(EDGES_BEAM_FILES[low], f"EDGES {low} beam"), pol=pol)
+        path = Path(key).expanduser()
+        if path.suffix.lower() == ".txt":
+            return FekoFileBeam(path, pol=pol)
+        if path.suffix.lower() in {".beamfits", ".fits", ".h5", ".uvbeam"} or path.exists():
+            return HealpixFileBeam(path, pol)
+    except (BeamFileError, FileNotFoundError) as err:
+        raise BeamError(str(err)) from err
+    raise BeamError(f"unknown beam {spec!r}; {_BEAM_HELP}")

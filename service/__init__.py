@@ -1,0 +1,1 @@
+"""The autocal REST job service (imported as ``autocal.service``); built in a later issue."""
