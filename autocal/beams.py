@@ -9,6 +9,10 @@ their beam weight sees the ground.
 Polarisations: ``ee`` is the east-west dipole (the "XX" of older HERA papers), ``nn`` the
 north-south one. An east-west dipole's pattern is wider along north-south (its H-plane).
 
+A dish fed by a dipole behaves the other way round in its main lobe: the feed's narrower
+E-plane pattern under-illuminates the dish along the dipole, so the HERA ``ee`` primary
+beam is *wider* east-west near zenith (tested against the Fagnoni file).
+
 pyuvdata's UVBeam measures azimuth from east through north, so ``az_uvbeam = pi/2 - az``;
 EDGES FEKO files measure azimuth from the antenna's excitation axis, rotated to true
 azimuth by ``rotation_from_north`` (edges-analysis default: 90 deg).
@@ -398,7 +402,11 @@ class HealpixFileBeam(_GriddedFileBeam):
     def _spatial(self, az, za):
         phi = np.mod(np.pi / 2 - az, 2 * np.pi)  # pyuvdata: azimuth from east to north
         theta = np.clip(za, 0.0, np.pi)
-        return np.array([hp.get_interp_val(m, theta, phi) for m in self._maps], dtype=np.float64)
+        theta, phi = np.atleast_1d(theta), np.atleast_1d(phi)
+        out = np.empty((self._maps.shape[0], theta.size))
+        for i, m in enumerate(self._maps):
+            out[i] = np.reshape(hp.get_interp_val(m, theta, phi), theta.size)
+        return out
 
     def describe(self):  # noqa: D102
         return {

@@ -150,7 +150,7 @@ class SkyModel(ABC):
             The low-rank sky.
         """
         freqs = _check_freqs(freqs)
-        if nside < 1 or not hp.isnsideok(nside):
+        if nside < 1 or not hp.isnsideok(nside, nest=True):
             raise SkyModelError(f"nside {nside} is not a power of two >= 1")
         time = parse_epoch(epoch)
         maps, spectra, labels = self.galactic(freqs, nside)

@@ -383,7 +383,7 @@ def compute_tsky(
     tg = _tgnd_array(tgnd, freqs.size)
     if method not in {"fft", "brute"}:
         raise TskyError(f"unknown method {method!r}: use 'fft' or 'brute'")
-    if not hp.isnsideok(nside) or nside < 2:
+    if not hp.isnsideok(nside, nest=True) or nside < 2:
         raise TskyError(f"nside {nside} must be a power of two >= 2")
     time_epoch = parse_epoch(epoch)
     meta = {

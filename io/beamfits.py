@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -79,7 +80,11 @@ def _read_cached(path: str, pol: str, _mtime: int) -> HealpixBeamData:
     if pol not in POL_NAMES:
         raise BeamFileError(f"polarisation {pol!r} not supported: use one of {POL_NAMES}")
     try:
-        beam = UVBeam.from_file(path)
+        with warnings.catch_warnings():
+            # Old files lack mount_type / feed metadata: pyuvdata's deprecation notices
+            # about them are not actionable by an autocal user.
+            warnings.simplefilter("ignore", DeprecationWarning)
+            beam = UVBeam.from_file(path)
     except Exception as err:  # pyuvdata raises many kinds for unreadable files
         raise BeamFileError(f"{path} is not a readable UVBeam file: {err}") from err
     if beam.beam_type != "power":
@@ -89,7 +94,10 @@ def _read_cached(path: str, pol: str, _mtime: int) -> HealpixBeamData:
             f"{path}: pixel coordinate system {beam.pixel_coordinate_system!r}; autocal "
             "reads HEALPix beams (convert with UVBeam.to_healpix)"
         )
-    x_orient = getattr(beam, "x_orientation", None) or "east"
+    try:
+        x_orient = beam.get_x_orientation_from_feeds() or "east"
+    except AttributeError:  # pyuvdata < 3.2
+        x_orient = getattr(beam, "x_orientation", None) or "east"
     pol_nums = uvutils.polstr2num(pol, x_orientation=x_orient)
     if pol_nums not in list(beam.polarization_array):
         names = uvutils.polnum2str(beam.polarization_array, x_orientation=x_orient)

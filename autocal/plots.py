@@ -1,0 +1,96 @@
+"""Figures of autocal products (matplotlib, Agg backend, written atomically)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+
+def _figure(nrows: int, ncols: int, size: tuple[float, float]) -> tuple[Any, Any]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt.subplots(nrows, ncols, figsize=size, constrained_layout=True)
+
+
+def save_figure(fig: Any, path: str | Path) -> Path:
+    """Save a figure atomically (PNG unless the suffix says otherwise) and close it."""
+    import matplotlib.pyplot as plt
+
+    from autocal.io.tskyfile import atomic_path
+
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format=path.suffix.lstrip(".") or "png")
+    plt.close(fig)
+    logger.info("wrote %s", path)
+    return path
+
+
+def plot_tsky(result: Any, path: str | Path, title: str | None = None) -> Path:
+    """Plot a Tsky table: waterfall, Tsky vs LST at three frequencies, spectrum.
+
+    Parameters
+    ----------
+    result
+        A :class:`autocal.tsky.TskyResult`.
+    path
+        Output image.
+    title
+        Figure title (default: sky, beam and site from ``result.meta``).
+
+    Returns
+    -------
+    pathlib.Path
+        The written file.
+    """
+    fmhz = result.freqs / 1e6
+    lsts = result.lsts
+    fig, axes = _figure(1, 3, (15, 4.2))
+    order = np.argsort(lsts)
+    if lsts.size > 1 and fmhz.size > 1:
+        mesh = axes[0].pcolormesh(
+            fmhz, lsts[order], result.tsky[order], shading="auto", norm=_lognorm(result.tsky)
+        )
+        fig.colorbar(mesh, ax=axes[0], label="Tsky [K]")
+    else:
+        axes[0].imshow(result.tsky, aspect="auto", norm=_lognorm(result.tsky))
+    axes[0].set(xlabel="frequency [MHz]", ylabel="LST [h]", title="Tsky(nu, LST)")
+    for idx in np.unique(np.linspace(0, fmhz.size - 1, 3).astype(int)):
+        axes[1].plot(lsts[order], result.tsky[order, idx], label=f"{fmhz[idx]:.1f} MHz")
+    axes[1].set(xlabel="LST [h]", ylabel="Tsky [K]", yscale="log", title="Tsky vs LST")
+    axes[1].legend(fontsize=8)
+    axes[2].loglog(fmhz, result.tsky.mean(axis=0), label="mean over LST")
+    axes[2].fill_between(
+        fmhz, result.tsky.min(axis=0), result.tsky.max(axis=0), alpha=0.3, label="range over LST"
+    )
+    axes[2].set(xlabel="frequency [MHz]", ylabel="Tsky [K]", title="spectrum")
+    axes[2].legend(fontsize=8)
+    if title is None:
+        meta = result.meta
+        sky = meta.get("sky", {}).get("model", "?") if isinstance(meta.get("sky"), dict) else "?"
+        beam = meta.get("beam", {}) if isinstance(meta.get("beam"), dict) else {}
+        site = meta.get("site", {}).get("name", "?") if isinstance(meta.get("site"), dict) else "?"
+        beam_name = beam.get("file", beam.get("beam", "?"))
+        title = (
+            f"sky {sky}, beam {Path(str(beam_name)).name} {beam.get('pol', '')}, "
+            f"site {site}, Tgnd {meta.get('tgnd_K', '?')} K, nside {meta.get('nside', '?')}"
+        )
+    fig.suptitle(title, fontsize=10)
+    return save_figure(fig, path)
+
+
+def _lognorm(values: np.ndarray) -> Any:
+    from matplotlib.colors import LogNorm
+
+    positive = values[values > 0]
+    if positive.size == 0:
+        return None
+    return LogNorm(vmin=positive.min(), vmax=positive.max())
