@@ -46,14 +46,16 @@ def parse_range(text: str, what: str, unit: str) -> np.ndarray:
             if len(parts) != 3:
                 raise ValueError
             start, stop, num = float(parts[0]), float(parts[1]), int(parts[2])
-            if num < 1:
-                raise CliError(f"--{what}: N must be >= 1 (got {num})")
-            return np.linspace(start, stop, num)
-        values = np.array([float(v) for v in text.split(",") if v.strip()])
+        else:
+            values = np.array([float(v) for v in text.split(",") if v.strip()])
     except ValueError as err:
         raise CliError(
             f"--{what} {text!r}: give START:STOP:N ({unit}) or a comma-separated list"
         ) from err
+    if ":" in text:
+        if num < 1:
+            raise CliError(f"--{what}: N must be >= 1 (got {num})")
+        return np.linspace(start, stop, num)
     if values.size == 0:
         raise CliError(f"--{what} is empty")
     return values

@@ -56,7 +56,7 @@ def test_unavailable_pygdsm_model_names_the_file(monkeypatch):
     monkeypatch.delenv("AUTOCAL_ALLOW_DOWNLOAD", raising=False)
     from autocal.io.datasets import DataFileMissingError
 
-    with pytest.raises(DataFileMissingError, match="gsm2016_components.h5"):
+    with pytest.raises(DataFileMissingError, match=r"gsm2016_components\.h5"):
         PygdsmSky("gsm2016").galactic(np.array([1e8]), 32)
 
 
