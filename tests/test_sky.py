@@ -88,3 +88,14 @@ def test_hadec_to_altaz_conventions():
     alt, az = hadec_to_altaz(np.array([0.0, -0.3]), np.array([0.0, lat]), lat)
     assert az[0] == pytest.approx(0.0, abs=1e-12)
     assert 0 < az[1] < np.pi  # negative hour angle = rising in the east
+
+
+def test_import_configures_astropy_offline():
+    from astropy.coordinates import EarthLocation
+    from astropy.utils import iers
+    from astropy.utils.data import conf
+
+    assert conf.allow_internet is False
+    assert iers.conf.auto_download is False
+    registry = EarthLocation._site_registry
+    assert registry is not None and len(registry.names) > 0
