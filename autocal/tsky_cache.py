@@ -34,8 +34,7 @@ def cache_dir() -> Path | None:
 def cache_key(meta: dict[str, Any], freqs: np.ndarray, lsts: np.ndarray, tgnd: np.ndarray) -> str:
     """Hash everything that determines a Tsky table."""
     digest = hashlib.sha256()
-    stable = {k: v for k, v in meta.items() if k not in {"compute_seconds", "component_labels"}}
-    digest.update(json.dumps(stable, sort_keys=True, default=str).encode())
+    digest.update(json.dumps(meta, sort_keys=True, default=str).encode())
     for arr in (freqs, lsts, tgnd):
         digest.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
     return digest.hexdigest()[:32]

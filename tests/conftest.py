@@ -18,8 +18,6 @@ if "AUTOCAL_CACHE_DIR" not in os.environ:
 
 from autocal.io.datasets import data_dir
 
-import autocal
-
 
 def _in_ci() -> bool:
     return os.environ.get("CI", "").strip().lower() in {"1", "true", "yes"}
@@ -49,6 +47,3 @@ def tmp_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     folder = tmp_path / "cache"
     monkeypatch.setenv("AUTOCAL_CACHE_DIR", str(folder))
     return folder
-
-
-assert autocal.__version__
