@@ -94,3 +94,45 @@ def _lognorm(values: np.ndarray) -> Any:
     if positive.size == 0:
         return None
     return LogNorm(vmin=positive.min(), vmax=positive.max())
+
+
+def band(ax: Any, x: np.ndarray, y: np.ndarray, sigma: np.ndarray, label: str, **kw: Any) -> None:
+    """Plot ``y`` with a shaded 2-sigma band."""
+    (line,) = ax.plot(x, y, label=label, lw=1, **kw)
+    ax.fill_between(x, y - 2 * sigma, y + 2 * sigma, color=line.get_color(), alpha=0.25, lw=0)
+
+
+def plot_solution(solution: Any, path: str | Path, title: str | None = None) -> Path:
+    """Plot ``|g|``, ``G`` and ``Trxr`` vs frequency with 2-sigma bands for every antenna/pol.
+
+    Parameters
+    ----------
+    solution
+        A :class:`autocal.fit.Solution`.
+    path
+        Output image.
+    title
+        Figure title.
+
+    Returns
+    -------
+    pathlib.Path
+        The written file.
+    """
+    fmhz = solution.freqs / 1e6
+    fig, axes = _figure(3, 1, (9, 9))
+    values = (
+        (solution.abs_g, solution.sigma_abs_g, "|g|"),
+        (solution.G, solution.sigma_G, "G"),
+        (solution.Trxr, solution.sigma_Trxr, "Trxr [K]"),
+    )
+    for ax, (val, sig, name) in zip(axes, values, strict=True):
+        for ia, ant in enumerate(solution.antennas):
+            for ip, pol in enumerate(solution.pols):
+                band(ax, fmhz, val[ia, ip], sig[ia, ip], f"ant {ant} {pol}")
+        ax.set(ylabel=name)
+    axes[-1].set(xlabel="frequency [MHz]")
+    if solution.antennas.size * len(solution.pols) <= 12:
+        axes[0].legend(fontsize=7, ncol=2)
+    fig.suptitle(title or f"{solution.model.kind} fit, 2-sigma bands", fontsize=10)
+    return save_figure(fig, path)

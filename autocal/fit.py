@@ -1,0 +1,818 @@
+"""Fit receiver gain and noise to auto-correlations against a Tsky model.
+
+Per antenna, polarisation and channel the data are ``R(t) = G(t) Tsky(t) + n(t)`` with
+
+- the *constant* model: ``G(t) = G``, ``n(t) = n`` (parameters ``x = (G, n)``);
+- the *Legendre* model of order ``p``: ``G(t) = sum_k g_k P_k(s)``, ``n(t) = sum_k n_k
+  P_k(s)``, ``s`` the LST mapped linearly onto ``[-1, 1]`` over the model's LST range
+  (``x = (g_0..g_p, n_0..n_p)``; order 1 is the paper's ``G0 + G1 t``).
+
+The generalised least-squares solution ``x = (A^T W A)^-1 A^T W y`` with ``C_x = (A^T W
+A)^-1`` is computed from *normal-equation sums* (:class:`NormalSums`) accumulated chunk by
+chunk, so a night never sits in memory and sums from several workers simply add. All
+channels, antennas and polarisations are solved at once with batched numpy linear algebra.
+
+Weights ``W``:
+
+- ``"radiometer"``: ``sigma = R / sqrt(dnu dt N)`` (radiometer equation; ``dnu`` channel
+  width, ``dt`` integration time, ``N`` the sample count). The first pass uses the data
+  for ``R``; later passes (``iterations``) use the fitted model, which removes the small
+  bias that data-derived weights carry (``-2 sigma_R^2 / R^2`` relative, see the tests).
+- ``"identity"``: unit weights (what the paper used on real data). The covariance is then
+  scaled by ``chi^2 / dof`` (the residual variance), the usual OLS estimate.
+- an array of inverse variances ``1 / sigma^2`` broadcastable to the data.
+
+Flagged and non-finite samples get zero weight and are counted. A channel with too few
+samples, a singular normal matrix or a non-positive gain is flagged with its reason and
+its values set to NaN, never filled.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from numpy.polynomial import legendre
+
+from autocal.observation import Observation
+
+logger = logging.getLogger(__name__)
+
+#: Reasons a channel is flagged by the fit (``Solution.flag_reason`` codes).
+FLAG_REASONS: dict[int, str] = {
+    0: "ok",
+    1: "too few unflagged samples",
+    2: "singular normal matrix",
+    3: "non-positive gain",
+}
+#: Largest condition number of the (column-scaled) normal matrix accepted as solvable.
+MAX_CONDITION = 1e12
+
+
+class FitError(ValueError):
+    """Invalid fit input."""
+
+
+# the time model -------------------------------------------------------------------------
+
+
+def unwrap_lsts(lsts: np.ndarray) -> np.ndarray:
+    """Return LSTs (hours, in time order) made continuous across the 24 h wrap."""
+    lsts = np.asarray(lsts, dtype=np.float64)
+    return np.unwrap(lsts * (2 * np.pi / 24.0)) * (24.0 / (2 * np.pi))
+
+
+@dataclass(frozen=True)
+class FitModel:
+    """Which model to fit.
+
+    Parameters
+    ----------
+    kind
+        ``"constant"`` or ``"legendre"``.
+    order
+        Legendre order ``p`` (0 for the constant model).
+    lst_start, lst_span
+        The LST (hours) mapped to ``s = -1`` and the span (hours) mapped to ``s = 2``;
+        set from the data by :meth:`for_lsts`. Unused by the constant model.
+    """
+
+    kind: Literal["constant", "legendre"] = "constant"
+    order: int = 0
+    lst_start: float = 0.0
+    lst_span: float = 24.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("constant", "legendre"):
+            raise FitError(f"unknown model {self.kind!r}: use 'constant' or 'legendre'")
+        if self.kind == "constant" and self.order != 0:
+            raise FitError("the constant model has order 0; use kind='legendre' for order > 0")
+        if not 0 <= self.order <= 20:
+            raise FitError(f"Legendre order must be in 0..20, got {self.order}")
+        if not (np.isfinite(self.lst_span) and self.lst_span > 0):
+            raise FitError("the model's LST span must be positive")
+
+    @classmethod
+    def for_lsts(cls, lsts: np.ndarray, kind: str = "constant", order: int = 0) -> FitModel:
+        """Build a model whose time axis spans the given LSTs (hours, time order)."""
+        un = unwrap_lsts(lsts)
+        span = float(un.max() - un.min())
+        if kind == "legendre" and order > 0 and span <= 0:
+            raise FitError("a time-dependent model needs data at more than one LST")
+        return cls(kind, order, float(un.min() % 24.0), span if span > 0 else 24.0)  # type: ignore[arg-type]
+
+    @property
+    def nbasis(self) -> int:
+        """Number of time basis functions ``p + 1``."""
+        return self.order + 1
+
+    @property
+    def nparam(self) -> int:
+        """Number of parameters per channel ``2 (p + 1)``."""
+        return 2 * self.nbasis
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        """``("G", "n")`` or ``("g_0", .., "g_p", "n_0", .., "n_p")``."""
+        if self.kind == "constant":
+            return ("G", "n")
+        k = range(self.nbasis)
+        return tuple(f"g_{i}" for i in k) + tuple(f"n_{i}" for i in k)
+
+    def s(self, lsts: np.ndarray) -> np.ndarray:
+        """Map LSTs (hours) onto the model's ``[-1, 1]`` coordinate."""
+        offset = (np.asarray(lsts, dtype=np.float64) - self.lst_start) % 24.0
+        # An LST outside a span shorter than a day is put on the nearer side of it
+        # (before the start: s < -1; after the end: s > 1).
+        if self.lst_span < 24.0:
+            offset = np.where(
+                offset > self.lst_span + (24.0 - self.lst_span) / 2, offset - 24, offset
+            )
+        return 2.0 * offset / self.lst_span - 1.0
+
+    def basis(self, lsts: np.ndarray) -> np.ndarray:
+        """Return ``(nbasis, Ntime)`` Legendre polynomials ``P_k(s(t))``."""
+        if self.kind == "constant":
+            return np.ones((1, np.size(lsts)))
+        return legendre.legvander(self.s(lsts), self.order).T
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-serialisable description."""
+        return {
+            "kind": self.kind,
+            "order": self.order,
+            "lst_start_h": self.lst_start,
+            "lst_span_h": self.lst_span,
+            "parameters": list(self.param_names),
+        }
+
+
+def design(model: FitModel, tsky: np.ndarray, lsts: np.ndarray) -> np.ndarray:
+    """Return the design features ``(Npol, Nfreq, Ntime, nparam)``.
+
+    Parameters
+    ----------
+    model
+        The fit model.
+    tsky
+        ``(Npol, Ntime, Nfreq)`` (or ``(Ntime, Nfreq)``) model sky temperature in kelvin.
+    lsts
+        ``(Ntime,)`` hours.
+    """
+    tsky = np.asarray(tsky, dtype=np.float64)
+    if tsky.ndim == 2:
+        tsky = tsky[None]
+    basis = model.basis(lsts)  # (K, T)
+    tt = np.swapaxes(tsky, 1, 2)  # (P, F, T)
+    gain_part = tt[..., None] * basis.T[None, None]  # (P, F, T, K)
+    noise_part = np.broadcast_to(basis.T[None, None], gain_part.shape)
+    return np.concatenate([gain_part, noise_part], axis=-1)
+
+
+# normal-equation sums -------------------------------------------------------------------
+
+
+@dataclass
+class NormalSums:
+    """Sufficient statistics of the weighted least-squares problem per channel.
+
+    Arrays have leading axes ``(Nant, Npol, Nfreq)``; sums over time of ``w a a^T``
+    (``ata``), ``w a y`` (``aty``), ``w y^2`` (``yty``), the number of used samples
+    (``count``) and of excluded (flagged or non-finite) samples (``nflagged``). Two sums
+    over disjoint sets of integrations add with ``+``.
+    """
+
+    model: FitModel
+    ata: np.ndarray
+    aty: np.ndarray
+    yty: np.ndarray
+    count: np.ndarray
+    nflagged: np.ndarray
+    lst_min: float = np.inf
+    lst_max: float = -np.inf
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def zeros(cls, model: FitModel, nant: int, npol: int, nfreq: int) -> NormalSums:
+        """Empty sums."""
+        m = model.nparam
+        lead = (nant, npol, nfreq)
+        return cls(
+            model,
+            np.zeros((*lead, m, m)),
+            np.zeros((*lead, m)),
+            np.zeros(lead),
+            np.zeros(lead, np.int64),
+            np.zeros(lead, np.int64),
+        )
+
+    def __add__(self, other: NormalSums) -> NormalSums:
+        if self.model != other.model:
+            raise FitError("cannot add normal sums of different models")
+        if self.ata.shape != other.ata.shape:
+            raise FitError(f"cannot add normal sums of shapes {self.ata.shape}, {other.ata.shape}")
+        return NormalSums(
+            self.model,
+            self.ata + other.ata,
+            self.aty + other.aty,
+            self.yty + other.yty,
+            self.count + other.count,
+            self.nflagged + other.nflagged,
+            min(self.lst_min, other.lst_min),
+            max(self.lst_max, other.lst_max),
+            {**self.info, **other.info},
+        )
+
+
+def _check_tsky(tsky: np.ndarray, npol: int, ntime: int, nfreq: int) -> np.ndarray:
+    tsky = np.asarray(tsky, dtype=np.float64)
+    if tsky.ndim == 2:
+        tsky = np.broadcast_to(tsky[None], (npol, *tsky.shape))
+    if tsky.shape != (npol, ntime, nfreq):
+        raise FitError(
+            f"Tsky has shape {tsky.shape}; expected (Npol, Ntime, Nfreq) = "
+            f"{(npol, ntime, nfreq)} or (Ntime, Nfreq)"
+        )
+    if not np.all(np.isfinite(tsky)):
+        raise FitError("the Tsky model has non-finite values")
+    return tsky
+
+
+def weights_for(
+    weights: str | np.ndarray,
+    data: np.ndarray,
+    usable: np.ndarray,
+    bandwidth_time: np.ndarray | float | None,
+    reference: np.ndarray | None = None,
+) -> np.ndarray:
+    """Return inverse-variance weights (zero where not usable).
+
+    Parameters
+    ----------
+    weights
+        ``"radiometer"``, ``"identity"`` or an array of ``1 / sigma^2``.
+    data
+        ``(Nant, Npol, Ntime, Nfreq)`` auto-correlations.
+    usable
+        Boolean mask of samples to use.
+    bandwidth_time
+        ``dnu dt N`` per sample (radiometer weights only).
+    reference
+        Power used in the radiometer equation instead of the data (e.g. a model).
+    """
+    if isinstance(weights, str):
+        if weights == "identity":
+            return usable.astype(np.float64)
+        if weights == "radiometer":
+            if bandwidth_time is None:
+                raise FitError("radiometer weights need the channel width and integration time")
+            power = data if reference is None else reference
+            bt = np.broadcast_to(np.asarray(bandwidth_time, np.float64), data.shape)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                w = bt / power**2
+            ok = usable & np.isfinite(w) & (w > 0)
+            return np.where(ok, w, 0.0)
+        raise FitError(
+            f"unknown weights {weights!r}: use 'radiometer', 'identity' or an array of 1/sigma^2"
+        )
+    w = np.broadcast_to(np.asarray(weights, np.float64), data.shape)
+    if np.any(w[usable] < 0) or not np.all(np.isfinite(w[usable])):
+        raise FitError("user weights (1/sigma^2) must be finite and >= 0")
+    return np.where(usable, w, 0.0)
+
+
+def accumulate(
+    model: FitModel,
+    data: np.ndarray,
+    tsky: np.ndarray,
+    lsts: np.ndarray,
+    *,
+    flags: np.ndarray | None = None,
+    weights: str | np.ndarray = "radiometer",
+    bandwidth_time: np.ndarray | float | None = None,
+    reference: np.ndarray | None = None,
+) -> NormalSums:
+    """Accumulate the normal-equation sums of one chunk of integrations.
+
+    Parameters
+    ----------
+    model
+        The fit model (its LST range must cover the whole fit, not just this chunk).
+    data
+        ``(Nant, Npol, Ntime, Nfreq)`` auto-correlations.
+    tsky
+        ``(Npol, Ntime, Nfreq)`` or ``(Ntime, Nfreq)`` model Tsky in kelvin.
+    lsts
+        ``(Ntime,)`` hours.
+    flags
+        Boolean flags like ``data`` (``True`` excludes the sample).
+    weights
+        See :func:`weights_for`.
+    bandwidth_time
+        ``dnu dt N`` for radiometer weights.
+    reference
+        Model power for the radiometer weights (second and later passes).
+
+    Returns
+    -------
+    NormalSums
+        The chunk's sums.
+    """
+    data = np.asarray(data, dtype=np.float64)
+    if data.ndim != 4:
+        raise FitError(f"data must be (Nant, Npol, Ntime, Nfreq), got shape {data.shape}")
+    nant, npol, ntime, nfreq = data.shape
+    lsts = np.asarray(lsts, dtype=np.float64)
+    if lsts.shape != (ntime,):
+        raise FitError(f"{lsts.size} LSTs for {ntime} integrations")
+    tsky = _check_tsky(tsky, npol, ntime, nfreq)
+    usable = np.isfinite(data)
+    if flags is not None:
+        usable &= ~np.broadcast_to(np.asarray(flags, bool), data.shape)
+    w = weights_for(weights, data, usable, bandwidth_time, reference)
+    used = w > 0
+    y = np.where(used, data, 0.0)
+
+    a = design(model, tsky, lsts)  # (P, F, T, M)
+    m = model.nparam
+    wt = np.swapaxes(w, 2, 3)  # (A, P, F, T)
+    wy = wt * np.swapaxes(y, 2, 3)
+    aty = (wy[..., None, :] @ a)[..., 0, :]  # (A, P, F, M)
+    iu, ju = np.triu_indices(m)
+    pairs = a[..., iu] * a[..., ju]  # (P, F, T, Q)
+    upper = (wt[..., None, :] @ pairs)[..., 0, :]  # (A, P, F, Q)
+    ata = np.empty((nant, npol, nfreq, m, m))
+    ata[..., iu, ju] = upper
+    ata[..., ju, iu] = upper
+    yty = np.einsum("apft,apft->apf", wy, np.swapaxes(y, 2, 3))
+    count = np.swapaxes(used, 2, 3).sum(axis=-1)
+    nflagged = ntime - count
+    un = lsts
+    return NormalSums(
+        model,
+        ata,
+        aty,
+        yty,
+        count.astype(np.int64),
+        nflagged.astype(np.int64),
+        float(un.min()),
+        float(un.max()),
+    )
+
+
+# solving --------------------------------------------------------------------------------
+
+
+def solve_sums(
+    sums: NormalSums,
+    *,
+    min_samples: int | None = None,
+    scale_covariance: bool = False,
+    max_condition: float = MAX_CONDITION,
+) -> dict[str, np.ndarray]:
+    """Solve the normal equations of every channel.
+
+    Parameters
+    ----------
+    sums
+        Accumulated sums.
+    min_samples
+        Fewest used samples for a channel to be solved (default ``nparam + 1``).
+    scale_covariance
+        Multiply the covariance by ``chi^2 / dof`` (for weights that are not inverse
+        variances, e.g. identity).
+    max_condition
+        Largest condition number of the column-scaled normal matrix.
+
+    Returns
+    -------
+    dict
+        ``coeffs`` (..., M), ``cov`` (..., M, M), ``chi2``, ``dof``, ``flag_reason``.
+    """
+    m = sums.model.nparam
+    min_samples = m + 1 if min_samples is None else int(min_samples)
+    if min_samples < m:
+        raise FitError(f"min_samples must be at least the number of parameters ({m})")
+    ata, aty = sums.ata, sums.aty
+    reason = np.zeros(sums.count.shape, np.int8)
+    reason[sums.count < min_samples] = 1
+    diag = np.diagonal(ata, axis1=-2, axis2=-1)
+    ok = (reason == 0) & np.all(diag > 0, axis=-1)
+    reason[(reason == 0) & ~ok] = 2
+    d = np.where(diag > 0, np.sqrt(np.where(diag > 0, diag, 1.0)), 1.0)
+    scaled = ata / (d[..., :, None] * d[..., None, :])
+    eye = np.eye(m)
+    scaled = np.where(ok[..., None, None], scaled, eye)
+    cond = np.linalg.cond(scaled)
+    singular = ok & ~(np.isfinite(cond) & (cond < max_condition))
+    reason[singular] = 2
+    ok &= ~singular
+    scaled = np.where(ok[..., None, None], scaled, eye)
+    inv = np.linalg.inv(scaled)
+    cov = inv / (d[..., :, None] * d[..., None, :])
+    coeffs = (cov @ aty[..., None])[..., 0]
+    chi2 = sums.yty - np.einsum("...m,...m->...", coeffs, aty)
+    dof = (sums.count - m).astype(np.float64)
+    if scale_covariance:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            factor = np.where(dof > 0, chi2 / dof, np.nan)
+        cov = cov * factor[..., None, None]
+    reason[ok & ~(coeffs[..., 0] > 0)] = 3
+    bad = reason != 0
+    coeffs = np.where(bad[..., None], np.nan, coeffs)
+    cov = np.where(bad[..., None, None], np.nan, cov)
+    chi2 = np.where(bad, np.nan, chi2)
+    return {"coeffs": coeffs, "cov": cov, "chi2": chi2, "dof": dof, "flag_reason": reason}
+
+
+# the solution ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class Solution:
+    """Fitted receiver gain and noise per antenna, polarisation and channel.
+
+    Parameters
+    ----------
+    model
+        The fitted model.
+    antennas
+        ``(Nant,)`` antenna numbers.
+    pols
+        Polarisation names.
+    freqs
+        ``(Nfreq,)`` Hz.
+    lsts, jds
+        ``(Ntime,)`` the fitted integrations (hours; Julian dates).
+    coeffs
+        ``(Nant, Npol, Nfreq, nparam)``: ``(G, n)`` or ``(g_0..g_p, n_0..n_p)``.
+    cov
+        ``(Nant, Npol, Nfreq, nparam, nparam)`` parameter covariance.
+    chi2, dof
+        ``(Nant, Npol, Nfreq)`` chi-square and degrees of freedom (used samples minus
+        parameters). With identity weights chi-square is in data units squared.
+    count, nflagged
+        Used and excluded samples per channel.
+    flag_reason
+        ``(Nant, Npol, Nfreq)`` int codes (:data:`FLAG_REASONS`); 0 = solved.
+    config
+        Resolved configuration: weights, iterations, sky, beam, Tsky conventions, inputs.
+    residuals
+        Optional ``(Nant, Npol, Ntime, Nfreq)`` normalised residuals ``(R - model) / sigma``
+        (identity weights: divided by the fitted residual rms).
+    antenna_names
+        Names of the antennas.
+    """
+
+    model: FitModel
+    antennas: np.ndarray
+    pols: tuple[str, ...]
+    freqs: np.ndarray
+    lsts: np.ndarray
+    jds: np.ndarray
+    coeffs: np.ndarray
+    cov: np.ndarray
+    chi2: np.ndarray
+    dof: np.ndarray
+    count: np.ndarray
+    nflagged: np.ndarray
+    flag_reason: np.ndarray
+    config: dict[str, Any] = field(default_factory=dict)
+    residuals: np.ndarray | None = None
+    antenna_names: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        lead = (len(self.antennas), len(self.pols), len(self.freqs))
+        m = self.model.nparam
+        checks = {
+            "coeffs": (self.coeffs, (*lead, m)),
+            "cov": (self.cov, (*lead, m, m)),
+            "chi2": (self.chi2, lead),
+            "dof": (self.dof, lead),
+            "count": (self.count, lead),
+            "nflagged": (self.nflagged, lead),
+            "flag_reason": (self.flag_reason, lead),
+        }
+        for name, (arr, shape) in checks.items():
+            if np.shape(arr) != shape:
+                raise FitError(f"Solution.{name} has shape {np.shape(arr)}, expected {shape}")
+        if np.shape(self.lsts) != np.shape(self.jds):
+            raise FitError("Solution lsts and jds differ in length")
+        if self.residuals is not None and self.residuals.shape != (
+            lead[0],
+            lead[1],
+            len(self.lsts),
+            lead[2],
+        ):
+            raise FitError("Solution.residuals has the wrong shape")
+
+    # basic quantities ------------------------------------------------------------------
+    @property
+    def flags(self) -> np.ndarray:
+        """``(Nant, Npol, Nfreq)`` ``True`` where the channel could not be solved."""
+        return self.flag_reason != 0
+
+    @property
+    def time_average(self) -> np.ndarray:
+        """``(nbasis,)`` mean of each basis function over the fitted integrations."""
+        return self.model.basis(self.lsts).mean(axis=1)
+
+    def _mean_param(self, which: int) -> tuple[np.ndarray, np.ndarray]:
+        nb = self.model.nbasis
+        v = np.zeros(self.model.nparam)
+        v[which * nb : (which + 1) * nb] = self.time_average
+        value = self.coeffs @ v
+        var = np.einsum("i,...ij,j->...", v, self.cov, v)
+        return value, var
+
+    @property
+    def G(self) -> np.ndarray:
+        """Gain ``G = |g|^2`` averaged over the fitted integrations."""
+        return self._mean_param(0)[0]
+
+    @property
+    def n(self) -> np.ndarray:
+        """Noise offset ``n = G Trxr`` averaged over the fitted integrations."""
+        return self._mean_param(1)[0]
+
+    @property
+    def sigma_G(self) -> np.ndarray:
+        """1-sigma uncertainty of :attr:`G`."""
+        return np.sqrt(self._mean_param(0)[1])
+
+    @property
+    def sigma_n(self) -> np.ndarray:
+        """1-sigma uncertainty of :attr:`n`."""
+        return np.sqrt(self._mean_param(1)[1])
+
+    def _mean_cov_gn(self) -> np.ndarray:
+        nb = self.model.nbasis
+        vg = np.zeros(self.model.nparam)
+        vn = np.zeros(self.model.nparam)
+        vg[:nb] = self.time_average
+        vn[nb:] = self.time_average
+        return np.einsum("i,...ij,j->...", vg, self.cov, vn)
+
+    @property
+    def Trxr(self) -> np.ndarray:
+        """Receiver temperature ``n / G`` (time-averaged ``n`` over time-averaged ``G``)."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return self.n / self.G
+
+    @property
+    def sigma_Trxr(self) -> np.ndarray:
+        """1-sigma uncertainty of :attr:`Trxr` by linear propagation.
+
+        ``Var(Trxr) = Trxr^2 [C_GG / G^2 + C_nn / n^2 - 2 C_Gn / (G n)]``, the paper's
+        ``sum_ij (-1)^(i+j) C_ij / (x_i x_j)`` written out (the cross term enters with a
+        minus sign because ``d(n/G)/dG = -n/G^2``).
+        """
+        return trxr_sigma(self.G, self.n, self.sigma_G**2, self.sigma_n**2, self._mean_cov_gn())
+
+    @property
+    def abs_g(self) -> np.ndarray:
+        """Gain amplitude ``|g| = sqrt(G)`` (NaN where flagged)."""
+        with np.errstate(invalid="ignore"):
+            return np.sqrt(self.G)
+
+    @property
+    def sigma_abs_g(self) -> np.ndarray:
+        """1-sigma uncertainty of ``|g|``: ``sigma_G / (2 |g|)``."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return self.sigma_G / (2 * self.abs_g)
+
+    @property
+    def reduced_chi2(self) -> np.ndarray:
+        """``chi^2 / dof`` (NaN where ``dof <= 0``)."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(self.dof > 0, self.chi2 / self.dof, np.nan)
+
+    # the time model --------------------------------------------------------------------
+    def evaluate(self, lsts: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Evaluate ``G(t)``, ``n(t)``, ``Trxr(t)`` and their 1-sigma errors.
+
+        Parameters
+        ----------
+        lsts
+            LSTs in hours (default: the fitted integrations).
+
+        Returns
+        -------
+        dict
+            ``G``, ``n``, ``Trxr``, ``sigma_G``, ``sigma_n``, ``sigma_Trxr``, each
+            ``(Nant, Npol, Ntime, Nfreq)``.
+        """
+        lsts = self.lsts if lsts is None else np.atleast_1d(np.asarray(lsts, np.float64))
+        nb = self.model.nbasis
+        basis = self.model.basis(lsts)  # (K, T)
+        g = np.einsum("kt,apfk->aptf", basis, self.coeffs[..., :nb])
+        n = np.einsum("kt,apfk->aptf", basis, self.coeffs[..., nb:])
+        cgg = self.cov[..., :nb, :nb]
+        cnn = self.cov[..., nb:, nb:]
+        cgn = self.cov[..., :nb, nb:]
+        var_g = np.einsum("kt,apfkl,lt->aptf", basis, cgg, basis)
+        var_n = np.einsum("kt,apfkl,lt->aptf", basis, cnn, basis)
+        cov_gn = np.einsum("kt,apfkl,lt->aptf", basis, cgn, basis)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            trxr = n / g
+        return {
+            "G": g,
+            "n": n,
+            "Trxr": trxr,
+            "sigma_G": np.sqrt(var_g),
+            "sigma_n": np.sqrt(var_n),
+            "sigma_Trxr": trxr_sigma(g, n, var_g, var_n, cov_gn),
+        }
+
+    def predict(self, tsky: np.ndarray, lsts: np.ndarray | None = None) -> np.ndarray:
+        """Model auto-correlations ``G(t) Tsky + n(t)``, ``(Nant, Npol, Ntime, Nfreq)``."""
+        lsts = self.lsts if lsts is None else np.asarray(lsts, np.float64)
+        a = design(self.model, _check_tsky(tsky, len(self.pols), lsts.size, self.freqs.size), lsts)
+        return np.einsum("pftm,apfm->aptf", a, self.coeffs)
+
+    def describe(self) -> dict[str, Any]:
+        """Short JSON-serialisable summary (medians over unflagged channels)."""
+        ok = ~self.flags
+
+        def med(x: np.ndarray) -> float | None:
+            vals = x[ok & np.isfinite(x)]
+            return float(np.median(vals)) if vals.size else None
+
+        return {
+            "model": self.model.describe(),
+            "antennas": self.antennas.tolist(),
+            "pols": list(self.pols),
+            "nfreq": int(self.freqs.size),
+            "ntime": int(self.lsts.size),
+            "flagged_channels": int(self.flags.sum()),
+            "median_G": med(self.G),
+            "median_abs_g": med(self.abs_g),
+            "median_Trxr_K": med(self.Trxr),
+            "median_sigma_Trxr_K": med(self.sigma_Trxr),
+            "median_reduced_chi2": med(self.reduced_chi2),
+        }
+
+
+def trxr_sigma(
+    g: np.ndarray, n: np.ndarray, var_g: np.ndarray, var_n: np.ndarray, cov_gn: np.ndarray
+) -> np.ndarray:
+    """Propagate ``(G, n)`` errors to ``Trxr = n / G`` (first order).
+
+    ``Var(Trxr) = Trxr^2 [Var(G)/G^2 + Var(n)/n^2 - 2 Cov(G, n)/(G n)]``.
+    """
+    with np.errstate(divide="ignore", invalid="ignore"):
+        trxr = n / g
+        var = trxr**2 * (var_g / g**2 + var_n / n**2 - 2 * cov_gn / (g * n))
+    return np.sqrt(np.where(var >= 0, var, np.nan))
+
+
+# the in-memory driver -------------------------------------------------------------------
+
+
+def fit(
+    obs: Observation,
+    tsky: np.ndarray,
+    *,
+    model: str | FitModel = "constant",
+    order: int = 1,
+    weights: str | np.ndarray = "radiometer",
+    iterations: int = 2,
+    min_samples: int | None = None,
+    scale_covariance: bool | None = None,
+    return_residuals: bool = False,
+    config: dict[str, Any] | None = None,
+) -> Solution:
+    """Fit gain and receiver noise to an observation held in memory.
+
+    Parameters
+    ----------
+    obs
+        The observation.
+    tsky
+        ``(Npol, Ntime, Nfreq)`` or ``(Ntime, Nfreq)`` model Tsky in kelvin at the
+        observation's LSTs and frequencies.
+    model
+        ``"constant"``, ``"legendre"`` or a :class:`FitModel`.
+    order
+        Legendre order for ``model="legendre"``.
+    weights
+        ``"radiometer"``, ``"identity"`` or an array of ``1 / sigma^2``.
+    iterations
+        Passes for radiometer weights: pass 1 weights by the data, later passes by the
+        fitted model (removes the weight-noise correlation bias). Ignored otherwise.
+    min_samples
+        Fewest used samples per channel.
+    scale_covariance
+        Scale the covariance by ``chi^2 / dof``; default ``True`` for identity weights.
+    return_residuals
+        Store normalised residuals in the solution.
+    config
+        Extra configuration recorded in the solution (sky, beam, inputs).
+
+    Returns
+    -------
+    Solution
+        The fitted solution.
+    """
+    if isinstance(model, FitModel):
+        fit_model = model
+    else:
+        fit_model = FitModel.for_lsts(obs.lsts, model, 0 if model == "constant" else order)
+    tsky = _check_tsky(tsky, len(obs.pols), obs.ntime, obs.nfreq)
+    is_radiometer = isinstance(weights, str) and weights == "radiometer"
+    if iterations < 1:
+        raise FitError("iterations must be >= 1")
+    npass = iterations if is_radiometer else 1
+    bt = obs.bandwidth_time() if is_radiometer else None
+    if is_radiometer and not np.all(bt[~obs.flags] > 0):
+        raise FitError(
+            "radiometer weights need positive channel width, integration time and nsamples; "
+            "the observation lacks them: use weights='identity'"
+        )
+    reference = None
+    solved: dict[str, np.ndarray] = {}
+    sums: NormalSums | None = None
+    scale = (
+        (isinstance(weights, str) and weights == "identity")
+        if scale_covariance is None
+        else scale_covariance
+    )
+    for ipass in range(npass):
+        sums = accumulate(
+            fit_model,
+            obs.data,
+            tsky,
+            obs.lsts,
+            flags=obs.flags,
+            weights=weights,
+            bandwidth_time=bt,
+            reference=reference,
+        )
+        solved = solve_sums(sums, min_samples=min_samples, scale_covariance=scale)
+        if ipass + 1 < npass:
+            a = design(fit_model, tsky, obs.lsts)
+            pred = np.einsum("pftm,apfm->aptf", a, solved["coeffs"])
+            # Channels that failed keep data-based weights.
+            reference = np.where(np.isfinite(pred) & (pred > 0), pred, obs.data)
+    assert sums is not None
+    nbad = int(np.sum(solved["flag_reason"] != 0))
+    if nbad:
+        logger.warning(
+            "%d of %d channels could not be solved: %s",
+            nbad,
+            solved["flag_reason"].size,
+            {
+                FLAG_REASONS[int(k)]: int(v)
+                for k, v in zip(*np.unique(solved["flag_reason"], return_counts=True), strict=True)
+                if k
+            },
+        )
+    cfg = {
+        "weights": weights if isinstance(weights, str) else "user",
+        "iterations": npass,
+        "scale_covariance": bool(scale),
+        "min_samples": min_samples if min_samples is not None else fit_model.nparam + 1,
+        **(config or {}),
+    }
+    solution = Solution(
+        model=fit_model,
+        antennas=obs.antennas,
+        pols=obs.pols,
+        freqs=obs.freqs,
+        lsts=obs.lsts,
+        jds=obs.jds,
+        coeffs=solved["coeffs"],
+        cov=solved["cov"],
+        chi2=solved["chi2"],
+        dof=solved["dof"],
+        count=sums.count,
+        nflagged=sums.nflagged,
+        flag_reason=solved["flag_reason"],
+        config=cfg,
+        antenna_names=obs.antenna_names,
+    )
+    if return_residuals:
+        solution = _with_residuals(solution, obs, tsky, weights, reference, bt)
+    return solution
+
+
+def _with_residuals(
+    solution: Solution,
+    obs: Observation,
+    tsky: np.ndarray,
+    weights: str | np.ndarray,
+    reference: np.ndarray | None,
+    bt: np.ndarray | None,
+) -> Solution:
+    from dataclasses import replace
+
+    pred = solution.predict(tsky)
+    usable = np.isfinite(obs.data) & ~obs.flags
+    w = weights_for(weights, obs.data, usable, bt, pred if bt is not None else reference)
+    if isinstance(weights, str) and weights == "identity":
+        rms = np.sqrt(solution.reduced_chi2)[:, :, None, :]
+        w = w / rms**2
+    resid = np.where(usable, (obs.data - pred) * np.sqrt(w), np.nan)
+    return replace(solution, residuals=resid)

@@ -1,0 +1,245 @@
+"""The batched gain / receiver-noise fit (autocal.fit)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from autocal.fit import (
+    FitError,
+    FitModel,
+    NormalSums,
+    Solution,
+    accumulate,
+    design,
+    fit,
+    solve_sums,
+)
+from autocal.observation import Observation
+from autocal.sites import HERA
+
+NT, NF = 144, 40
+LSTS = np.arange(NT) * 24.0 / NT
+FREQS = np.linspace(110e6, 190e6, NF)
+
+
+def toy_tsky(nfreq: int = NF) -> np.ndarray:
+    """A day of sky: bright peak near LST 17.5 h, falling with frequency."""
+    f = np.linspace(110e6, 190e6, nfreq)
+    shape = 1.0 + 3.0 * np.exp(-0.5 * ((LSTS - 17.5) / 3.0) ** 2)
+    return 250.0 * shape[:, None] * (f / 150e6)[None, :] ** -2.5
+
+
+def make_obs(data: np.ndarray, flags: np.ndarray | None = None, bt: float = 5e3) -> Observation:
+    nant, npol, nt, nf = data.shape
+    return Observation(
+        data=data,
+        freqs=np.linspace(110e6, 190e6, nf),
+        lsts=LSTS[:nt],
+        jds=2458098.0 + np.arange(nt) / 288.0,
+        antennas=np.arange(nant),
+        pols=("ee", "nn")[:npol],
+        site=HERA,
+        flags=flags,
+        channel_width=bt,
+        integration_time=1.0,
+    )
+
+
+def noisy(clean: np.ndarray, rng: np.random.Generator, bt: float = 5e3) -> np.ndarray:
+    return clean * (1 + rng.standard_normal(clean.shape) / np.sqrt(bt))
+
+
+def test_noiseless_constant_and_legendre_recover_truth() -> None:
+    tsky = toy_tsky()
+    s = FitModel.for_lsts(LSTS, "legendre", 2).s(LSTS)
+    gain = (1.2 + 0.05 * s - 0.02 * (1.5 * s**2 - 0.5))[:, None] * np.ones(NF)
+    trxr = 100.0 + 0.3 * (FREQS / 1e6 - 150.0)
+    data = (gain * (tsky + trxr))[None, None]
+    sol2 = fit(make_obs(data), tsky, model="legendre", order=2)
+    ev = sol2.evaluate()
+    np.testing.assert_allclose(ev["G"][0, 0], gain, rtol=1e-9)
+    np.testing.assert_allclose(ev["Trxr"][0, 0], np.broadcast_to(trxr, (NT, NF)), rtol=1e-8)
+    const = (1.3 * (tsky + trxr))[None, None]
+    sol0 = fit(make_obs(const), tsky)
+    np.testing.assert_allclose(sol0.G[0, 0], 1.3, rtol=1e-10)
+    np.testing.assert_allclose(sol0.Trxr[0, 0], trxr, rtol=1e-9)
+    np.testing.assert_allclose(sol0.abs_g, np.sqrt(1.3), rtol=1e-10)
+
+
+def test_pulls_are_unit_normal_with_radiometer_weights() -> None:
+    """Over many noise draws, (fit - truth) / sigma has standard deviation 1 +- 0.1."""
+    rng = np.random.default_rng(42)
+    tsky = toy_tsky()
+    clean = (tsky + 150.0)[None, None]
+    pulls_g, pulls_t, pulls_n = [], [], []
+    for _ in range(60):
+        sol = fit(make_obs(noisy(clean, rng)), tsky)
+        pulls_g.append((sol.G - 1.0) / sol.sigma_G)
+        pulls_n.append((sol.n - 150.0) / sol.sigma_n)
+        pulls_t.append((sol.Trxr - 150.0) / sol.sigma_Trxr)
+    for pulls in (pulls_g, pulls_n, pulls_t):
+        arr = np.ravel(pulls)
+        assert abs(np.std(arr) - 1.0) < 0.1
+        assert abs(np.mean(arr)) < 0.1
+
+
+def test_model_weights_remove_the_data_weight_bias() -> None:
+    """Weights from the data bias G low by ~2/(dnu dt); the second pass removes it."""
+    rng = np.random.default_rng(7)
+    bt = 200.0  # strong noise makes the effect visible: expected bias -2/bt = -1 %
+    tsky = toy_tsky(400)
+    clean = (tsky + 150.0)[None, None]
+    data = noisy(clean, rng, bt)
+    one = fit(make_obs(data, bt=bt), tsky, iterations=1)
+    two = fit(make_obs(data, bt=bt), tsky, iterations=2)
+    sem = np.median(two.sigma_G) / np.sqrt(400)
+    assert np.mean(one.G) - 1 < -5 * sem
+    assert abs(np.mean(two.G) - 1) < 3 * sem
+
+
+def test_streamed_sums_equal_one_pass_and_add_across_workers() -> None:
+    rng = np.random.default_rng(3)
+    tsky = toy_tsky()
+    data = noisy((tsky + 150.0)[None, None] * np.ones((2, 1, 1, 1)), rng)
+    model = FitModel.for_lsts(LSTS, "legendre", 1)
+    whole = accumulate(model, data, tsky, LSTS, bandwidth_time=5e3)
+    parts = [
+        accumulate(model, data[:, :, sl], tsky[sl], LSTS[sl], bandwidth_time=5e3)
+        for sl in (slice(0, 50), slice(50, 97), slice(97, NT))
+    ]
+    total = parts[0] + parts[1] + parts[2]
+    for name in ("ata", "aty", "yty"):
+        np.testing.assert_allclose(getattr(total, name), getattr(whole, name), rtol=1e-12)
+    np.testing.assert_array_equal(total.count, whole.count)
+    a, b = solve_sums(total), solve_sums(whole)
+    np.testing.assert_allclose(a["coeffs"], b["coeffs"], rtol=1e-9, atol=1e-11)
+    other = NormalSums.zeros(FitModel(), 2, 1, NF)
+    with pytest.raises(FitError, match="different models"):
+        _ = total + other
+
+
+def test_flags_and_failures_are_reported_not_filled() -> None:
+    tsky = toy_tsky()
+    data = (1.0 * (tsky + 150.0))[None, None].copy()
+    flags = np.zeros(data.shape, bool)
+    flags[..., :10, 0] = True  # partly flagged channel
+    flags[..., :, 1] = True  # fully flagged channel
+    data[..., 5, 2] = np.nan  # one non-finite sample
+    tsky_bad = tsky.copy()
+    tsky_bad[:, 3] = 500.0  # constant sky: G and n are degenerate
+    data[..., 3] = 1.0 * (500.0 + 150.0)
+    data[..., 4] = -1.0 * (tsky[:, 4] + 150.0)  # negative gain
+    sol = fit(make_obs(data, flags), tsky_bad, weights="identity")
+    assert sol.flag_reason[0, 0, 1] == 1
+    assert sol.flag_reason[0, 0, 3] == 2
+    assert sol.flag_reason[0, 0, 4] == 3
+    assert sol.flag_reason[0, 0, 0] == 0 and sol.flag_reason[0, 0, 2] == 0
+    assert sol.count[0, 0, 0] == NT - 10 and sol.nflagged[0, 0, 0] == 10
+    assert sol.nflagged[0, 0, 2] == 1
+    for code in (1, 2, 3):
+        j = int(np.flatnonzero(sol.flag_reason[0, 0] == code)[0])
+        assert np.isnan(sol.G[0, 0, j]) and np.isnan(sol.Trxr[0, 0, j])
+    assert np.all(np.isfinite(sol.G[0, 0, 5:]))
+
+
+def test_identity_weights_scale_covariance_to_residual_variance() -> None:
+    rng = np.random.default_rng(11)
+    tsky = toy_tsky()
+    clean = (tsky + 150.0)[None, None]
+    pulls = []
+    for _ in range(40):
+        data = clean + rng.normal(0.0, 3.0, clean.shape)  # homoscedastic noise
+        sol = fit(make_obs(data), tsky, weights="identity")
+        pulls.append((sol.G - 1.0) / sol.sigma_G)
+        np.testing.assert_allclose(np.median(sol.reduced_chi2), 9.0, rtol=0.15)
+    assert abs(np.std(pulls) - 1.0) < 0.1
+
+
+def test_user_weights_match_radiometer_weights() -> None:
+    rng = np.random.default_rng(5)
+    tsky = toy_tsky()
+    data = noisy((tsky + 150.0)[None, None], rng)
+    obs = make_obs(data)
+    radio = fit(obs, tsky, iterations=1)
+    user = fit(obs, tsky, weights=5e3 / data**2)
+    np.testing.assert_allclose(user.coeffs, radio.coeffs, rtol=1e-12)
+    np.testing.assert_allclose(user.cov, radio.cov, rtol=1e-12)
+
+
+def test_trxr_uncertainty_matches_jacobian_propagation() -> None:
+    """sigma_Trxr equals sqrt(J C J^T) with J = d(n/G)/d(G, n) = (-n/G^2, 1/G)."""
+    rng = np.random.default_rng(9)
+    tsky = toy_tsky()
+    sol = fit(make_obs(noisy((0.8 * (tsky + 150.0))[None, None], rng)), tsky)
+    g, n = sol.coeffs[..., 0], sol.coeffs[..., 1]
+    jac = np.stack([-n / g**2, 1 / g], axis=-1)
+    var = np.einsum("...i,...ij,...j->...", jac, sol.cov, jac)
+    np.testing.assert_allclose(sol.sigma_Trxr, np.sqrt(var), rtol=1e-10)
+    # slope and intercept anticorrelate (Tsky > 0), so the cross term raises the error:
+    # dropping it (or adding it with the wrong sign) would understate sigma_Trxr
+    assert np.all(sol.cov[..., 0, 1] < 0)
+    naive = sol.Trxr * np.sqrt(sol.sigma_G**2 / g**2 + sol.sigma_n**2 / n**2)
+    assert np.all(sol.sigma_Trxr > naive)
+
+
+def test_time_axis_maps_across_midnight() -> None:
+    lsts = (22.0 + np.arange(49) / 12.0) % 24.0  # 22 h to 2 h
+    model = FitModel.for_lsts(lsts, "legendre", 1)
+    s = model.s(lsts)
+    assert s[0] == pytest.approx(-1.0) and s[-1] == pytest.approx(1.0)
+    assert np.all(np.diff(s) > 0)
+    assert design(model, np.ones((49, 3)), lsts).shape == (1, 3, 49, 4)
+
+
+def test_residuals_are_normalised() -> None:
+    rng = np.random.default_rng(2)
+    tsky = toy_tsky()
+    obs = make_obs(noisy((tsky + 150.0)[None, None], rng))
+    sol = fit(obs, tsky, return_residuals=True)
+    assert sol.residuals is not None and sol.residuals.shape == obs.shape
+    assert abs(np.nanstd(sol.residuals) - 1.0) < 0.05
+    pred = sol.predict(tsky)
+    assert pred.shape == obs.shape
+
+
+def test_bad_inputs_are_refused_with_a_reason() -> None:
+    tsky = toy_tsky()
+    obs = make_obs((tsky + 150.0)[None, None])
+    with pytest.raises(FitError, match="Tsky has shape"):
+        fit(obs, tsky[:, :5])
+    with pytest.raises(FitError, match="non-finite"):
+        fit(obs, np.full_like(tsky, np.nan))
+    with pytest.raises(FitError, match="unknown weights"):
+        fit(obs, tsky, weights="bogus")
+    with pytest.raises(FitError, match="unknown model"):
+        FitModel("quadratic")
+    with pytest.raises(FitError, match="more than one LST"):
+        FitModel.for_lsts(np.array([3.0]), "legendre", 1)
+    no_width = Observation(
+        data=obs.data,
+        freqs=obs.freqs,
+        lsts=obs.lsts,
+        jds=obs.jds,
+        antennas=obs.antennas,
+        pols=obs.pols,
+        site=HERA,
+    )
+    with pytest.raises(FitError, match="identity"):
+        fit(no_width, tsky)
+    with pytest.raises(FitError, match="shape"):
+        Solution(
+            model=FitModel(),
+            antennas=np.array([0]),
+            pols=("ee",),
+            freqs=FREQS,
+            lsts=LSTS,
+            jds=LSTS,
+            coeffs=np.zeros((1, 1, NF, 3)),
+            cov=np.zeros((1, 1, NF, 2, 2)),
+            chi2=np.zeros((1, 1, NF)),
+            dof=np.zeros((1, 1, NF)),
+            count=np.zeros((1, 1, NF)),
+            nflagged=np.zeros((1, 1, NF)),
+            flag_reason=np.zeros((1, 1, NF), np.int8),
+        )
