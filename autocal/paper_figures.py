@@ -48,11 +48,11 @@ def plot_time_model(results: list[Any], path: str | Path) -> Path:
         row[1].plot(fmhz, res.true_trxr, "k--", lw=1)
         g_t = np.nanmean(ev["G"][0, 0], axis=1)[order]
         sg_t = np.sqrt(np.nanmean(ev["sigma_G"][0, 0] ** 2, axis=1))[order]
-        band(row[2], lst, g_t, sg_t, "fit, frequency mean")
+        band(row[2], lst, g_t, sg_t, "fit, mean over frequency (band: per-channel 2 sigma)")
         row[2].plot(lst, res.true_gain.mean(axis=1)[order], "k--", lw=1, label="truth")
         t_t = np.nanmean(ev["Trxr"][0, 0], axis=1)[order]
         st_t = np.sqrt(np.nanmean(ev["sigma_Trxr"][0, 0] ** 2, axis=1))[order]
-        band(row[3], lst, t_t, st_t, "fit, frequency mean")
+        band(row[3], lst, t_t, st_t, "fit, mean over frequency (band: per-channel 2 sigma)")
         row[3].plot(lst, np.full(lst.size, np.mean(res.true_trxr)), "k--", lw=1)
         for ax, name in zip(row, ("G", "Trxr [K]", "G(t)", "Trxr(t) [K]"), strict=True):
             ax.set_ylabel(name)

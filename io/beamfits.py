@@ -9,6 +9,7 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+
 from autocal.io.feko import BeamFileError
 
 logger = logging.getLogger(__name__)

@@ -31,9 +31,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from autocal.io.tskyfile import atomic_path
 
 from autocal.beams import file_checksum
+from autocal.io.tskyfile import atomic_path
 from autocal.observation import Observation, ObservationError
 from autocal.sites import Site
 

@@ -7,10 +7,10 @@ from typing import ClassVar
 import h5py
 import numpy as np
 import pytest
-from autocal.io.tskyfile import read_tsky, write_tsky
 
 from autocal import tsky_cache
 from autocal.cli import main, parse_range
+from autocal.io.tskyfile import read_tsky, write_tsky
 from autocal.tsky import TskyError, compute_tsky
 
 

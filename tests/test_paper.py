@@ -50,7 +50,7 @@ def test_gain_drifts_bias_a_constant_fit_and_order_one_fixes_drift_a(runs, beam:
     assert m["rms_G"] > 1.3 * reference["rms_G"]
     assert m["rms_Trxr_K"] > 1.3 * reference["rms_Trxr_K"]
     paper = PAPER_VALUES[("drift_a_t1", beam)]
-    assert m["rms_G_t_pct"] == pytest.approx(paper["rms_G_pct"], rel=0.3)
+    assert m["rms_G_t_pct"] == pytest.approx(paper["rms_G_t_pct"], rel=0.3)
     assert m["rms_Trxr_pct"] == pytest.approx(paper["rms_Trxr_pct"], rel=0.3)
 
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from autocal.io.datasets import EDGES_2018_SPECTRUM
 from scipy.optimize import minimize_scalar
 
+from autocal.io.datasets import EDGES_2018_SPECTRUM
 from autocal.sky import T_CMB
 from autocal.tsky import compute_tsky
 

@@ -9,8 +9,8 @@ import h5py
 import numpy as np
 import pytest
 from astropy.time import Time
-from autocal.io.uvh5 import UVH5FormatError, read_uvh5, write_uvh5
 
+from autocal.io.uvh5 import UVH5FormatError, read_uvh5, write_uvh5
 from autocal.observation import Observation, ObservationError
 from autocal.sites import EDGES, HERA
 

@@ -1,0 +1,65 @@
+"""Sub-commands of the ``autocal`` command line, one module per command.
+
+Each module has ``add(subparsers)`` registering its parser and a ``run(args)`` returning
+the exit status. Shared argument parsing lives here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class CliError(ValueError):
+    """A command-line argument is invalid."""
+
+
+def parse_range(text: str, what: str, unit: str) -> np.ndarray:
+    """Parse ``START:STOP:N`` (inclusive, N points) or a comma-separated list.
+
+    Parameters
+    ----------
+    text
+        The argument.
+    what, unit
+        For error messages.
+
+    Returns
+    -------
+    numpy.ndarray
+        The values.
+    """
+    try:
+        if ":" in text:
+            parts = text.split(":")
+            if len(parts) != 3:
+                raise ValueError
+            start, stop, num = float(parts[0]), float(parts[1]), int(parts[2])
+        else:
+            values = np.array([float(v) for v in text.split(",") if v.strip()])
+    except ValueError as err:
+        raise CliError(
+            f"--{what} {text!r}: give START:STOP:N ({unit}) or a comma-separated list"
+        ) from err
+    if ":" in text:
+        if num < 1:
+            raise CliError(f"--{what}: N must be >= 1 (got {num})")
+        return np.linspace(start, stop, num)
+    if values.size == 0:
+        raise CliError(f"--{what} is empty")
+    return values
+
+
+def parse_str_list(text: str, what: str) -> list[str]:
+    """Parse a comma-separated list of names (lower-cased, non-empty)."""
+    items = [t.strip().lower() for t in text.split(",") if t.strip()]
+    if not items:
+        raise CliError(f"--{what} is empty")
+    return items
+
+
+def parse_int_list(text: str, what: str) -> list[int]:
+    """Parse a comma-separated list of integers."""
+    try:
+        return [int(t) for t in parse_str_list(text, what)]
+    except ValueError as err:
+        raise CliError(f"--{what} {text!r}: give comma-separated integers") from err

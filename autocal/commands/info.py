@@ -1,0 +1,37 @@
+"""``autocal info``: version, data and cache folders, available data files."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add(sub: argparse._SubParsersAction) -> None:
+    """Register the command."""
+    p = sub.add_parser(
+        "info",
+        help="show version, data and cache folders",
+        description="Show the autocal version, the data folder, the Tsky "
+        "cache folder and which data-backed sky models and beams are present.",
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the command."""
+    from autocal import __version__
+    from autocal.io import datasets
+    from autocal.tsky_cache import cache_dir
+
+    root = datasets.data_dir()
+    print(f"autocal {__version__}")
+    print(f"data folder:  {root or 'not found (set AUTOCAL_DATA_DIR)'}")
+    print(f"Tsky cache:   {cache_dir() or 'disabled'}")
+    files = {
+        "gsm2008 sky": datasets.GSM2008_FILE,
+        "hera beam": datasets.HERA_BEAM_FILE,
+        **{f"{k} beam": v for k, v in datasets.EDGES_BEAM_FILES.items()},
+    }
+    for name, rel in files.items():
+        ok = root is not None and (root / rel).is_file()
+        print(f"  {name:<22} {'present' if ok else 'MISSING'}  {rel}")
+    return 0
