@@ -102,6 +102,16 @@ def band(ax: Any, x: np.ndarray, y: np.ndarray, sigma: np.ndarray, label: str, *
     ax.fill_between(x, y - 2 * sigma, y + 2 * sigma, color=line.get_color(), alpha=0.25, lw=0)
 
 
+def robust_ylim(ax: Any, values: np.ndarray, low: float = 2.0, high: float = 98.0) -> None:
+    """Limit the y axis to the central percentiles of the finite values (RFI-proof)."""
+    finite = values[np.isfinite(values)]
+    if finite.size < 10:
+        return
+    lo, hi = np.percentile(finite, [low, high])
+    pad = 0.15 * (hi - lo) if hi > lo else max(abs(hi), 1e-12) * 0.1
+    ax.set_ylim(lo - pad, hi + pad)
+
+
 def plot_solution(solution: Any, path: str | Path, title: str | None = None) -> Path:
     """Plot ``|g|``, ``G`` and ``Trxr`` vs frequency with 2-sigma bands for every antenna/pol.
 
@@ -131,8 +141,44 @@ def plot_solution(solution: Any, path: str | Path, title: str | None = None) -> 
             for ip, pol in enumerate(solution.pols):
                 band(ax, fmhz, val[ia, ip], sig[ia, ip], f"ant {ant} {pol}")
         ax.set(ylabel=name)
+        robust_ylim(ax, val[~solution.flags])
     axes[-1].set(xlabel="frequency [MHz]")
     if solution.antennas.size * len(solution.pols) <= 12:
         axes[0].legend(fontsize=7, ncol=2)
     fig.suptitle(title or f"{solution.model.kind} fit, 2-sigma bands", fontsize=10)
+    return save_figure(fig, path)
+
+
+def plot_residuals(
+    labels: list[str],
+    residuals: np.ndarray,
+    freqs: np.ndarray,
+    lsts: np.ndarray,
+    path: str | Path,
+) -> Path:
+    """Waterfalls of normalised residuals ``(R - model) / sigma`` (colour range +-5).
+
+    Parameters
+    ----------
+    labels
+        One label per waterfall.
+    residuals
+        ``(K, Ntime, Nfreq)``.
+    freqs, lsts
+        Axes (Hz, hours).
+    path
+        Output image.
+    """
+    k = len(labels)
+    fig, axes = _figure(k, 1, (9, 2.6 * k + 0.6))
+    axes = np.atleast_1d(axes)
+    rows = np.arange(lsts.size)
+    for ax, label, res in zip(axes, labels, residuals, strict=True):
+        mesh = ax.pcolormesh(freqs / 1e6, rows, res, shading="auto", cmap="RdBu_r", vmin=-5, vmax=5)
+        ticks = np.unique(np.linspace(0, lsts.size - 1, 6).astype(int))
+        ax.set_yticks(ticks, [f"{lsts[i]:.2f}" for i in ticks])
+        rms = float(np.sqrt(np.nanmean(res**2))) if np.any(np.isfinite(res)) else float("nan")
+        ax.set(ylabel="LST [h]", title=f"{label}: normalised residuals (rms {rms:.2f})")
+        fig.colorbar(mesh, ax=ax, label="(R - model) / sigma")
+    axes[-1].set_xlabel("frequency [MHz]")
     return save_figure(fig, path)

@@ -665,6 +665,87 @@ def _site(uv: Any) -> Site:
     return Site(name, lat, lon, alt)
 
 
+def _scan(paths: str | Path | Sequence[str | Path]) -> list[_FileMeta]:
+    """Read and cross-check the headers of the files of one observation, in time order."""
+    path_list = [Path(paths)] if isinstance(paths, (str, Path)) else [Path(p) for p in paths]
+    if not path_list:
+        raise UVH5FormatError("no files given")
+    path_list = [p.expanduser().absolute() for p in path_list]
+    if len(set(path_list)) != len(path_list):
+        raise UVH5FormatError("the same file is given more than once")
+
+    metas = sorted((_read_meta(p) for p in path_list), key=lambda m: float(m.times[0]))
+    first = metas[0]
+    for other in metas[1:]:
+        _check_consistent(first, other)
+    for prev, nxt in itertools.pairwise(metas):
+        if nxt.times[0] <= prev.times[-1]:
+            raise UVH5FormatError(
+                f"{nxt.path} overlaps in time with {prev.path} (JD {nxt.times[0]:.6f} <= "
+                f"{prev.times[-1]:.6f}); pass consecutive files of one observation"
+            )
+        cadence = float(np.median(np.diff(prev.times))) if prev.times.size > 1 else 0.0
+        gap = float(nxt.times[0] - prev.times[-1])
+        if cadence > 0 and gap > 2.5 * cadence:
+            logger.warning("gap of %.1f min between %s and %s", gap * 1440.0, prev.name, nxt.name)
+
+    return metas
+
+
+@dataclass(frozen=True)
+class UVH5File:
+    """Header summary of one UVH5 file of an observation (see :func:`scan_uvh5`)."""
+
+    path: Path
+    jds: np.ndarray
+    lsts: np.ndarray
+    freqs: np.ndarray
+    antennas: tuple[int, ...]
+    pols: tuple[str, ...]
+    site: Site
+
+
+def scan_uvh5(paths: str | Path | Sequence[str | Path]) -> list[UVH5File]:
+    """Check the files of one observation and list them in time order (headers only).
+
+    Raises the same :class:`UVH5FormatError` as :func:`read_uvh5` for missing, corrupt,
+    autos-free, inconsistent or overlapping files, without reading any data.
+    """
+    return [
+        UVH5File(
+            m.path,
+            m.times.copy(),
+            m.lsts.copy(),
+            np.sort(m.freqs),
+            tuple(m.auto_ants),
+            tuple(m.pol_names),
+            _site(m.uv),
+        )
+        for m in _scan(paths)
+    ]
+
+
+def iter_uvh5(
+    paths: str | Path | Sequence[str | Path],
+    *,
+    antennas: Sequence[int] | None = None,
+    pols: Sequence[str] | None = None,
+    freq_range: tuple[float, float] | None = None,
+    lst_range: tuple[float, float] | None = None,
+) -> Iterator[Observation]:
+    """Yield the observation file by file (same selections as :func:`read_uvh5`).
+
+    Files with no integration in ``lst_range`` are skipped. Only one file's autos are in
+    memory at a time, so a whole night can be streamed into the fit's normal sums.
+    """
+    for meta in _scan(paths):
+        if not np.any(_lst_mask(meta.lsts, lst_range)):
+            continue
+        yield read_uvh5(
+            [meta.path], antennas=antennas, pols=pols, freq_range=freq_range, lst_range=lst_range
+        )
+
+
 def read_uvh5(
     paths: str | Path | Sequence[str | Path],
     *,
@@ -719,28 +800,8 @@ def read_uvh5(
         For an unknown antenna or polarisation, or a frequency or LST selection that
         leaves nothing.
     """
-    path_list = [Path(paths)] if isinstance(paths, (str, Path)) else [Path(p) for p in paths]
-    if not path_list:
-        raise UVH5FormatError("no files given")
-    path_list = [p.expanduser().absolute() for p in path_list]
-    if len(set(path_list)) != len(path_list):
-        raise UVH5FormatError("the same file is given more than once")
-
-    metas = sorted((_read_meta(p) for p in path_list), key=lambda m: float(m.times[0]))
+    metas = _scan(paths)
     first = metas[0]
-    for other in metas[1:]:
-        _check_consistent(first, other)
-    for prev, nxt in itertools.pairwise(metas):
-        if nxt.times[0] <= prev.times[-1]:
-            raise UVH5FormatError(
-                f"{nxt.path} overlaps in time with {prev.path} (JD {nxt.times[0]:.6f} <= "
-                f"{prev.times[-1]:.6f}); pass consecutive files of one observation"
-            )
-        cadence = float(np.median(np.diff(prev.times))) if prev.times.size > 1 else 0.0
-        gap = float(nxt.times[0] - prev.times[-1])
-        if cadence > 0 and gap > 2.5 * cadence:
-            logger.warning("gap of %.1f min between %s and %s", gap * 1440.0, prev.name, nxt.name)
-
     ants = _select_antennas(first, antennas)
     pol_idx = _select_pols(first, pols)
     chans = _select_channels(first, freq_range)
