@@ -4,6 +4,8 @@ Commands (one module each in :mod:`autocal.commands`)
 -----------------------------------------------------
 ``autocal calibrate``
     Fit G and Trxr to the autos of one observation; write calh5/calfits, HDF5, plots.
+``autocal compare``
+    |g| from autos against cross-correlation (abscal or redcal/omnical) gains.
 ``autocal tsky``
     Beam-weighted sky temperature table Tsky(nu, LST) to HDF5 (and a plot).
 ``autocal simulate``
@@ -31,7 +33,7 @@ logger = logging.getLogger("autocal.cli")
 def build_parser() -> argparse.ArgumentParser:
     """Build the argument parser."""
     from autocal import __version__
-    from autocal.commands import calibrate, info, paper, simulate, tsky
+    from autocal.commands import calibrate, compare, info, paper, simulate, tsky
 
     parser = argparse.ArgumentParser(
         prog="autocal",
@@ -42,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
         "-v", "--verbose", action="count", default=0, help="more log output (-v info, -vv debug)"
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    for module in (calibrate, tsky, simulate, paper, info):
+    for module in (calibrate, compare, tsky, simulate, paper, info):
         module.add(sub)
     return parser
 

@@ -80,6 +80,9 @@ class CalibrationConfig(BaseModel):
     freq_range_mhz: tuple[float, float] | None = None
     lst_range_h: tuple[float, float] | None = None
     products: list[ProductName] = Field(default_factory=lambda: ["calh5", "hdf5", "png"])
+    reference: list[str] | None = Field(
+        None, description="reference gains (calfits/calh5) to compare |g| with"
+    )
     inflate_errors: bool = Field(
         True,
         description="radiometer weights: scale each channel's covariance by chi2/dof when it "
@@ -334,6 +337,7 @@ def run_calibration(
     timings["total_s"] = time.perf_counter() - t0
     summary = {
         "solution": solution.describe(),
+        "comparison": _comparison_summary(Path(out), products),
         "config": config.model_dump(mode="json"),
         "provenance": provenance,
         "products": products,
@@ -347,6 +351,13 @@ def run_calibration(
     products["summary"] = str(summary_path)
     report(1.0, "done")
     return CalibrationResult(solution, products, summary, timings)
+
+
+def _comparison_summary(out: Path, products: dict[str, str]) -> dict[str, Any] | None:
+    path = products.get("compare_json")
+    if path is None:
+        return None
+    return json.loads(Path(path).read_text())
 
 
 def _json_default(value: Any) -> Any:
@@ -506,6 +517,14 @@ def _write_products(
             plot_residuals(labels, resid, solution.freqs, source.lsts, staging / "residuals.png")
             names["png"] = "solution.png"
             names["residuals_png"] = "residuals.png"
+        if config.reference:
+            from autocal.compare import compare, write_comparison
+            from autocal.io.calsol import read_reference_gains
+
+            reference = read_reference_gains(config.reference)
+            comparison = compare(solution, reference)
+            paths = write_comparison(comparison, staging)
+            names.update({f"compare_{k}": Path(v).name for k, v in paths.items()})
         for item in sorted(staging.iterdir()):
             target = out / item.name
             os.replace(item, target)

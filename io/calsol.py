@@ -51,6 +51,9 @@ Writing
   kelvin. This is the same convention as the H1C abscal files (whose ``R / |g|^2`` is
   in Jy);
 * ``gain_scale = "K"``: calibrated data are antenna temperatures in kelvin;
+* polarisations ``ee``/``nn`` are Jones codes -5/-6 with the x feed pointing east
+  (pyuvdata's HERA telescope has exactly these feeds); ``xx``/``yy`` names are written
+  with the same codes and, for a non-HERA telescope, the same east-pointing x feed;
 * one solution per antenna/polarisation/channel: ``Ntimes = 1`` with a ``time_range``
   spanning the fitted integrations (the time-averaged ``G`` of the solution), or, with
   ``per_time=True``, the time model ``G(t)`` evaluated at every fitted integration;
@@ -81,12 +84,15 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from autocal.beams import file_checksum
 from autocal.io.tskyfile import atomic_path
+
+if TYPE_CHECKING:
+    from autocal.fit import Solution
 
 logger = logging.getLogger(__name__)
 
@@ -658,10 +664,24 @@ def _pol_indices(first: _CalFile, pols: list[str]) -> list[int]:
 # ---------------------------------------------------------------------------------------
 # writing
 # ---------------------------------------------------------------------------------------
+#: Sub-dictionaries of ``Solution.config`` searched after its top level (the pipeline
+#: stores ``{"calibration": <settings>, "provenance": <resolved conventions>}``).
+CONFIG_SECTIONS = ("provenance", "calibration")
+
+
+def config_sources(config: dict[str, Any] | None) -> list[dict[str, Any]]:
+    """Return ``config`` and its ``provenance``/``calibration`` sections, in lookup order."""
+    config = config or {}
+    sources = [config]
+    sources += [config[k] for k in CONFIG_SECTIONS if isinstance(config.get(k), dict)]
+    return sources
+
+
 def _config_value(config: dict[str, Any], *keys: str) -> Any:
-    for key in keys:
-        if key in config and config[key] not in (None, ""):
-            return config[key]
+    for source in config_sources(config):
+        for key in keys:
+            if key in source and source[key] not in (None, ""):
+                return source[key]
     return None
 
 
@@ -689,7 +709,7 @@ def _resolve_site(site: Any, config: dict[str, Any]) -> Any:
         return HERA
 
 
-def _telescope_for(solution: Any, telescope: str | None, site: Any) -> tuple[Any, bool]:
+def _telescope_for(solution: Solution, telescope: str | None, site: Any) -> tuple[Any, bool]:
     """Return ``(pyuvdata Telescope, is_known_hera)`` for a solution."""
     from pyuvdata import Telescope
 
@@ -719,7 +739,10 @@ def _telescope_for(solution: Any, telescope: str | None, site: Any) -> tuple[Any
     if resolved_site is None:
         logger.warning("the solution records no site; using HERA's location")
     names = list(solution.antenna_names) or [f"ant{a}" for a in ants]
-    tel_name = str(name) if name is not None else "unknown"
+    if name is not None:
+        tel_name = str(name)
+    else:
+        tel_name = resolved_site.name if resolved_site is not None else "unknown"
     with _warnings_to_log("building the telescope"):
         tel = Telescope.new(
             name=tel_name,
@@ -758,7 +781,7 @@ def _describe_sky(config: dict[str, Any]) -> str:
     return str(value)
 
 
-def _history(solution: Any, extra: str) -> str:
+def _history(solution: Solution, extra: str) -> str:
     from autocal import __version__
 
     config = solution.config or {}
@@ -772,9 +795,10 @@ def _history(solution: Any, extra: str) -> str:
         if len(solution.jds)
         else "autocal fitted no integrations",
     ]
-    for key in ("sky", "model_sky", "beam", "tgnd", "tgnd_K", "cmb", "inputs", "files"):
-        if key in config:
-            lines.append(f"autocal {key}: {json.dumps(config[key], sort_keys=True, default=str)}")
+    for key in ("sky", "model_sky", "beam", "site", "tgnd", "tgnd_K", "cmb", "inputs", "files"):
+        value = _config_value(config, key)
+        if value is not None:
+            lines.append(f"autocal {key}: {json.dumps(value, sort_keys=True, default=str)}")
     lines.append(
         "autocal: uncertainties, covariances and the time model are in the autocal HDF5 "
         "product (autocal.io.products)."
@@ -785,7 +809,7 @@ def _history(solution: Any, extra: str) -> str:
 
 
 def solution_to_uvcal(
-    solution: Any,
+    solution: Solution,
     *,
     time_range: tuple[float, float] | None = None,
     per_time: bool = False,
@@ -806,11 +830,12 @@ def solution_to_uvcal(
         Write ``G(t)`` of the time model at every fitted integration instead of one
         time-averaged solution.
     telescope
-        Telescope name (default: ``solution.config["telescope"]``, else HERA when every
-        antenna exists in HERA).
+        Telescope name (default: ``"telescope"`` in ``solution.config`` or its
+        ``provenance``/``calibration`` sections; else HERA when the site is HERA or unknown
+        and every antenna exists in HERA; else the site's name).
     site
         Site of a non-HERA telescope: a :class:`~autocal.sites.Site`, a name or a
-        ``describe()`` dict (default: ``solution.config["site"]``).
+        ``describe()`` dict (default: ``"site"`` in ``solution.config`` or its sections).
     history
         Text appended to the history.
 
@@ -933,7 +958,9 @@ def solution_to_uvcal(
     return uvc
 
 
-def _write(solution: Any, path: str | Path, file_type: str, overwrite: bool, **kwargs: Any) -> Path:
+def _write(
+    solution: Solution, path: str | Path, file_type: str, overwrite: bool, **kwargs: Any
+) -> Path:
     path = Path(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
@@ -960,7 +987,7 @@ def _write(solution: Any, path: str | Path, file_type: str, overwrite: bool, **k
 
 
 def write_calh5(
-    solution: Any,
+    solution: Solution,
     path: str | Path,
     *,
     overwrite: bool = False,
@@ -1009,7 +1036,7 @@ def write_calh5(
 
 
 def write_calfits(
-    solution: Any,
+    solution: Solution,
     path: str | Path,
     *,
     overwrite: bool = False,

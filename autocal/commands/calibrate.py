@@ -47,6 +47,12 @@ def add(sub: argparse._SubParsersAction) -> None:
         default="calh5,hdf5,png",
         help="comma-separated of calh5, calfits, hdf5, png (default calh5,hdf5,png)",
     )
+    p.add_argument(
+        "--reference",
+        nargs="+",
+        type=Path,
+        help="reference gains (calfits/calh5, abscal or redcal) to compare |g| with",
+    )
     p.add_argument("--format", default="auto", choices=["auto", "uvh5", "miriad"])
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.set_defaults(func=run)
@@ -75,6 +81,7 @@ def run(args: argparse.Namespace) -> int:
             freq_range_mhz=_pair(args.freq_range, "freq-range", "MHz"),
             lst_range_h=_pair(args.lst_range, "lst-range", "hours"),
             products=parse_str_list(args.products, "products"),
+            reference=[str(p) for p in args.reference] if args.reference else None,
         )
     except ValidationError as err:
         problems = "; ".join(
