@@ -64,7 +64,11 @@ class CalibrationConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     inputs: list[str] = Field(..., min_length=1, description="UVH5 files or Miriad folders")
-    input_format: Literal["auto", "uvh5", "miriad"] = "auto"
+    input_format: Literal["auto", "uvh5", "miriad", "edges"] = "auto"
+    edges_r: Literal["q", "p0"] = Field(
+        "q", description="EDGES: fit Q = (p0 - p1)/(p2 - p1) or the raw antenna power p0"
+    )
+    edges_bin: int = Field(64, ge=1, description="EDGES: native channels averaged per bin")
     sky: str = Field("gsm2008", description="sky model (autocal.sky.get_sky spec)")
     beam: str = Field("hera", description="beam (autocal.beams.get_beam spec)")
     tgnd_k: float = Field(300.0, ge=0.0, description="ground temperature")
@@ -126,12 +130,19 @@ class _Source:
     freqs: np.ndarray
     pols: tuple[str, ...]
     site: Any
+    observation: Observation | None = None  # small inputs read whole (EDGES)
+    weights: np.ndarray | None = None  # inverse variances when the format defines them
 
     def chunks(self, **selection: Any) -> Iterator[Observation]:
         if self.kind == "uvh5":
             from autocal.io.uvh5 import iter_uvh5
 
             yield from iter_uvh5(self.files, **selection)
+        elif self.observation is not None:
+            obs = self.observation
+            if selection.get("antennas") is not None:
+                obs = obs.select(antennas=selection["antennas"])
+            yield obs
         else:
             from autocal.io.miriad import read_miriad
 
@@ -146,16 +157,51 @@ def _detect(paths: list[Path], fmt: str) -> str:
         raise PipelineError(f"input(s) not found: {missing}")
     if fmt != "auto":
         return fmt
-    kinds = {"miriad" if is_miriad(p) else "uvh5" for p in paths}
+    kinds = {"miriad" if is_miriad(p) else ("edges" if _is_edges(p) else "uvh5") for p in paths}
     if len(kinds) > 1:
         raise PipelineError("inputs mix Miriad folders and UVH5 files: give one format")
     return kinds.pop()
+
+
+def _is_edges(path: Path) -> bool:
+    """Whether a file holds EDGES three-position spectra (ACQ, or autocal's EDGES HDF5)."""
+    if path.suffix.lower() == ".acq":
+        return True
+    try:
+        import h5py
+
+        with h5py.File(path, "r") as h5:
+            return {"p0", "p1", "p2"} <= set(h5.keys())
+    except OSError:
+        return False
+
+
+def _open_edges(paths: list[Path], config: CalibrationConfig, sel: dict[str, Any]) -> _Source:
+    from autocal.io.edges import read_edges_spectra
+    from autocal.sites import EDGES
+
+    spectra = read_edges_spectra(
+        paths, freq_range=sel["freq_range"], bin_factor=config.edges_bin
+    ).sorted()
+    obs = spectra.to_observation(r=config.edges_r, site=EDGES)
+    if sel["lst_range"] is not None:
+        obs = obs.select(lst_range=sel["lst_range"])
+        keep = np.isin(spectra.jds, obs.jds)
+    else:
+        keep = np.ones(spectra.jds.size, bool)
+    channels = np.isin(spectra.freqs, obs.freqs)  # to_observation drops channels < 1 MHz
+    with np.errstate(divide="ignore", invalid="ignore"):
+        weights = 1.0 / spectra.variance(config.edges_r)[np.ix_(keep, channels)]
+    weights = np.where(np.isfinite(weights), weights, 0.0)[None, None]
+    return _Source("edges", paths, obs.lsts, obs.jds, obs.freqs, obs.pols, obs.site, obs, weights)
 
 
 def _open_source(config: CalibrationConfig) -> _Source:
     paths = [Path(p).expanduser().absolute() for p in config.inputs]
     kind = _detect(paths, config.input_format)
     sel = _selection(config)
+    if kind == "edges":
+        return _open_edges(paths, config, sel)
     if kind == "uvh5":
         from autocal.io.uvh5 import _lst_mask, scan_uvh5
 
@@ -396,7 +442,10 @@ def _stream_fit(
             tsky = tsky_all[:, offset : offset + nt]
             if not np.allclose(chunk.lsts, source.lsts[offset : offset + nt], atol=1e-6):
                 raise PipelineError("file LSTs changed between the scan and the read")
+            weights: str | np.ndarray = config.weights
             bt = chunk.bandwidth_time() if config.weights == "radiometer" else None
+            if source.weights is not None and config.weights == "radiometer":
+                weights, bt, npass = source.weights[:, :, offset : offset + nt], None, 1
             if bt is not None and not np.all(bt[~chunk.flags] > 0):
                 raise PipelineError(
                     f"{chunk.meta.get('files')}: radiometer weights need positive channel "
@@ -412,7 +461,7 @@ def _stream_fit(
                 tsky,
                 chunk.lsts,
                 flags=chunk.flags,
-                weights=config.weights,
+                weights=weights,
                 bandwidth_time=bt,
                 reference=reference,
             )
@@ -466,8 +515,13 @@ def _residual_waterfalls(
         )
         pred = sub.predict(tsky, chunk.lsts)
         usable = np.isfinite(chunk.data) & ~chunk.flags
-        bt = chunk.bandwidth_time() if config.weights == "radiometer" else None
-        w = weights_for(config.weights, chunk.data, usable, bt, pred if bt is not None else None)
+        if source.weights is not None and config.weights == "radiometer":
+            w = np.where(usable, source.weights[: len(ants), :, offset : offset + nt], 0.0)
+        else:
+            bt = chunk.bandwidth_time() if config.weights == "radiometer" else None
+            w = weights_for(
+                config.weights, chunk.data, usable, bt, pred if bt is not None else None
+            )
         if config.weights == "identity":
             w = w / sub.reduced_chi2[:, :, None, :]
         rows.append(np.where(usable, (chunk.data - pred) * np.sqrt(w), np.nan))

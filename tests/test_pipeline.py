@@ -158,3 +158,33 @@ def test_miriad_input(data_root, tmp_path) -> None:
     solved = ~sol.flags
     assert solved.sum() > 500  # the rest: flagged channels and non-positive gains
     assert np.all(np.isfinite(sol.sigma_Trxr[solved]))
+
+
+@pytest.mark.slow
+def test_edges_raw_files_calibrate_to_the_receiver_solution(data_root, tmp_path) -> None:
+    """An EDGES-like day written as raw ACQ switch powers, calibrated by the pipeline."""
+    from autocal.edges_receiver import (
+        expected_auto_model,
+        load_receiver_solution,
+        simulate_edges_day,
+    )
+
+    receiver = load_receiver_solution("edges2-lowband-2015")
+    day = simulate_edges_day(tmp_path / "raw", solution=receiver, n_times=48, seed=5)
+    config = CalibrationConfig(
+        inputs=[str(p) for p in day.paths],
+        beam="edges-low",
+        sky="powerlaw:gsm2008@408:-2.55",
+        freq_range_mhz=(50.0, 100.0),
+        products=[],
+    )
+    sol = run_calibration(config, tmp_path / "cal").solution
+    assert sol.pols == ("ee",) and sol.lsts.size == 48
+    expected = expected_auto_model(receiver, 0.0, "q")
+    pull_g = (sol.G[0, 0] - np.interp(sol.freqs, expected.freqs, expected.G)) / sol.sigma_G[0, 0]
+    pull_t = (
+        sol.Trxr[0, 0] - np.interp(sol.freqs, expected.freqs, expected.trxr)
+    ) / sol.sigma_Trxr[0, 0]
+    for pull in (pull_g, pull_t):
+        assert abs(np.mean(pull)) < 0.3
+        assert 0.75 < np.std(pull) < 1.25
