@@ -1,0 +1,90 @@
+"""Service settings, read from the environment (``AUTOCAL_*``) through pydantic-settings.
+
+===============================  ==========================================================
+variable                         meaning (default)
+===============================  ==========================================================
+``AUTOCAL_DATABASE_URL``         SQLAlchemy URL of the job store
+                                 (``sqlite:///<state dir>/jobs.sqlite``); PostgreSQL for
+                                 many workers: ``postgresql+psycopg://user:pw@host/db``
+``AUTOCAL_STATE_DIR``            where the SQLite store, uploads and products live
+                                 (``~/.local/share/autocal``)
+``AUTOCAL_DATA_ROOTS``           input paths must lie under one of these folders
+                                 (JSON list or ``:``-separated; default: the data folder)
+``AUTOCAL_API_TOKEN``            token required by write endpoints (``Authorization:
+                                 Bearer <token>``); unset = writes refused
+``AUTOCAL_MAX_UPLOAD_BYTES``     largest accepted upload (2 GiB)
+``AUTOCAL_HEARTBEAT_S``          worker heartbeat interval (10)
+``AUTOCAL_STALE_AFTER_S``        a running job without heartbeat for this long is
+                                 re-queued or failed (60)
+``AUTOCAL_MAX_ATTEMPTS``         attempts before a crashed job is failed (3)
+``AUTOCAL_DASK_SCHEDULER``       dask.distributed scheduler address ("" = local)
+===============================  ==========================================================
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+def _default_state_dir() -> Path:
+    return Path.home() / ".local" / "share" / "autocal"
+
+
+class Settings(BaseSettings):
+    """Settings of the API, the workers and the nightly runner."""
+
+    model_config = SettingsConfigDict(env_prefix="AUTOCAL_", extra="ignore")
+
+    state_dir: Path = Field(default_factory=_default_state_dir)
+    database_url: str = ""
+    data_roots: list[Path] = Field(default_factory=list)
+    api_token: str = ""
+    max_upload_bytes: int = Field(2 * 1024**3, gt=0)
+    heartbeat_s: float = Field(10.0, gt=0)
+    stale_after_s: float = Field(60.0, gt=0)
+    max_attempts: int = Field(3, ge=1)
+    dask_scheduler: str = ""
+
+    @field_validator("data_roots", mode="before")
+    @classmethod
+    def _split_roots(cls, value: object) -> object:
+        if isinstance(value, str) and not value.strip().startswith("["):
+            return [p for p in value.split(":") if p.strip()]
+        return value
+
+    def resolved_database_url(self) -> str:
+        """Return the store URL (SQLite in the state folder unless configured)."""
+        if self.database_url:
+            return self.database_url
+        self.state_dir.mkdir(parents=True, exist_ok=True)
+        return f"sqlite:///{self.state_dir / 'jobs.sqlite'}"
+
+    def resolved_data_roots(self) -> list[Path]:
+        """Return the allowed input folders (resolved); the data folder when none is configured."""
+        roots = list(self.data_roots)
+        if not roots:
+            from autocal.io.datasets import data_dir
+
+            found = data_dir()
+            roots = [found] if found is not None else []
+        return [Path(r).expanduser().resolve() for r in roots]
+
+    @property
+    def products_dir(self) -> Path:
+        """Where job products are written."""
+        return self.state_dir / "jobs"
+
+    @property
+    def uploads_dir(self) -> Path:
+        """Where uploaded inputs are kept (always an allowed data root)."""
+        return self.state_dir / "uploads"
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    """Return the process-wide settings (cached; tests clear the cache with ``cache_clear``)."""
+    return Settings()
