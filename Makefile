@@ -18,13 +18,12 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 
 install: $(VENV)/.installed
 
-# The main job that exists today: a Tsky(nu, LST) table and its plot for a HERA dipole.
+# The main job end to end: start the API and a worker on SQLite, submit a calibration over
+# HTTP (real HERA data when the data folder is present, else a simulated observation), wait,
+# print the result summary and the product paths, stop the processes (scripts/demo.py).
 demo: install
 	$(VENV)/bin/autocal info
-	$(VENV)/bin/autocal tsky --sky gsm2008 --beam hera --pol ee --site hera \
-		--freqs 100e6:200e6:101 --lsts 0:24:145 --nside 64 --tgnd 300 \
-		--out $(DEMO_OUT)/tsky_hera_gsm2008.h5 --plot $(DEMO_OUT)/tsky_hera_gsm2008.png
-	@echo "demo results: $(abspath $(DEMO_OUT))/tsky_hera_gsm2008.h5 and .png"
+	PATH="$(abspath $(VENV))/bin:$$PATH" MPLBACKEND=Agg $(PY) scripts/demo.py
 
 test: install
 	$(VENV)/bin/ruff check .
@@ -42,3 +41,14 @@ bench: install
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache .ruff_cache *.egg-info
+
+# The job service from the repository's venv (settings: AUTOCAL_* variables, deploy/README.md).
+SERVE_ARGS ?=
+WORKER_ARGS ?=
+.PHONY: serve worker
+
+serve: install
+	$(VENV)/bin/autocal serve $(SERVE_ARGS)
+
+worker: install
+	$(VENV)/bin/autocal worker $(WORKER_ARGS)

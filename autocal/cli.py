@@ -14,6 +14,12 @@ Commands (one module each in :mod:`autocal.commands`)
     The paper's simulation scenarios: summary table, JSON results and figures.
 ``autocal info``
     Version, data folder, cache folder, and which sky models and beams are available.
+``autocal serve``
+    The REST job service (uvicorn running the FastAPI app factory).
+``autocal worker``
+    One job-worker process: claims queued jobs from the store and runs them.
+``autocal nightly``
+    Queue one calibration job per observation of a night (JD) or a watched folder.
 """
 
 from __future__ import annotations
@@ -33,7 +39,17 @@ logger = logging.getLogger("autocal.cli")
 def build_parser() -> argparse.ArgumentParser:
     """Build the argument parser."""
     from autocal import __version__
-    from autocal.commands import calibrate, compare, info, paper, simulate, tsky
+    from autocal.commands import (
+        calibrate,
+        compare,
+        info,
+        nightly,
+        paper,
+        serve,
+        simulate,
+        tsky,
+        worker,
+    )
 
     parser = argparse.ArgumentParser(
         prog="autocal",
@@ -44,7 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
         "-v", "--verbose", action="count", default=0, help="more log output (-v info, -vv debug)"
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    for module in (calibrate, compare, tsky, simulate, paper, info):
+    for module in (calibrate, compare, tsky, simulate, paper, info, serve, worker, nightly):
         module.add(sub)
     return parser
 

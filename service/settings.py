@@ -25,9 +25,10 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from typing import Annotated
 
 from pydantic import Field, field_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 
 def _default_state_dir() -> Path:
@@ -41,7 +42,7 @@ class Settings(BaseSettings):
 
     state_dir: Path = Field(default_factory=_default_state_dir)
     database_url: str = ""
-    data_roots: list[Path] = Field(default_factory=list)
+    data_roots: Annotated[list[Path], NoDecode] = Field(default_factory=list)
     api_token: str = ""
     max_upload_bytes: int = Field(2 * 1024**3, gt=0)
     heartbeat_s: float = Field(10.0, gt=0)
@@ -52,8 +53,13 @@ class Settings(BaseSettings):
     @field_validator("data_roots", mode="before")
     @classmethod
     def _split_roots(cls, value: object) -> object:
-        if isinstance(value, str) and not value.strip().startswith("["):
-            return [p for p in value.split(":") if p.strip()]
+        if isinstance(value, str):
+            text = value.strip()
+            if text.startswith("["):
+                import json
+
+                return json.loads(text)
+            return [p for p in text.split(":") if p.strip()]
         return value
 
     def resolved_database_url(self) -> str:

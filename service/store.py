@@ -13,6 +13,7 @@ whose heartbeat stopped.
 from __future__ import annotations
 
 import logging
+import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -35,6 +36,7 @@ from sqlalchemy import (
     update,
 )
 from sqlalchemy.engine import Engine
+from sqlalchemy.exc import IntegrityError, OperationalError, ProgrammingError
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 
 logger = logging.getLogger(__name__)
@@ -80,6 +82,10 @@ class Job(Base):
     night: Mapped[int | None] = mapped_column(Integer, index=True, nullable=True)
     antennas: Mapped[list[int] | None] = mapped_column(JSON, nullable=True)
     dedupe_key: Mapped[str | None] = mapped_column(String(128), index=True, nullable=True)
+    # The dedupe key while the job is queued, running or succeeded, NULL otherwise: a unique
+    # column, so two concurrent identical submissions cannot both create a job (NULLs are
+    # distinct in SQLite and PostgreSQL).
+    dedupe_active: Mapped[str | None] = mapped_column(String(128), unique=True, nullable=True)
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=_now)
     started_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
     finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
@@ -131,8 +137,19 @@ class JobStore:
         self.engine: Engine = create_engine(url, **kwargs)
         if self.is_sqlite:
             event.listen(self.engine, "connect", _sqlite_pragmas)
-        Base.metadata.create_all(self.engine)
+        self._create_tables()
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
+
+    def _create_tables(self) -> None:
+        """Create the table; tolerate another process creating it at the same moment."""
+        for attempt in range(5):
+            try:
+                Base.metadata.create_all(self.engine)
+                return
+            except (IntegrityError, OperationalError, ProgrammingError):
+                if attempt == 4:
+                    raise
+                time.sleep(0.2 * (attempt + 1))
 
     @contextmanager
     def session(self) -> Iterator[Session]:
@@ -168,16 +185,42 @@ class JobStore:
         With ``dedupe_key``, an existing job with the same key that is not failed or
         cancelled is returned instead of a new one (``created`` false), unless ``force``.
         """
+        if dedupe_key is not None and not force:
+            existing = self._active_duplicate(dedupe_key)
+            if existing is not None:
+                return existing, False
+        try:
+            return self._insert(
+                config, kind, night, antennas, dedupe_key, force, max_attempts
+            ), True
+        except IntegrityError:
+            # A concurrent identical submission won the race: return its job.
+            existing = self._active_duplicate(dedupe_key) if dedupe_key else None
+            if existing is None:
+                raise
+            return existing, False
+
+    def _active_duplicate(self, dedupe_key: str) -> dict[str, Any] | None:
         with self.session() as s:
-            if dedupe_key is not None and not force:
-                existing = s.scalars(
-                    select(Job)
-                    .where(Job.dedupe_key == dedupe_key)
-                    .where(Job.state.in_(["queued", "running", "succeeded"]))
-                    .order_by(Job.created_at.desc())
-                ).first()
-                if existing is not None:
-                    return existing.to_dict(), False
+            existing = s.scalars(
+                select(Job)
+                .where(Job.dedupe_key == dedupe_key)
+                .where(Job.state.in_(["queued", "running", "succeeded"]))
+                .order_by(Job.created_at.desc())
+            ).first()
+            return None if existing is None else existing.to_dict()
+
+    def _insert(
+        self,
+        config: dict[str, Any],
+        kind: str,
+        night: int | None,
+        antennas: list[int] | None,
+        dedupe_key: str | None,
+        force: bool,
+        max_attempts: int,
+    ) -> dict[str, Any]:
+        with self.session() as s:
             job = Job(
                 id=uuid.uuid4().hex,
                 kind=kind,
@@ -186,12 +229,13 @@ class JobStore:
                 night=night,
                 antennas=antennas,
                 dedupe_key=dedupe_key,
+                dedupe_active=None if force else dedupe_key,
                 created_at=_now(),
                 max_attempts=max_attempts,
             )
             s.add(job)
             s.flush()
-            return job.to_dict(), True
+            return job.to_dict()
 
     def get(self, job_id: str) -> dict[str, Any] | None:
         """Return the job record, or ``None``."""
@@ -239,6 +283,7 @@ class JobStore:
                 raise StoreError(f"no job {job_id}")
             if job.state == JobState.queued.value:
                 job.state = JobState.cancelled.value
+                job.dedupe_active = None
                 job.finished_at = _now()
                 job.message = "cancelled before it started"
             elif job.state == JobState.running.value:
@@ -349,6 +394,8 @@ class JobStore:
                 return False
             job.state = state.value
             job.finished_at = _now()
+            if state != JobState.succeeded:
+                job.dedupe_active = None
             job.progress = 1.0 if state == JobState.succeeded else job.progress
             job.result = result
             job.products = products
@@ -385,6 +432,7 @@ class JobStore:
                         JobState.cancelled.value if job.cancel_requested else JobState.failed.value
                     )
                     job.finished_at = _now()
+                    job.dedupe_active = None
                     job.error = reason
                     job.message = job.state
                 job.worker = None

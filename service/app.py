@@ -1,0 +1,156 @@
+"""The FastAPI application of the job service.
+
+Run with ``uvicorn autocal.service.app:create_app --factory`` (settings from
+``AUTOCAL_*``; see :mod:`autocal.service.settings`). Interactive documentation is served
+at ``/docs``, the schema at ``/openapi.json``.
+
+Errors always answer JSON ``{"detail": "<what is wrong and what to do>"}``: request
+validation failures are 422 with ``errors`` naming each bad field and why; unexpected
+failures are 500 with a reference to the server log, never a stack trace.
+"""
+
+from __future__ import annotations
+
+import logging
+import uuid
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from autocal.service.routers import (
+    MAX_ERRORS,
+    describe_problem,
+    health,
+    jobs,
+    nightly,
+    problems_message,
+    uploads,
+)
+from autocal.service.settings import Settings, get_settings
+from autocal.service.store import JobStore
+
+logger = logging.getLogger(__name__)
+
+DESCRIPTION = """
+Calibrate radio-telescope auto-correlations as jobs: submit an observation (files under
+the data roots or uploads), follow its progress, fetch the solution (G, |g|, Trxr with
+uncertainties per antenna, polarisation and channel) and download the products.
+Write endpoints need `Authorization: Bearer <AUTOCAL_API_TOKEN>`.
+"""
+
+
+class CatchAllMiddleware:
+    """Answer unexpected exceptions with a generic 500 JSON body and log them.
+
+    Sits inside Starlette's server-error middleware, so the client never sees a stack
+    trace and the exception is logged once, here, with a reference the client can quote.
+    """
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """Run the wrapped application, turning an escaping exception into a 500."""
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = False
+
+        async def tracked(message: Message) -> None:
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+            await send(message)
+
+        try:
+            await self.app(scope, receive, tracked)
+        except Exception:
+            reference = uuid.uuid4().hex[:12]
+            logger.exception(
+                "unhandled error (reference %s) in %s %s",
+                reference,
+                scope.get("method"),
+                scope.get("path"),
+            )
+            if started:  # too late for an error answer; the connection is closed
+                return
+            response = JSONResponse(
+                {
+                    "detail": f"internal server error (reference {reference}); the operator "
+                    "can find the details in the server log"
+                },
+                status_code=500,
+            )
+            await response(scope, receive, send)
+
+
+async def _validation_error(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    problems = [describe_problem(dict(e)) for e in exc.errors()][:MAX_ERRORS]
+    return JSONResponse(
+        {"detail": problems_message("invalid request", problems), "errors": problems},
+        status_code=422,
+    )
+
+
+async def _http_error(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, StarletteHTTPException)
+    body: dict[str, Any] = {
+        "detail": exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+    }
+    errors = getattr(exc, "errors", None)
+    if errors:
+        body["errors"] = errors
+    return JSONResponse(body, status_code=exc.status_code, headers=exc.headers)
+
+
+def create_app(settings: Settings | None = None, store: JobStore | None = None) -> FastAPI:
+    """Build the application.
+
+    Parameters
+    ----------
+    settings
+        Service settings (default: :func:`get_settings`, from ``AUTOCAL_*``).
+    store
+        Job store (default: one on ``settings.resolved_database_url()``, disposed of at
+        shutdown).
+
+    Returns
+    -------
+    fastapi.FastAPI
+        The application; ``app.state.settings`` and ``app.state.store`` hold the above.
+    """
+    from autocal import __version__
+
+    settings = settings if settings is not None else get_settings()
+    owns_store = store is None
+    store = store if store is not None else JobStore(settings.resolved_database_url())
+    if not settings.api_token:
+        logger.warning("AUTOCAL_API_TOKEN is not set: write endpoints refuse every request")
+
+    @asynccontextmanager
+    async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
+        yield
+        if owns_store:
+            store.engine.dispose()
+
+    app = FastAPI(
+        title="autocal job service",
+        version=__version__,
+        description=DESCRIPTION,
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.store = store
+    app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.add_middleware(CatchAllMiddleware)
+    for module in (jobs, uploads, nightly, health):
+        app.include_router(module.router)
+    return app

@@ -1,0 +1,426 @@
+"""The job worker: claim queued jobs from the store and run them.
+
+One :class:`Worker` runs one job at a time; run several worker processes (on one machine
+or many, sharing a PostgreSQL store) for parallelism. A job's life in the worker:
+
+1. :meth:`JobStore.claim` atomically moves the oldest queued job to ``running`` and makes
+   this worker and the job's attempt number its owner.
+2. A heartbeat thread calls :meth:`JobStore.heartbeat` every ``settings.heartbeat_s`` with
+   the latest progress. When the store answers ``False`` (cancellation requested, or the
+   job was re-queued because this worker was presumed dead) the job's ``should_stop``
+   flag is raised and the pipeline stops at its next checkpoint.
+3. :func:`autocal.pipeline.run_calibration` writes the products into
+   ``settings.products_dir / job_id / "attempt-N"``; progress lines and warnings go to
+   the job's log.
+4. The job is closed by :meth:`JobStore.finish` (accepted only from its owner): succeeded
+   with the summary, product paths and provenance; cancelled; or failed with a one-line
+   reason (``"ExceptionType: message"``; the traceback goes to the worker's own log).
+
+A worker asked to shut down (:meth:`Worker.request_stop`, e.g. on SIGTERM) stops claiming,
+aborts the current job at its next checkpoint without closing it and stops its heartbeat;
+:meth:`JobStore.recover_stale`, called periodically by every worker, re-queues the job
+(or fails it after ``max_attempts``). A job is therefore never lost and, because
+``finish`` checks owner and attempt, never completed twice.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import socket
+import threading
+import time
+import uuid
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from autocal.service.settings import Settings, get_settings
+from autocal.service.store import JobState, JobStore
+
+logger = logging.getLogger(__name__)
+
+#: Job kinds this worker knows how to run.
+KNOWN_KINDS = ("calibrate",)
+
+
+def default_worker_id() -> str:
+    """Return a worker name unique across hosts and processes (``host:pid:random``)."""
+    return f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:6]}"
+
+
+def jsonable(value: Any) -> Any:
+    """Return ``value`` as plain JSON data (strict JSON: no NaN or infinity).
+
+    NumPy scalars and arrays become Python numbers and lists, non-finite floats become
+    ``None`` (PostgreSQL's ``json`` type rejects ``NaN``), paths and other objects become
+    strings.
+
+    Parameters
+    ----------
+    value
+        Any nesting of mappings, sequences and scalars.
+
+    Returns
+    -------
+    Any
+        The converted value.
+    """
+    if value is None or isinstance(value, bool | int | str):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, Mapping):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple | set):
+        return [jsonable(v) for v in value]
+    if hasattr(value, "tolist"):  # numpy scalars and arrays
+        return jsonable(value.tolist())
+    if isinstance(value, Path):
+        return str(value)
+    return str(value)
+
+
+def describe_error(err: BaseException) -> str:
+    """Return a one-line reason for a failed job (``"Type: message"``, no traceback).
+
+    Parameters
+    ----------
+    err
+        The exception.
+
+    Returns
+    -------
+    str
+        The reason, at most 2000 characters.
+    """
+    from pydantic import ValidationError
+
+    if isinstance(err, ValidationError):
+        problems = "; ".join(
+            f"{'.'.join(str(x) for x in e['loc']) or 'config'}: {e['msg']}" for e in err.errors()
+        )
+        text = f"invalid job configuration: {problems}"
+    else:
+        text = " ".join(str(err).split()) or repr(err)
+    return f"{type(err).__name__}: {text}"[:2000]
+
+
+class _JobLogHandler(logging.Handler):
+    """Copy warnings logged by the job's thread into the job's log."""
+
+    def __init__(self, store: JobStore, job_id: str, thread_id: int) -> None:
+        super().__init__(level=logging.WARNING)
+        self.store = store
+        self.job_id = job_id
+        self.thread_id = thread_id
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.thread != self.thread_id:
+            return
+        with contextlib.suppress(Exception):  # never let logging break the job
+            self.store.append_log(
+                self.job_id, f"{record.levelname} {record.name}: {record.getMessage()}"
+            )
+
+
+class _Run:
+    """The state of one running job shared by the job thread and its heartbeat thread."""
+
+    def __init__(self, worker: Worker, job: dict[str, Any]) -> None:
+        self.worker = worker
+        self.store = worker.store
+        self.job_id: str = job["id"]
+        self.attempt: int = int(job["attempts"])
+        self.progress_value = 0.0
+        self.message = "claimed"
+        self.stop_flag = threading.Event()  # the store said stop (cancel / lost ownership)
+        self.done = threading.Event()
+        self.lock = threading.Lock()
+        self.thread = threading.Thread(
+            target=self._beat_loop, name=f"heartbeat-{self.job_id[:8]}", daemon=True
+        )
+
+    # called by the pipeline (job thread) -------------------------------------------------
+    def progress(self, fraction: float, message: str) -> None:
+        """Record progress; it is sent with the next heartbeat."""
+        with self.lock:
+            self.progress_value = float(fraction)
+            self.message = message
+        self.log(f"{100 * fraction:3.0f}% {message}")
+
+    def should_stop(self) -> bool:
+        """Whether the job must stop (cancelled, ownership lost, or worker shutting down)."""
+        return self.stop_flag.is_set() or self.worker.stopping
+
+    def log(self, line: str) -> None:
+        """Append a line to the job's log (errors are logged, not raised)."""
+        try:
+            self.store.append_log(self.job_id, line)
+        except Exception as err:
+            logger.warning("job %s: could not append to its log: %s", self.job_id, err)
+
+    # heartbeat thread --------------------------------------------------------------------
+    def start(self) -> None:
+        """Start the heartbeat thread."""
+        self.thread.start()
+
+    def stop(self) -> None:
+        """Stop the heartbeat thread and wait for it."""
+        self.done.set()
+        self.thread.join()
+
+    def _beat_loop(self) -> None:
+        interval = self.worker.settings.heartbeat_s
+        while not self.done.wait(interval):
+            self.beat()
+            self.worker.maybe_recover()
+
+    def beat(self) -> bool:
+        """Send one heartbeat; raise the stop flag when the store says stop."""
+        with self.lock:
+            fraction, message = self.progress_value, self.message
+        try:
+            keep_going = self.store.heartbeat(
+                self.job_id, self.worker.worker_id, self.attempt, progress=fraction, message=message
+            )
+        except Exception as err:  # database briefly unavailable: try again next beat
+            logger.warning("job %s: heartbeat failed: %s", self.job_id, err)
+            return True
+        if not keep_going and not self.stop_flag.is_set():
+            logger.info("job %s: the store asks this worker to stop it", self.job_id)
+            self.stop_flag.set()
+        return keep_going
+
+
+class Worker:
+    """Claims jobs from a :class:`JobStore` and runs them, one at a time.
+
+    Parameters
+    ----------
+    store
+        The job store (default: the one named by ``settings``).
+    settings
+        Service settings (default: :func:`get_settings`); uses ``products_dir``,
+        ``heartbeat_s``, ``stale_after_s`` and ``dask_scheduler``.
+    worker_id
+        This worker's name in the store (default: ``host:pid:random``).
+    """
+
+    def __init__(
+        self,
+        store: JobStore | None = None,
+        settings: Settings | None = None,
+        worker_id: str | None = None,
+    ) -> None:
+        self.settings = settings or get_settings()
+        self.store = store or JobStore(self.settings.resolved_database_url())
+        self.worker_id = worker_id or default_worker_id()
+        self.stop_event = threading.Event()
+        self.current: _Run | None = None
+        self._recover_lock = threading.Lock()
+        self._last_recover = -math.inf
+
+    # control -----------------------------------------------------------------------------
+    @property
+    def stopping(self) -> bool:
+        """Whether a shutdown was requested."""
+        return self.stop_event.is_set()
+
+    def request_stop(self) -> None:
+        """Stop claiming jobs and abort the current one at its next checkpoint.
+
+        The aborted job is not closed: it stays ``running`` until
+        :meth:`JobStore.recover_stale` re-queues it. From a signal handler, call it in a
+        new thread (``threading.Event.set`` takes a lock the interrupted thread may hold).
+        """
+        self.stop_event.set()
+
+    @property
+    def recover_interval_s(self) -> float:
+        """Seconds between two stale-job recoveries by this worker."""
+        return max(min(self.settings.stale_after_s / 2, 30.0), 0.2)
+
+    def maybe_recover(self, force: bool = False) -> list[dict[str, Any]]:
+        """Re-queue or fail stale jobs, at most once per :attr:`recover_interval_s`."""
+        with self._recover_lock:
+            now = time.monotonic()
+            if not force and now - self._last_recover < self.recover_interval_s:
+                return []
+            self._last_recover = now
+        try:
+            changed = self.store.recover_stale(self.settings.stale_after_s)
+        except Exception as err:
+            logger.warning("stale-job recovery failed: %s", err)
+            return []
+        for job in changed:
+            logger.warning("recovered stale job %s -> %s", job["id"], job["state"])
+        return changed
+
+    # the loop ----------------------------------------------------------------------------
+    def run_once(self) -> bool:
+        """Claim one queued job and run it to its end.
+
+        Returns
+        -------
+        bool
+            ``False`` when the queue was empty (or the worker is stopping).
+        """
+        if self.stopping:
+            return False
+        job = self.store.claim(self.worker_id)
+        if job is None:
+            return False
+        self.run_job(job)
+        return True
+
+    def run_forever(self, poll_s: float = 2.0, stop_event: threading.Event | None = None) -> None:
+        """Run jobs until ``stop_event`` (or :meth:`request_stop`) is set.
+
+        Parameters
+        ----------
+        poll_s
+            Seconds to wait before looking again when the queue is empty.
+        stop_event
+            Optional event that stops the loop (also aborts the current job, which is
+            then re-queued by stale-job recovery).
+        """
+        if stop_event is not None:
+            self.stop_event = stop_event
+        logger.info(
+            "worker %s started (store %s, products in %s)",
+            self.worker_id,
+            self.store.engine.url.render_as_string(hide_password=True),
+            self.settings.products_dir,
+        )
+        while not self.stopping:
+            self.maybe_recover()
+            try:
+                ran = self.run_once()
+            except Exception as err:  # the store is unreachable: wait and retry
+                logger.error("worker %s: cannot claim a job: %s", self.worker_id, err)
+                ran = False
+            if not ran:
+                self.stop_event.wait(poll_s)
+        logger.info("worker %s stopped", self.worker_id)
+
+    # one job -----------------------------------------------------------------------------
+    def run_job(self, job: dict[str, Any]) -> str | None:
+        """Run a claimed job and close it in the store.
+
+        Parameters
+        ----------
+        job
+            The record returned by :meth:`JobStore.claim`.
+
+        Returns
+        -------
+        str or None
+            The final state written, or ``None`` when the job was left for recovery
+            (shutdown) or this worker no longer owned it.
+        """
+        run = _Run(self, job)
+        self.current = run
+        handler = _JobLogHandler(self.store, run.job_id, threading.get_ident())
+        logging.getLogger().addHandler(handler)
+        run.start()
+        started = time.perf_counter()
+        logger.info("job %s (%s) attempt %d: started", run.job_id, job["kind"], run.attempt)
+        run.log(f"attempt {run.attempt} started by worker {self.worker_id}")
+        try:
+            return self._execute(run, job)
+        finally:
+            run.stop()
+            logging.getLogger().removeHandler(handler)
+            self.current = None
+            logger.info(
+                "job %s attempt %d: ended after %.1f s",
+                run.job_id,
+                run.attempt,
+                time.perf_counter() - started,
+            )
+
+    def _finish(self, run: _Run, state: JobState, **fields: Any) -> str | None:
+        if state != JobState.succeeded:
+            run.log(f"{state.value}: {fields.get('error') or ''}".rstrip(": "))
+        else:
+            run.log("succeeded")
+        try:
+            ok = self.store.finish(run.job_id, self.worker_id, run.attempt, state, **fields)
+        except Exception:
+            logger.exception("job %s: could not record its end (%s)", run.job_id, state.value)
+            return None
+        if not ok:
+            logger.warning(
+                "job %s attempt %d: no longer owned by %s; %s not recorded",
+                run.job_id,
+                run.attempt,
+                self.worker_id,
+                state.value,
+            )
+            return None
+        return state.value
+
+    def _execute(self, run: _Run, job: dict[str, Any]) -> str | None:
+        from autocal.pipeline import CalibrationConfig, run_calibration
+
+        if job["kind"] not in KNOWN_KINDS:
+            return self._finish(
+                run,
+                JobState.failed,
+                error=f"unknown job kind {job['kind']!r} (this worker runs: "
+                f"{', '.join(KNOWN_KINDS)})",
+            )
+        out = self.settings.products_dir / run.job_id / f"attempt-{run.attempt}"
+        try:
+            config = CalibrationConfig(**(job["config"] or {}))
+            result = run_calibration(
+                config, out, progress=run.progress, should_stop=run.should_stop
+            )
+        except Exception as err:
+            if run.should_stop():
+                return self._stopped(run, err)
+            logger.error(
+                "job %s attempt %d failed", run.job_id, run.attempt, exc_info=True
+            )  # the traceback stays in the worker's log
+            return self._finish(run, JobState.failed, error=describe_error(err))
+        provenance = dict(result.summary.get("provenance") or {})
+        provenance["service"] = {
+            "job_id": run.job_id,
+            "attempt": run.attempt,
+            "worker": self.worker_id,
+            "products_dir": str(out),
+        }
+        if self.settings.dask_scheduler:
+            # Recorded only: the calibration ran in this worker process; Dask scale-out
+            # of the computation is not implemented yet.
+            provenance["dask_scheduler"] = self.settings.dask_scheduler
+            provenance["service"]["executor"] = "worker process (dask scheduler not used yet)"
+        summary = dict(result.summary)
+        summary["provenance"] = provenance
+        return self._finish(
+            run,
+            JobState.succeeded,
+            result=jsonable(summary),
+            products=jsonable(result.products),
+            provenance=jsonable(provenance),
+        )
+
+    def _stopped(self, run: _Run, err: BaseException) -> str | None:
+        """Close (or leave) a job stopped at a checkpoint: cancelled, lost, or shutdown."""
+        if run.stop_flag.is_set():
+            # Either cancellation was requested (we still own it: record cancelled) or
+            # the job was re-queued/failed behind our back (finish refuses; fine).
+            logger.info("job %s attempt %d: stopped (%s)", run.job_id, run.attempt, err)
+            return self._finish(run, JobState.cancelled, error="cancelled on request")
+        logger.warning(
+            "job %s attempt %d: abandoned because worker %s is shutting down; "
+            "it will be re-queued when its heartbeat is stale",
+            run.job_id,
+            run.attempt,
+            self.worker_id,
+        )
+        run.log(f"worker {self.worker_id} shut down during attempt {run.attempt}")
+        return None
