@@ -4,6 +4,8 @@ Commands (one module each in :mod:`autocal.commands`)
 -----------------------------------------------------
 ``autocal calibrate``
     Fit G and Trxr to the autos of one observation; write calh5/calfits, HDF5, plots.
+``autocal diagnose``
+    Name the physical effects missing from the model, add them, show the gap shrink.
 ``autocal compare``
     |g| from autos against cross-correlation (abscal or redcal/omnical) gains.
 ``autocal tsky``
@@ -42,6 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
     from autocal.commands import (
         calibrate,
         compare,
+        diagnose,
         info,
         nightly,
         paper,
@@ -60,7 +63,18 @@ def build_parser() -> argparse.ArgumentParser:
         "-v", "--verbose", action="count", default=0, help="more log output (-v info, -vv debug)"
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    for module in (calibrate, compare, tsky, simulate, paper, info, serve, worker, nightly):
+    for module in (
+        calibrate,
+        compare,
+        diagnose,
+        tsky,
+        simulate,
+        paper,
+        info,
+        serve,
+        worker,
+        nightly,
+    ):
         module.add(sub)
     return parser
 

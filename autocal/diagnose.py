@@ -1,0 +1,857 @@
+"""Find the physical effect missing from the forward model (DESIGN.md section 5).
+
+Workflow: fit the current model (per-channel ``G``, ``n`` plus the global parameters of
+the accepted effects, :mod:`autocal.effects`), measure the gap (chi^2/dof, rms normalised
+residual, low-order Legendre time modes, delay spectra of the residuals and of ``G`` and
+``Trxr``, correlation with templates), fit every candidate effect on top, rank them by
+
+    Delta BIC = Delta chi^2 - k ln N
+
+(``chi^2`` radiometer-weighted, ``k`` the candidate's free parameters, ``N`` the number of
+data used), and accept the best only if ``Delta BIC > threshold`` (default 10, "very
+strong") *and* its ``Delta chi^2`` is significant (chi^2_k survival < ``alpha``). Repeat
+until nothing is accepted. ``cable_reflection`` is absorbed by the per-channel gain, so it
+is ranked in the bandpass domain: ``chi^2`` of the fitted ``G(nu)`` (with its errors)
+against a smooth Legendre bandpass, with and without the ripple, ``N = Nfreq``.
+
+The fit with global parameters is a variable-projection Gauss-Newton: for fixed global
+parameters every channel is a weighted linear fit of ``(G, n)``; the global step uses the
+Jacobian projected orthogonally to each channel's ``(G, n)`` design, so the covariance of
+the global parameters is marginalised over all ``(G, n)``. An optional receiver prior
+(``Trxr(nu) = Trxr0 +- sigma``) enters as one pseudo-observation per channel,
+``n - Trxr0 G = 0 +- G sigma``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.polynomial import legendre
+from scipy import stats
+
+from autocal.delay import delay_spectrum
+from autocal.effects import Effect, SkyTemplates, catalogue, time_basis
+from autocal.observation import Observation
+
+logger = logging.getLogger(__name__)
+
+#: Default Delta BIC an effect must exceed to be accepted.
+BIC_THRESHOLD = 10.0
+#: Default significance (chi^2_k survival of Delta chi^2) an effect must reach.
+ALPHA = 1e-4
+#: Fraction of a template's Fisher information that must survive the (G, n) projection.
+MIN_IDENTIFIABLE = 1e-6
+
+
+class DiagnoseError(ValueError):
+    """Invalid diagnosis input."""
+
+
+# the extended fit -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class ExtendedFit:
+    """Result of :func:`fit_extended`.
+
+    Attributes
+    ----------
+    effects
+        The effects included.
+    params
+        ``{effect name: values}`` (fixed values included).
+    sigmas
+        ``{effect name: 1-sigma}`` (0 for fixed values).
+    G, n, sigma_G
+        ``(Nant, Npol, Nfreq)`` per-channel gain, noise and gain error.
+    chi2
+        Weighted chi-square (with the prior term).
+    ndata
+        Number of data used (with prior pseudo-observations).
+    nparam
+        Per-channel plus free global parameters.
+    model
+        ``(Nant, Npol, Ntime, Nfreq)`` model autos.
+    residuals
+        Normalised residuals ``(R - model) sqrt(w)``.
+    identifiable
+        ``{effect name: fraction of Fisher information left after the (G, n) projection}``.
+    iterations
+        Gauss-Newton iterations used.
+    """
+
+    effects: tuple[Effect, ...]
+    params: dict[str, np.ndarray]
+    sigmas: dict[str, np.ndarray]
+    G: np.ndarray
+    n: np.ndarray
+    sigma_G: np.ndarray  # noqa: N815
+    chi2: float
+    ndata: int
+    nparam: int
+    model: np.ndarray
+    residuals: np.ndarray
+    identifiable: dict[str, float]
+    iterations: int
+
+    @property
+    def dof(self) -> int:
+        """Degrees of freedom ``ndata - nparam``."""
+        return self.ndata - self.nparam
+
+    @property
+    def reduced_chi2(self) -> float:
+        """``chi^2 / dof``."""
+        return self.chi2 / max(self.dof, 1)
+
+    @property
+    def Trxr(self) -> np.ndarray:
+        """``n / G``."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return self.n / self.G
+
+
+def radiometer_weights(obs: Observation, reference: np.ndarray) -> np.ndarray:
+    """Inverse variances ``dnu dt N / reference^2`` (zero where flagged or non-finite)."""
+    bt = obs.bandwidth_time()
+    usable = np.isfinite(obs.data) & ~obs.flags
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = bt / reference**2
+    return np.where(usable & np.isfinite(w) & (w > 0), w, 0.0)
+
+
+def _split(effects: tuple[Effect, ...]) -> list[tuple[Effect, slice]]:
+    out, i = [], 0
+    for eff in effects:
+        k = 0 if eff.fixed is not None else len(eff.params)
+        out.append((eff, slice(i, i + k)))
+        i += k
+    return out
+
+
+def fit_extended(
+    obs: Observation,
+    tpl: SkyTemplates,
+    effects: tuple[Effect, ...] | list[Effect] = (),
+    *,
+    weights: np.ndarray,
+    trxr_prior: np.ndarray | float | None = None,
+    trxr_prior_sigma: float = 1.0,
+    gain_ref: np.ndarray | None = None,
+    max_iter: int = 30,
+    tol: float = 1e-4,
+) -> ExtendedFit:
+    """Fit per-channel ``(G, n)`` and the global parameters of ``effects``.
+
+    Parameters
+    ----------
+    obs
+        The observation ``(Nant, Npol, Ntime, Nfreq)``.
+    tpl
+        Model Tsky and its templates on the observation's grid.
+    effects
+        Effects added to the model (``bandpass`` effects are ignored here).
+    weights
+        ``(Nant, Npol, Ntime, Nfreq)`` inverse variances (hold them fixed to compare fits).
+    trxr_prior, trxr_prior_sigma
+        Receiver prior in kelvin (scalar or ``(Nfreq,)``) and its 1-sigma; ``None`` for
+        no prior.
+    gain_ref
+        ``(Nant, Npol, Nfreq)`` gain used to scale the prior's sigma (default: a fit
+        without prior).
+    max_iter, tol
+        Gauss-Newton limits (``tol`` in units of the parameter sigma).
+
+    Returns
+    -------
+    ExtendedFit
+        The fit.
+    """
+    effects = tuple(e for e in effects if e.kind != "bandpass")
+    y = np.swapaxes(np.where(weights > 0, obs.data, 0.0), 2, 3)  # (A, P, F, T)
+    w = np.swapaxes(weights, 2, 3)
+    if tpl.total.shape[0] != len(obs.pols) or tpl.total.shape[1:] != (obs.ntime, obs.nfreq):
+        raise DiagnoseError("templates do not match the observation's grid")
+    blocks = _split(effects)
+    nfree = sum(b.stop - b.start for _, b in blocks)
+    p = np.zeros(nfree)
+    fixed = {e.name: np.asarray(e.fixed, float) for e in effects if e.fixed is not None}
+    bases = {e.order: time_basis(obs.lsts, e.order) for e in effects if e.kind != "tsky"}
+    prior = trxr_prior is not None
+    t0 = np.broadcast_to(np.asarray(trxr_prior if prior else 0.0, float), (obs.nfreq,))
+
+    def values(eff: Effect, sl: slice, pv: np.ndarray) -> np.ndarray:
+        return fixed[eff.name] if eff.fixed is not None else pv[sl]
+
+    def columns(pv: np.ndarray) -> tuple[np.ndarray, ...]:
+        tsky = tpl.total.copy()
+        gfac = np.ones(obs.ntime)
+        nfac = np.ones(obs.ntime)
+        for eff, sl in blocks:
+            v = values(eff, sl, pv)
+            if eff.kind == "tsky":
+                tsky = tsky + eff.delta(v, tpl)
+            elif eff.kind == "gain":
+                gfac = gfac + v @ bases[eff.order]
+            else:
+                nfac = nfac + v @ bases[eff.order]
+        tt = np.swapaxes(tsky, 1, 2)[None]  # (1, P, F, T)
+        return tt, gfac, nfac
+
+    def solve_channels(a1: np.ndarray, a2: np.ndarray, wp: np.ndarray) -> tuple[np.ndarray, ...]:
+        n11 = (w * a1 * a1).sum(-1) + wp * t0**2
+        n12 = (w * a1 * a2).sum(-1) - wp * t0
+        n22 = (w * a2 * a2).sum(-1) + wp
+        b1 = (w * a1 * y).sum(-1)
+        b2 = (w * a2 * y).sum(-1)
+        det = n11 * n22 - n12**2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = np.stack([n22 / det, -n12 / det, n11 / det])
+        g = inv[0] * b1 + inv[1] * b2
+        nn = inv[1] * b1 + inv[2] * b2
+        return g, nn, inv
+
+    # prior weights from a reference gain
+    wp = np.zeros(y.shape[:3])
+    if prior:
+        if gain_ref is None:
+            tt, gf, nf = columns(p)
+            a1 = np.broadcast_to(tt * gf, y.shape)
+            a2 = np.broadcast_to(nf * gf, y.shape)
+            gain_ref, _, _ = solve_channels(a1, a2, np.zeros(y.shape[:3]))
+        wp = 1.0 / (np.abs(gain_ref) * trxr_prior_sigma) ** 2
+
+    ident: dict[str, float] = {}
+    it = 0
+    cov = np.zeros((nfree, nfree))
+    for it in range(1, max_iter + 1):
+        tt, gfac, nfac = columns(p)
+        a1 = np.broadcast_to(tt * gfac, y.shape)
+        a2 = np.broadcast_to(nfac * gfac, y.shape)
+        g, nn, inv = solve_channels(a1, a2, wp)
+        model = g[..., None] * a1 + nn[..., None] * a2
+        r = y - model
+        rp = -(nn - t0 * g)
+        if nfree == 0:
+            break
+        # Jacobian of the model w.r.t. the free globals: (A, P, F, T, K)
+        jac = np.zeros((*y.shape, nfree))
+        for eff, sl in blocks:
+            if sl.stop == sl.start:
+                continue
+            v = p[sl]
+            if eff.kind == "tsky":
+                dj = np.swapaxes(eff.jacobian(v, tpl), 1, 2)[None]  # (1, P, F, T, k)
+                jac[..., sl] = g[..., None, None] * gfac[:, None] * dj
+            elif eff.kind == "gain":
+                base_model = g[..., None] * tt + (nn[..., None] * nfac)
+                jac[..., sl] = base_model[..., None] * bases[eff.order].T
+            else:
+                jac[..., sl] = (nn[..., None, None] * gfac[:, None]) * bases[eff.order].T
+        wj = w[..., None] * jac
+        c1 = (wj * a1[..., None]).sum(-2)  # (A, P, F, K)
+        c2 = (wj * a2[..., None]).sum(-2)
+        k1 = inv[0][..., None] * c1 + inv[1][..., None] * c2
+        k2 = inv[1][..., None] * c1 + inv[2][..., None] * c2
+        jp = jac - a1[..., None] * k1[..., None, :] - a2[..., None] * k2[..., None, :]
+        jprior = -(-t0[..., None] * k1 + k2)  # projected prior row (A, P, F, K)
+        h = np.einsum("apftk,apftl->kl", w[..., None] * jp, jp)
+        h += np.einsum("apfk,apfl->kl", wp[..., None] * jprior, jprior)
+        grad = np.einsum("apftk,apft->k", w[..., None] * jp, r)
+        grad += np.einsum("apfk,apf->k", wp[..., None] * jprior, rp)
+        if it == 1:
+            raw = np.einsum("apftk,apftk->k", wj, jac)
+            for eff, sl in blocks:
+                if sl.stop > sl.start:
+                    ident[eff.name] = float(
+                        np.min(np.diag(h)[sl] / np.where(raw[sl] > 0, raw[sl], np.inf))
+                    )
+            if any(ident.get(e.name, 1.0) < MIN_IDENTIFIABLE for e, _ in blocks):
+                cov = np.full((nfree, nfree), np.inf)
+                break
+        cov = np.linalg.pinv(h)
+        step = cov @ grad
+        p = p + step
+        sig = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+        if np.all(np.abs(step) < tol * sig):
+            tt, gfac, nfac = columns(p)
+            a1 = np.broadcast_to(tt * gfac, y.shape)
+            a2 = np.broadcast_to(nfac * gfac, y.shape)
+            g, nn, inv = solve_channels(a1, a2, wp)
+            model = g[..., None] * a1 + nn[..., None] * a2
+            r = y - model
+            rp = -(nn - t0 * g)
+            break
+    chi2 = float((w * r**2).sum() + (wp * rp**2).sum())
+    used = int((w > 0).sum())
+    nchan = int(np.isfinite(g).sum())
+    ndata = used + (nchan if prior else 0)
+    params: dict[str, np.ndarray] = {}
+    sigmas: dict[str, np.ndarray] = {}
+    sig_all = np.sqrt(np.abs(np.diag(cov))) if nfree else np.zeros(0)
+    for eff, sl in blocks:
+        params[eff.name] = values(eff, sl, p).copy()
+        sigmas[eff.name] = (
+            np.zeros(len(eff.params)) if eff.fixed is not None else sig_all[sl].copy()
+        )
+    resid = np.swapaxes(np.where(w > 0, r * np.sqrt(w), np.nan), 2, 3)
+    return ExtendedFit(
+        effects=effects,
+        params=params,
+        sigmas=sigmas,
+        G=g,
+        n=nn,
+        sigma_G=np.sqrt(np.abs(inv[0])),
+        chi2=chi2,
+        ndata=ndata,
+        nparam=2 * nchan + nfree,
+        model=np.swapaxes(model, 2, 3),
+        residuals=resid,
+        identifiable=ident,
+        iterations=it,
+    )
+
+
+# the bandpass domain --------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class BandpassFit:
+    """Fit of the fitted ``G(nu)`` by a smooth bandpass, optionally times a ripple.
+
+    Attributes
+    ----------
+    chi2, nfreq, nparam
+        Chi-square over channels (all antennas and pols), channels, parameters.
+    a, sigma_a, tau_ns, sigma_tau_ns, phi, sigma_phi
+        Ripple parameters (``NaN`` for the smooth fit).
+    """
+
+    chi2: float
+    nfreq: int
+    nparam: int
+    a: float = float("nan")
+    sigma_a: float = float("nan")
+    tau_ns: float = float("nan")
+    sigma_tau_ns: float = float("nan")
+    phi: float = float("nan")
+    sigma_phi: float = float("nan")
+
+    @property
+    def reduced_chi2(self) -> float:
+        """``chi^2 / dof``."""
+        return self.chi2 / max(self.nfreq - self.nparam, 1)
+
+
+def _bandpass_chi2(
+    freqs: np.ndarray, g: np.ndarray, sg: np.ndarray, order: int, tau: float | None
+) -> tuple[float, np.ndarray, np.ndarray]:
+    x = 2 * (freqs - freqs[0]) / (freqs[-1] - freqs[0]) - 1
+    basis = legendre.legvander(x, order)  # (F, O+1)
+    ok = np.isfinite(g) & np.isfinite(sg) & (sg > 0)
+    wsq = np.where(ok, 1 / np.where(ok, sg, 1.0), 0.0)
+    smooth_coef = np.linalg.lstsq(basis * wsq[:, None], np.where(ok, g, 0) * wsq, rcond=None)[0]
+    if tau is None:
+        cols = basis
+    else:
+        smooth = basis @ smooth_coef
+        ph = 2 * np.pi * freqs * tau
+        cols = np.hstack([basis, (smooth * np.cos(ph))[:, None], (smooth * np.sin(ph))[:, None]])
+    a = cols * wsq[:, None]
+    coef, *_ = np.linalg.lstsq(a, np.where(ok, g, 0) * wsq, rcond=None)
+    chi2 = float(np.sum((a @ coef - np.where(ok, g, 0) * wsq) ** 2))
+    cov = np.linalg.pinv(a.T @ a)
+    return chi2, coef, cov
+
+
+def fit_cable_reflection(
+    freqs: np.ndarray,
+    gain: np.ndarray,
+    sigma_gain: np.ndarray,
+    *,
+    smooth_order: int = 6,
+    tau_range_ns: tuple[float, float] = (80.0, 500.0),
+) -> tuple[BandpassFit, BandpassFit]:
+    """Fit ``G(nu)`` by a smooth Legendre bandpass, and by the same times ``1 + a cos``.
+
+    The ripple is linearised, ``P(nu) + Pbar(nu) (c cos 2 pi nu tau + s sin 2 pi nu tau)``
+    with ``Pbar`` the smooth fit; ``tau`` is scanned on a grid oversampled 8x relative to
+    the delay resolution ``1 / bandwidth`` and refined parabolically; its error is where
+    ``chi^2`` rises by 1. Antennas and polarisations are fitted separately and their
+    ``chi^2`` summed (the parameters reported are the first antenna/pol's).
+
+    Parameters
+    ----------
+    freqs
+        ``(Nfreq,)`` Hz.
+    gain, sigma_gain
+        ``(..., Nfreq)`` fitted gain and its 1-sigma.
+    smooth_order
+        Legendre order of the smooth bandpass.
+    tau_range_ns
+        Delays scanned (capped at the Nyquist delay ``1 / (2 dnu)``).
+
+    Returns
+    -------
+    (BandpassFit, BandpassFit)
+        Smooth fit and smooth-with-ripple fit.
+    """
+    g2 = np.asarray(gain).reshape(-1, freqs.size)
+    s2 = np.asarray(sigma_gain).reshape(-1, freqs.size)
+    nyq = 0.5 / abs(freqs[1] - freqs[0]) * 1e9
+    hi = min(tau_range_ns[1], 0.95 * nyq)
+    step = 1e9 / (freqs[-1] - freqs[0]) / 8
+    grid = np.arange(tau_range_ns[0], hi, step)
+    chi_null = sum(
+        _bandpass_chi2(freqs, g, s, smooth_order, None)[0] for g, s in zip(g2, s2, strict=True)
+    )
+    null = BandpassFit(chi_null, int(np.isfinite(g2).sum()), g2.shape[0] * (smooth_order + 1))
+    if grid.size < 3:
+        return null, null
+    chis = np.array(
+        [
+            sum(
+                _bandpass_chi2(freqs, g, s, smooth_order, t * 1e-9)[0]
+                for g, s in zip(g2, s2, strict=True)
+            )
+            for t in grid
+        ]
+    )
+    i = int(np.argmin(chis))
+    fine = np.linspace(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)], 41)
+    fchis = np.array(
+        [
+            sum(
+                _bandpass_chi2(freqs, g, s, smooth_order, t * 1e-9)[0]
+                for g, s in zip(g2, s2, strict=True)
+            )
+            for t in fine
+        ]
+    )
+    j = int(np.argmin(fchis))
+    tau = float(fine[j])
+    inside = fine[fchis <= fchis[j] + 1.0]
+    sig_tau = max(float(inside.max() - inside.min()) / 2, float(fine[1] - fine[0]))
+    _, coef, cov = _bandpass_chi2(freqs, g2[0], s2[0], smooth_order, tau * 1e-9)
+    c, s = coef[-2], coef[-1]
+    a = float(np.hypot(c, s))
+    ccs = cov[-2:, -2:]
+    grad_a = np.array([c, s]) / max(a, 1e-300)
+    sig_a = float(np.sqrt(grad_a @ ccs @ grad_a))
+    phi = float(np.arctan2(-s, c))
+    grad_p = np.array([s, -c]) / max(a, 1e-300) ** 2
+    sig_phi = float(np.sqrt(abs(grad_p @ ccs @ grad_p)))
+    rip = BandpassFit(
+        float(fchis[j]),
+        null.nfreq,
+        null.nparam + 3 * g2.shape[0],
+        a,
+        sig_a,
+        tau,
+        sig_tau,
+        phi,
+        sig_phi,
+    )
+    return null, rip
+
+
+# gap metrics ----------------------------------------------------------------------------
+
+
+def gap_metrics(
+    fit: ExtendedFit,
+    obs: Observation,
+    tpl: SkyTemplates,
+    bandpass: BandpassFit | None = None,
+    n_time_modes: int = 4,
+) -> dict[str, Any]:
+    """Measure the disagreement between a fit and the data.
+
+    Returns
+    -------
+    dict
+        ``chi2``, ``dof``, ``reduced_chi2``, ``rms_normalised_residual``,
+        ``time_mode_power`` (mean over channels of the squared projection of the
+        normalised residuals on ``P_0..P_{m-1}`` of LST, ~1 each when white),
+        ``residual_delay_power`` (max and its delay of the time-averaged residual power
+        spectrum along frequency, ~1 when white), ``delay_peak_G`` / ``delay_peak_Trxr``
+        (largest delay-spectrum amplitude beyond 100 ns, mean removed),
+        ``template_correlation`` (Pearson r of the residuals with Tsky, its Galactic part
+        and the ground fraction), ``bandpass_reduced_chi2``.
+    """
+    res = fit.residuals
+    ok = np.isfinite(res)
+    r0 = np.where(ok, res, 0.0)
+    basis = time_basis(obs.lsts, n_time_modes - 1)
+    basis = np.vstack([np.ones(obs.ntime), basis]) if basis.size else np.ones((1, obs.ntime))
+    norm = basis / np.sqrt((basis**2).sum(axis=1, keepdims=True))
+    proj = np.einsum("kt,aptf->apfk", norm, r0)
+    ps = np.abs(np.fft.rfft(r0, axis=-1)) ** 2 / obs.nfreq
+    ps_mean = ps.reshape(-1, ps.shape[-1]).mean(axis=0)
+    delays = np.fft.rfftfreq(obs.nfreq, d=obs.freqs[1] - obs.freqs[0]) * 1e9
+    k = int(np.argmax(ps_mean[1:]) + 1)
+
+    def peak(values: np.ndarray) -> dict[str, float]:
+        try:
+            ds = delay_spectrum(values.reshape(-1, obs.nfreq), obs.freqs, subtract_mean=True)
+        except ValueError:
+            return {"amplitude": float("nan"), "delay_ns": float("nan")}
+        sel = ds.delays_ns > 100
+        amp = np.nanmax(ds.amplitude[:, sel], axis=0)
+        i = int(np.nanargmax(amp))
+        return {"amplitude": float(amp[i]), "delay_ns": float(ds.delays_ns[sel][i])}
+
+    def corr(template: np.ndarray) -> float:
+        t = np.broadcast_to(template[None], res.shape)[ok]
+        if np.std(t) == 0:
+            return 0.0
+        return float(np.corrcoef(t, res[ok])[0, 1])
+
+    fb = np.broadcast_to(tpl.f_below[:, None, :], tpl.total.shape)
+    return {
+        "chi2": fit.chi2,
+        "dof": fit.dof,
+        "reduced_chi2": fit.reduced_chi2,
+        "rms_normalised_residual": float(np.sqrt(np.mean(res[ok] ** 2))),
+        "time_mode_power": [float(v) for v in np.mean(proj**2, axis=(0, 1, 2))],
+        "residual_delay_power": {"max": float(ps_mean[k]), "delay_ns": float(delays[k])},
+        "delay_peak_G": peak(fit.G),
+        "delay_peak_Trxr": peak(fit.Trxr),
+        "template_correlation": {
+            "tsky": corr(tpl.total),
+            "galactic": corr(tpl.galactic),
+            "ground_fraction": corr(fb),
+        },
+        "bandpass_reduced_chi2": None if bandpass is None else bandpass.reduced_chi2,
+    }
+
+
+# the diagnosis --------------------------------------------------------------------------
+
+
+@dataclass
+class Diagnosis:
+    """Result of :func:`diagnose`.
+
+    Attributes
+    ----------
+    steps
+        One dict per accepted step: ``name``, ``parameters`` ``{p: {value, sigma}}``,
+        ``statistic`` (Delta BIC), ``delta`` (Delta chi^2), ``gap_before``,
+        ``gap_after``, ``candidates`` (every candidate's Delta BIC).
+    effects
+        Names of the accepted effects, in order.
+    initial_gap, final_gap
+        Gap metrics of the starting and final models.
+    identifiability
+        ``{effect: fraction of Fisher information not absorbed by (G, n)}`` at the start.
+    config
+        Statistic, threshold, prior and settings.
+    residual_snapshots
+        ``[(label, (Ntime, Nfreq) normalised residuals of antenna 0, pol 0)]``.
+    """
+
+    steps: list[dict[str, Any]] = field(default_factory=list)
+    effects: list[str] = field(default_factory=list)
+    initial_gap: dict[str, Any] = field(default_factory=dict)
+    final_gap: dict[str, Any] = field(default_factory=dict)
+    identifiability: dict[str, float] = field(default_factory=dict)
+    config: dict[str, Any] = field(default_factory=dict)
+    residual_snapshots: list[tuple[str, np.ndarray]] = field(default_factory=list, repr=False)
+    final_fit: ExtendedFit | None = field(default=None, repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serialisable form (without residual arrays)."""
+        return {
+            "effects": self.effects,
+            "steps": self.steps,
+            "initial_gap": self.initial_gap,
+            "final_gap": self.final_gap,
+            "identifiability": self.identifiability,
+            "config": self.config,
+        }
+
+
+def _params_dict(eff: Effect, fit: ExtendedFit) -> dict[str, dict[str, float]]:
+    vals, sigs = fit.params[eff.name], fit.sigmas[eff.name]
+    return {
+        p: {"value": float(v), "sigma": float(s)}
+        for p, v, s in zip(eff.params, vals, sigs, strict=True)
+    }
+
+
+def diagnose(
+    obs: Observation,
+    tpl: SkyTemplates,
+    *,
+    candidates: list[Effect] | None = None,
+    trxr_prior: np.ndarray | float | None = None,
+    trxr_prior_sigma: float = 1.0,
+    bic_threshold: float = BIC_THRESHOLD,
+    alpha: float = ALPHA,
+    max_steps: int = 5,
+    smooth_order: int = 6,
+) -> Diagnosis:
+    """Find, one by one, the effects missing from the forward model.
+
+    Parameters
+    ----------
+    obs
+        Observation (radiometer weights need its channel width, integration time,
+        nsamples).
+    tpl
+        Model Tsky and templates (:func:`autocal.effects.sky_templates`) on the
+        observation's LSTs and frequencies.
+    candidates
+        Candidate effects (default :func:`autocal.effects.catalogue`).
+    trxr_prior, trxr_prior_sigma
+        Known receiver temperature (K) and its 1-sigma; makes time-constant Tsky effects
+        identifiable. ``None``: no prior (those effects are reported not identifiable).
+    bic_threshold
+        Delta BIC an effect must exceed.
+    alpha
+        Largest chi^2_k survival probability of Delta chi^2 accepted.
+    max_steps
+        Most effects added.
+    smooth_order
+        Legendre order of the smooth bandpass for ``cable_reflection``.
+
+    Returns
+    -------
+    Diagnosis
+        Steps, accepted effects and gaps.
+    """
+    if not np.all(obs.bandwidth_time()[~obs.flags] > 0):
+        raise DiagnoseError("diagnose needs radiometer weights: channel width, integration time")
+    cands = (
+        list(candidates)
+        if candidates is not None
+        else catalogue(include_beam_width=tpl.beam_dwidth is not None)
+    )
+    prior_kw = {"trxr_prior": trxr_prior, "trxr_prior_sigma": trxr_prior_sigma}
+    active: list[Effect] = []
+    cable: tuple[BandpassFit, Effect] | None = None
+    diag = Diagnosis(
+        config={
+            "statistic": "Delta BIC = Delta chi2 - k ln N (radiometer-weighted chi2; "
+            "cable_reflection: chi2 of fitted G(nu) vs smooth bandpass, N = Nfreq)",
+            "bic_threshold": bic_threshold,
+            "alpha": alpha,
+            "trxr_prior_K": None if trxr_prior is None else np.asarray(trxr_prior).tolist(),
+            "trxr_prior_sigma_K": trxr_prior_sigma if trxr_prior is not None else None,
+            "smooth_bandpass_order": smooth_order,
+            "min_identifiable": MIN_IDENTIFIABLE,
+            "candidates": [c.describe() for c in cands],
+        }
+    )
+    # weights from the model: two passes of the baseline
+    w = radiometer_weights(obs, obs.data)
+    current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
+    w = radiometer_weights(obs, current.model)
+    current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
+    bp_null, _ = fit_cable_reflection(
+        obs.freqs, current.G, current.sigma_G, smooth_order=smooth_order
+    )
+    diag.initial_gap = gap_metrics(current, obs, tpl, bp_null)
+    diag.residual_snapshots.append(("initial model", current.residuals[0, 0]))
+    for _step in range(max_steps):
+        results = []
+        for eff in cands:
+            if any(a.name == eff.name for a in active) or (
+                eff.kind == "bandpass" and cable is not None
+            ):
+                continue
+            if eff.kind == "bandpass":
+                null, rip = fit_cable_reflection(
+                    obs.freqs, current.G, current.sigma_G, smooth_order=smooth_order
+                )
+                dchi = null.chi2 - rip.chi2
+                nn = max(null.nfreq, 2)
+                results.append((dchi - 3 * math.log(nn), dchi, 3, eff, rip, null))
+                continue
+            trial = fit_extended(obs, tpl, [*active, eff], weights=w, **prior_kw)
+            if eff.name not in diag.identifiability:
+                diag.identifiability[eff.name] = trial.identifiable.get(eff.name, 0.0)
+            if trial.identifiable.get(eff.name, 0.0) < MIN_IDENTIFIABLE:
+                continue
+            k, stat_fit = eff.nfree, trial
+            if eff.name == "missing_cmb":
+                # a discrete hypothesis: m = +-1, no free parameter
+                m = 1.0 if trial.params[eff.name][0] > 0 else -1.0
+                fixed_eff = Effect(**{**eff.__dict__, "fixed": (m,)})
+                stat_fit = fit_extended(obs, tpl, [*active, fixed_eff], weights=w, **prior_kw)
+                k = 0
+                stat_fit = (stat_fit, trial, fixed_eff)  # type: ignore[assignment]
+            fit_for_chi = stat_fit[0] if isinstance(stat_fit, tuple) else stat_fit
+            dchi = current.chi2 - fit_for_chi.chi2
+            results.append((dchi - k * math.log(current.ndata), dchi, k, eff, stat_fit, None))
+        if not results:
+            break
+        # best variant of each effect name first, then best overall
+        results.sort(key=lambda r: -r[0])
+        best = results[0]
+        stat, dchi, k, eff, payload, null = best
+        pval = float(stats.chi2.sf(dchi, max(k, 1)))
+        candidates_report = {}
+        for r in results:
+            candidates_report.setdefault(r[3].name, float(r[0]))
+        logger.info("step %d: best %s (Delta BIC %.1f, p %.2g)", _step + 1, eff.name, stat, pval)
+        if not (stat > bic_threshold and pval < alpha):
+            diag.config["last_rejected"] = {"name": eff.name, "statistic": stat, "p_value": pval}
+            break
+        gap_before = gap_metrics(current, obs, tpl, bp_null)
+        if eff.kind == "bandpass":
+            rip: BandpassFit = payload
+            cable = (rip, eff)
+            params = {
+                "a": {"value": rip.a, "sigma": rip.sigma_a},
+                "tau_ns": {"value": rip.tau_ns, "sigma": rip.sigma_tau_ns},
+                "phi": {"value": rip.phi, "sigma": rip.sigma_phi},
+            }
+            gap_after = dict(gap_before)
+            gap_after["bandpass_reduced_chi2"] = rip.reduced_chi2
+            bp_null = rip
+            diag.residual_snapshots.append((f"after {eff.name}", current.residuals[0, 0]))
+        else:
+            if isinstance(payload, tuple):
+                _, free_fit, fixed_eff = payload
+                params = _params_dict(eff, free_fit)
+                params["cmb_factor"]["adopted"] = float(fixed_eff.fixed[0])
+                active.append(fixed_eff)
+            else:
+                params = _params_dict(eff, payload)
+                active.append(eff)
+            new = fit_extended(obs, tpl, active, weights=w, **prior_kw)
+            gap_after = gap_metrics(new, obs, tpl, bp_null)
+            # re-weight with the improved model for the next step
+            w = radiometer_weights(obs, new.model)
+            current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
+            diag.residual_snapshots.append((f"after {eff.name}", current.residuals[0, 0]))
+            if not isinstance(payload, tuple):
+                params = _params_dict(eff, current)
+        if eff.order:
+            params["order"] = {"value": float(eff.order), "sigma": 0.0}
+        diag.steps.append(
+            {
+                "name": eff.name,
+                "parameters": params,
+                "statistic": float(stat),
+                "delta": float(dchi),
+                "k": int(k),
+                "p_value": pval,
+                "gap_before": gap_before,
+                "gap_after": gap_after,
+                "candidates": candidates_report,
+            }
+        )
+        diag.effects.append(eff.name)
+    diag.final_gap = gap_metrics(current, obs, tpl, bp_null)
+    diag.final_fit = current
+    return diag
+
+
+# output ---------------------------------------------------------------------------------
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def summary_text(diag: Diagnosis) -> str:
+    """Human-readable summary of a diagnosis."""
+    g0 = diag.initial_gap
+    lines = [
+        "autocal diagnose",
+        f"statistic: {diag.config.get('statistic')}",
+        f"threshold: Delta BIC > {diag.config.get('bic_threshold')} and "
+        f"p < {diag.config.get('alpha')}",
+        f"initial gap: chi2/dof = {g0.get('reduced_chi2', float('nan')):.4f}, "
+        f"rms residual = {g0.get('rms_normalised_residual', float('nan')):.3f}",
+        "",
+    ]
+    if not diag.steps:
+        lines.append("no significant effect found: the model is consistent with the data")
+    for i, st in enumerate(diag.steps, 1):
+        pars = ", ".join(
+            f"{k} = {v['value']:.5g} +- {v['sigma']:.2g}" for k, v in st["parameters"].items()
+        )
+        lines.append(
+            f"step {i}: {st['name']} ({pars}); Delta BIC = {st['statistic']:.1f}, "
+            f"Delta chi2 = {st['delta']:.1f}; chi2/dof {st['gap_before']['reduced_chi2']:.4f} "
+            f"-> {st['gap_after']['reduced_chi2']:.4f}"
+        )
+    rej = diag.config.get("last_rejected")
+    if rej:
+        lines.append(
+            f"best remaining candidate {rej['name']}: Delta BIC = {rej['statistic']:.1f} "
+            f"(not significant)"
+        )
+    lines.append("")
+    lines.append("not identifiable from these data (Fisher fraction after (G, n) projection):")
+    for name, frac in sorted(diag.identifiability.items()):
+        if frac < MIN_IDENTIFIABLE:
+            lines.append(f"  {name}: {frac:.2e}")
+    fg = diag.final_gap
+    lines.append(
+        f"final gap: chi2/dof = {fg.get('reduced_chi2', float('nan')):.4f}, "
+        f"rms residual = {fg.get('rms_normalised_residual', float('nan')):.3f}"
+    )
+    return "\n".join(lines) + "\n"
+
+
+def write_diagnosis(diag: Diagnosis, out_dir: str | Path, obs: Observation | None = None) -> Path:
+    """Write ``diagnosis.json``, ``summary.txt`` and residual plots (before/after each step).
+
+    Parameters
+    ----------
+    diag
+        The diagnosis.
+    out_dir
+        Output folder (created).
+    obs
+        The observation (axes of the residual plots); without it the plots use indices.
+
+    Returns
+    -------
+    Path
+        The folder.
+    """
+    from autocal.plots import plot_residuals
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "diagnosis.json").write_text(json.dumps(_jsonable(diag.to_dict()), indent=2))
+    (out / "summary.txt").write_text(summary_text(diag))
+    snaps = diag.residual_snapshots
+    for i in range(1, len(snaps)):
+        before, after = snaps[i - 1], snaps[i]
+        nt, nf = after[1].shape
+        freqs = obs.freqs if obs is not None else np.arange(nf) * 1e6
+        lsts = obs.lsts if obs is not None else np.arange(nt, dtype=float)
+        plot_residuals(
+            [before[0], after[0]],
+            np.stack([before[1], after[1]]),
+            freqs,
+            lsts,
+            out / f"residuals_step{i}.png",
+        )
+    if len(snaps) == 1 and obs is not None:
+        plot_residuals([snaps[0][0]], snaps[0][1][None], obs.freqs, obs.lsts, out / "residuals.png")
+    logger.info("wrote diagnosis to %s", out)
+    return out

@@ -1,0 +1,410 @@
+"""Catalogue of candidate physical effects for the discrepancy workflow (DESIGN.md section 5).
+
+Each effect is a parameterised extension of the forward model
+
+    R(t, nu) = G(nu) [1 + sum_k d_k P_k(s)] {Tsky(t, nu) + sum_j D_j(t, nu; p_j)
+               + Trxr(nu) [1 + sum_k e_k P_k(s)]}   (n = G Trxr)
+
+with per-channel ``(G, n)`` (profiled out) and a few *global* parameters shared by all
+channels, antennas and polarisations. ``P_k`` are Legendre polynomials of ``s``, the LST
+mapped onto ``[-1, 1]`` (:class:`autocal.fit.FitModel`).
+
+Identifiability (constant per-channel ``G`` and ``n``):
+
+- A Tsky change constant in time (``sky_offset``, ``ground_temperature``, ``missing_cmb``)
+  is absorbed exactly by ``n`` (``Trxr``): the data chi-square cannot see it. It is seen
+  only through a *receiver prior* (a known ``Trxr(nu)`` with an uncertainty), which turns
+  the shift of the implied ``Trxr`` into chi-square.
+- A per-channel scale of the sky part ``S`` (``sky_scale``, ``sky_spectral_index``) is
+  absorbed by ``G`` plus an offset ``-s C`` (``C`` the time-constant CMB + ground part),
+  absorbed by ``n``: ``(1+s) S + C = (1+s)(S + C) - s C``. Also only seen with a receiver
+  prior (then through ``Trxr -> (Trxr - s C) / (1 + s)``).
+- ``gain_drift``, ``noise_drift`` (achromatic, relative Legendre drifts) and
+  ``beam_width`` have time x frequency structure that ``(G, n)`` cannot absorb and are
+  identifiable from the data alone.
+- ``cable_reflection`` (a bandpass ripple) is absorbed exactly by the per-channel ``G``;
+  it is detected in the bandpass domain, on the fitted ``G(nu)``, against a smooth
+  bandpass (see :func:`autocal.diagnose.fit_cable_reflection`).
+
+The diagnosis measures identifiability numerically (the fraction of each template's
+Fisher information left after projecting out ``(G, n)``) and skips effects below a
+threshold, so none is ever "found" through round-off.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from numpy.polynomial import legendre
+
+from autocal.beams import Beam, get_beam
+from autocal.sky import T_CMB
+from autocal.tsky import compute_tsky
+
+logger = logging.getLogger(__name__)
+
+#: The catalogue's identifiers.
+EFFECT_NAMES = (
+    "gain_drift",
+    "noise_drift",
+    "sky_scale",
+    "sky_offset",
+    "sky_spectral_index",
+    "ground_temperature",
+    "beam_width",
+    "missing_cmb",
+    "cable_reflection",
+)
+
+
+class EffectError(ValueError):
+    """Invalid effect or template input."""
+
+
+# templates ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class ScaledBeam(Beam):
+    """A beam whose width is scaled by ``factor``: ``A'(az, za) = A(az, za / factor)``.
+
+    Used to build the first-order ``beam_width`` template; the normalisation of the beam
+    does not matter because Tsky divides by the beam integral.
+    """
+
+    base: Beam | None = None
+    factor: float = 1.0
+    name: str = "scaled"
+
+    @property
+    def freq_range(self) -> tuple[float, float] | None:  # noqa: D102
+        return None if self.base is None else self.base.freq_range
+
+    def power(self, freqs: np.ndarray, az: np.ndarray, za: np.ndarray) -> np.ndarray:  # noqa: D102
+        if self.base is None:
+            raise EffectError("ScaledBeam needs a base beam")
+        za = np.clip(np.asarray(za) / self.factor, 0.0, np.pi)
+        return self.base.power(freqs, az, za)
+
+    def describe(self) -> dict[str, Any]:  # noqa: D102
+        base = {} if self.base is None else self.base.describe()
+        return {"beam": "scaled", "factor": self.factor, "base": base}
+
+
+@dataclass(frozen=True, eq=False)
+class SkyTemplates:
+    """The model Tsky split into the parts the effects act on.
+
+    Attributes
+    ----------
+    freqs, lsts
+        ``(Nfreq,)`` Hz and ``(Ntime,)`` hours.
+    total
+        ``(Npol, Ntime, Nfreq)`` model Tsky (galactic + CMB + ground), kelvin.
+    galactic
+        ``(Npol, Ntime, Nfreq)`` the sky part without CMB ("S").
+    cmb
+        ``(Npol, Ntime, Nfreq)`` the CMB part (``2.725 K f_above``).
+    ground
+        ``(Npol, Ntime, Nfreq)`` ``Tgnd f_below``.
+    f_above, f_below
+        ``(Npol, Nfreq)`` beam fractions above / below the horizon.
+    beam_dwidth
+        ``(Npol, Ntime, Nfreq)`` ``dTsky / dw`` for a fractional beam-width change ``w``
+        (central difference), or ``None``.
+    nu0
+        Reference frequency (Hz) of the spectral-index error ``(nu / nu0)^dbeta``.
+    meta
+        Provenance.
+    """
+
+    freqs: np.ndarray
+    lsts: np.ndarray
+    total: np.ndarray
+    galactic: np.ndarray
+    cmb: np.ndarray
+    ground: np.ndarray
+    f_above: np.ndarray
+    f_below: np.ndarray
+    beam_dwidth: np.ndarray | None = None
+    nu0: float = 150e6
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        shape = self.total.shape
+        if len(shape) != 3 or shape[1:] != (self.lsts.size, self.freqs.size):
+            raise EffectError(f"Tsky templates have shape {shape}; expected (Npol, Ntime, Nfreq)")
+        for name in ("galactic", "cmb", "ground"):
+            if getattr(self, name).shape != shape:
+                raise EffectError(f"template {name} has the wrong shape")
+        if self.beam_dwidth is not None and self.beam_dwidth.shape != shape:
+            raise EffectError("template beam_dwidth has the wrong shape")
+
+
+def sky_templates(
+    sky: Any,
+    beam: Beam | str,
+    site: Any,
+    freqs: np.ndarray,
+    lsts: np.ndarray,
+    *,
+    pols: tuple[str, ...] | list[str] = ("ee",),
+    tgnd: float = 300.0,
+    nside: int = 64,
+    epoch: Any = None,
+    beam_width_step: float | None = 0.02,
+    nu0: float | None = None,
+) -> SkyTemplates:
+    """Compute the model Tsky and its effect templates (one FFT Tsky pass per beam).
+
+    Parameters
+    ----------
+    sky
+        Sky model or spec (:func:`autocal.sky.get_sky`).
+    beam
+        Beam or spec (:func:`autocal.beams.get_beam`).
+    site
+        Site or name.
+    freqs
+        Hz.
+    lsts
+        Hours.
+    pols
+        Polarisations.
+    tgnd
+        Model ground temperature in kelvin.
+    nside
+        HEALPix resolution.
+    epoch
+        Epoch of the equatorial frame (use the observation date).
+    beam_width_step
+        Fractional width step of the ``beam_width`` template (``None``: no template).
+    nu0
+        Reference of the spectral-index error; default the sky's ``nu0`` for a power-law
+        sky, else the band centre.
+
+    Returns
+    -------
+    SkyTemplates
+        The templates.
+    """
+    freqs = np.asarray(freqs, np.float64)
+    lsts = np.asarray(lsts, np.float64)
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("tot", "gal", "cmb", "gnd", "bw")}
+    fa, fb = [], []
+    meta: dict[str, Any] = {}
+    for pol in pols:
+        b = get_beam(beam, pol)
+        kw = {"tgnd": tgnd, "nside": nside, "epoch": epoch, "pol": pol, "progress": False}
+        res = compute_tsky(sky, b, site, freqs, lsts, keep_components=True, cache=False, **kw)
+        assert res.components is not None and res.spectra is not None
+        labels = list(res.meta.get("component_labels", []))
+        contrib = res.components * res.spectra[None]  # (T, F, C)
+        is_cmb = np.array([lab == "cmb" for lab in labels])
+        gal = contrib[..., ~is_cmb].sum(axis=-1)
+        cmb = contrib[..., is_cmb].sum(axis=-1)
+        gnd = np.broadcast_to(tgnd * res.f_below, gal.shape)
+        parts["tot"].append(res.tsky)
+        parts["gal"].append(gal)
+        parts["cmb"].append(cmb)
+        parts["gnd"].append(np.array(gnd))
+        fa.append(res.f_above)
+        fb.append(res.f_below)
+        meta = res.meta
+        if beam_width_step:
+            hi, lo = (
+                compute_tsky(
+                    sky,
+                    ScaledBeam(base=b, factor=1 + sgn * beam_width_step),
+                    site,
+                    freqs,
+                    lsts,
+                    cache=False,
+                    **kw,
+                ).tsky
+                for sgn in (1, -1)
+            )
+            parts["bw"].append((hi - lo) / (2 * beam_width_step))
+    if nu0 is None:
+        nu0 = float(meta.get("sky", {}).get("nu0_Hz") or 0.5 * (freqs[0] + freqs[-1]))
+    return SkyTemplates(
+        freqs=freqs,
+        lsts=lsts,
+        total=np.stack(parts["tot"]),
+        galactic=np.stack(parts["gal"]),
+        cmb=np.stack(parts["cmb"]),
+        ground=np.stack(parts["gnd"]),
+        f_above=np.stack(fa),
+        f_below=np.stack(fb),
+        beam_dwidth=np.stack(parts["bw"]) if parts["bw"] else None,
+        nu0=nu0,
+        meta={"tsky": meta, "tgnd_K": tgnd, "beam_width_step": beam_width_step},
+    )
+
+
+# effects --------------------------------------------------------------------------------
+
+
+def time_basis(lsts: np.ndarray, order: int) -> np.ndarray:
+    """``(order, Ntime)`` Legendre polynomials ``P_1..P_order`` of the LST on ``[-1, 1]``."""
+    from autocal.fit import FitModel
+
+    model = FitModel.for_lsts(np.asarray(lsts), "legendre", max(order, 1))
+    return legendre.legvander(model.s(lsts), order)[:, 1:].T
+
+
+@dataclass(frozen=True)
+class Effect:
+    """A candidate effect: a parameterised extension of the forward model.
+
+    Attributes
+    ----------
+    name
+        Catalogue identifier (:data:`EFFECT_NAMES`).
+    kind
+        ``"tsky"`` (additive change of Tsky), ``"gain"`` (relative achromatic gain
+        drift), ``"noise"`` (relative achromatic noise drift) or ``"bandpass"``.
+    params
+        Parameter names.
+    units
+        Parameter units.
+    order
+        Legendre order of drift effects.
+    fixed
+        For discrete hypotheses (``missing_cmb``): parameter values held fixed.
+    signature
+        One-line description of the effect's signature.
+    """
+
+    name: str
+    kind: Literal["tsky", "gain", "noise", "bandpass"]
+    params: tuple[str, ...]
+    units: tuple[str, ...]
+    order: int = 0
+    fixed: tuple[float, ...] | None = None
+    signature: str = ""
+
+    @property
+    def nfree(self) -> int:
+        """Number of free (penalised) parameters."""
+        if self.kind == "bandpass":
+            return 3
+        return 0 if self.fixed is not None else len(self.params)
+
+    def delta(self, p: np.ndarray, tpl: SkyTemplates) -> np.ndarray:
+        """Additive Tsky change ``(Npol, Ntime, Nfreq)`` for ``kind == "tsky"``."""
+        p = np.asarray(p, np.float64)
+        if self.name == "sky_spectral_index":
+            ratio = tpl.freqs / tpl.nu0
+            return tpl.galactic * (ratio ** p[0] - 1.0)[None, None, :]
+        return np.tensordot(self.jacobian(p, tpl), p, axes=([-1], [0]))
+
+    def jacobian(self, p: np.ndarray, tpl: SkyTemplates) -> np.ndarray:
+        """``d delta / d p`` as ``(Npol, Ntime, Nfreq, k)`` for ``kind == "tsky"``."""
+        shape = tpl.total.shape
+        if self.name == "sky_scale":
+            t = tpl.galactic
+        elif self.name == "sky_offset":
+            t = np.broadcast_to(tpl.f_above[:, None, :], shape)
+        elif self.name == "ground_temperature":
+            t = np.broadcast_to(tpl.f_below[:, None, :], shape)
+        elif self.name == "missing_cmb":
+            t = np.broadcast_to(T_CMB * tpl.f_above[:, None, :], shape)
+        elif self.name == "beam_width":
+            if tpl.beam_dwidth is None:
+                raise EffectError("beam_width needs templates built with beam_width_step")
+            t = tpl.beam_dwidth
+        elif self.name == "sky_spectral_index":
+            ratio = tpl.freqs / tpl.nu0
+            t = tpl.galactic * (np.log(ratio) * ratio ** float(p[0]))[None, None, :]
+        else:
+            raise EffectError(f"{self.name} is not a Tsky effect")
+        return np.asarray(t)[..., None]
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-serialisable description."""
+        return {
+            "name": self.name,
+            "kind": self.kind,
+            "params": list(self.params),
+            "units": list(self.units),
+            "order": self.order,
+            "fixed": None if self.fixed is None else list(self.fixed),
+            "signature": self.signature,
+        }
+
+
+def catalogue(max_drift_order: int = 2, include_beam_width: bool = True) -> list[Effect]:
+    """Return the candidate effects (drifts in every order ``1..max_drift_order``).
+
+    Parameters
+    ----------
+    max_drift_order
+        Highest Legendre order of ``gain_drift`` and ``noise_drift``.
+    include_beam_width
+        Include ``beam_width`` (needs :attr:`SkyTemplates.beam_dwidth`).
+    """
+    out: list[Effect] = []
+    for order in range(1, max_drift_order + 1):
+        names = tuple(f"d_{k}" for k in range(1, order + 1))
+        out.append(
+            Effect(
+                "gain_drift",
+                "gain",
+                names,
+                ("1",) * order,
+                order,
+                signature="G(t) = G (1 + sum_k d_k P_k(s)), achromatic",
+            )
+        )
+        names = tuple(f"e_{k}" for k in range(1, order + 1))
+        out.append(
+            Effect(
+                "noise_drift",
+                "noise",
+                names,
+                ("1",) * order,
+                order,
+                signature="n(t) = n (1 + sum_k e_k P_k(s)), achromatic",
+            )
+        )
+    out += [
+        Effect("sky_scale", "tsky", ("s",), ("1",), signature="S -> (1 + s) S"),
+        Effect("sky_offset", "tsky", ("T_offset",), ("K",), signature="+ T_offset f_above"),
+        Effect(
+            "sky_spectral_index",
+            "tsky",
+            ("dbeta",),
+            ("1",),
+            signature="S -> S (nu / nu0)^dbeta",
+        ),
+        Effect("ground_temperature", "tsky", ("dT_gnd",), ("K",), signature="+ dT f_below"),
+        Effect(
+            "missing_cmb",
+            "tsky",
+            ("cmb_factor",),
+            ("1",),
+            signature="+ m 2.725 K f_above, m = -1 (no CMB in data) or +1 (CMB missed)",
+        ),
+        Effect(
+            "cable_reflection",
+            "bandpass",
+            ("a", "tau_ns", "phi"),
+            ("1", "ns", "rad"),
+            signature="G(nu) smooth x (1 + a cos(2 pi nu tau + phi))",
+        ),
+    ]
+    if include_beam_width:
+        out.append(
+            Effect(
+                "beam_width",
+                "tsky",
+                ("w",),
+                ("1",),
+                signature="beam width x (1 + w), first order: + w dTsky/dw",
+            )
+        )
+    return out
