@@ -22,7 +22,6 @@ import hashlib
 import json
 import logging
 import re
-import threading
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,10 +46,6 @@ GAP_FACTOR = 2.5
 NAMED_BEAMS = frozenset(
     {"dipole", "airy", "hera", "edges-low", "edges-low-45deg", "edges-mid", "edges-high"}
 )
-
-# One API process never races itself into duplicate jobs (the store's check-then-insert
-# is not atomic under SQLite's deferred transactions).
-_SUBMIT_LOCK = threading.Lock()
 
 
 class NightlyError(ValueError):
@@ -187,16 +182,16 @@ def submit_calibration(
     """
     config = build_config(settings, inputs, options)
     key = job_key(kind, config)
-    with _SUBMIT_LOCK:
-        job, created = store.submit(
-            config.model_dump(mode="json"),
-            kind=kind,
-            night=night_of(config.inputs),
-            antennas=config.antennas,
-            dedupe_key=key,
-            force=force,
-            max_attempts=settings.max_attempts,
-        )
+    # The store makes identical concurrent submissions safe (a unique active-key column).
+    job, created = store.submit(
+        config.model_dump(mode="json"),
+        kind=kind,
+        night=night_of(config.inputs),
+        antennas=config.antennas,
+        dedupe_key=key,
+        force=force,
+        max_attempts=settings.max_attempts,
+    )
     logger.info(
         "%s job %s (%s, %d input(s))",
         "queued" if created else "existing",
