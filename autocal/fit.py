@@ -369,7 +369,7 @@ def solve_sums(
     sums: NormalSums,
     *,
     min_samples: int | None = None,
-    scale_covariance: bool = False,
+    scale_covariance: bool | Literal["inflate"] = False,
     max_condition: float = MAX_CONDITION,
 ) -> dict[str, np.ndarray]:
     """Solve the normal equations of every channel.
@@ -381,8 +381,10 @@ def solve_sums(
     min_samples
         Fewest used samples for a channel to be solved (default ``nparam + 1``).
     scale_covariance
-        Multiply the covariance by ``chi^2 / dof`` (for weights that are not inverse
-        variances, e.g. identity).
+        ``True``: multiply the covariance by ``chi^2 / dof`` (for weights that are not
+        inverse variances, e.g. identity). ``"inflate"``: multiply by ``max(1, chi^2 /
+        dof)``, so errors from inverse-variance weights also cover unmodelled structure
+        in real data without being shrunk below the noise.
     max_condition
         Largest condition number of the column-scaled normal matrix.
 
@@ -418,6 +420,8 @@ def solve_sums(
     if scale_covariance:
         with np.errstate(divide="ignore", invalid="ignore"):
             factor = np.where(dof > 0, chi2 / dof, np.nan)
+        if scale_covariance == "inflate":
+            factor = np.maximum(np.nan_to_num(factor, nan=1.0), 1.0)
         cov = cov * factor[..., None, None]
     reason[ok & ~(coeffs[..., 0] > 0)] = 3
     bad = reason != 0
@@ -507,6 +511,40 @@ class Solution:
             lead[2],
         ):
             raise FitError("Solution.residuals has the wrong shape")
+
+    @classmethod
+    def from_solved(
+        cls,
+        model: FitModel,
+        sums: NormalSums,
+        solved: dict[str, np.ndarray],
+        *,
+        antennas: np.ndarray,
+        pols: tuple[str, ...],
+        freqs: np.ndarray,
+        lsts: np.ndarray,
+        jds: np.ndarray,
+        antenna_names: tuple[str, ...] = (),
+        config: dict[str, Any] | None = None,
+    ) -> Solution:
+        """Build a solution from normal sums and their :func:`solve_sums` output."""
+        return cls(
+            model=model,
+            antennas=np.asarray(antennas),
+            pols=tuple(pols),
+            freqs=freqs,
+            lsts=lsts,
+            jds=jds,
+            coeffs=solved["coeffs"],
+            cov=solved["cov"],
+            chi2=solved["chi2"],
+            dof=solved["dof"],
+            count=sums.count,
+            nflagged=sums.nflagged,
+            flag_reason=solved["flag_reason"],
+            config=config or {},
+            antenna_names=antenna_names,
+        )
 
     # basic quantities ------------------------------------------------------------------
     @property
@@ -776,22 +814,17 @@ def fit(
         "min_samples": min_samples if min_samples is not None else fit_model.nparam + 1,
         **(config or {}),
     }
-    solution = Solution(
-        model=fit_model,
+    solution = Solution.from_solved(
+        fit_model,
+        sums,
+        solved,
         antennas=obs.antennas,
         pols=obs.pols,
         freqs=obs.freqs,
         lsts=obs.lsts,
         jds=obs.jds,
-        coeffs=solved["coeffs"],
-        cov=solved["cov"],
-        chi2=solved["chi2"],
-        dof=solved["dof"],
-        count=sums.count,
-        nflagged=sums.nflagged,
-        flag_reason=solved["flag_reason"],
-        config=cfg,
         antenna_names=obs.antenna_names,
+        config=cfg,
     )
     if return_residuals:
         solution = _with_residuals(solution, obs, tsky, weights, reference, bt)

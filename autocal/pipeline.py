@@ -130,7 +130,7 @@ class _Source:
     freqs: np.ndarray
     pols: tuple[str, ...]
     site: Any
-    observation: Observation | None = None  # small inputs read whole (EDGES)
+    observation: Observation | None = None  # small inputs read whole (Miriad, EDGES)
     weights: np.ndarray | None = None  # inverse variances when the format defines them
 
     def chunks(self, **selection: Any) -> Iterator[Observation]:
@@ -138,15 +138,12 @@ class _Source:
             from autocal.io.uvh5 import iter_uvh5
 
             yield from iter_uvh5(self.files, **selection)
-        elif self.observation is not None:
+        else:  # small inputs read whole at the scan (Miriad, EDGES): reuse, never re-read
+            assert self.observation is not None
             obs = self.observation
             if selection.get("antennas") is not None:
                 obs = obs.select(antennas=selection["antennas"])
             yield obs
-        else:
-            from autocal.io.miriad import read_miriad
-
-            yield read_miriad(self.files, **selection)
 
 
 def _detect(paths: list[Path], fmt: str) -> str:
@@ -225,8 +222,8 @@ def _open_source(config: CalibrationConfig) -> _Source:
         )
     from autocal.io.miriad import read_miriad
 
-    obs = read_miriad(paths, **sel)  # small legacy data sets: read once, keep nothing
-    return _Source("miriad", paths, obs.lsts, obs.jds, obs.freqs, obs.pols, obs.site)
+    obs = read_miriad(paths, **sel)  # small legacy data sets: read once and kept
+    return _Source("miriad", paths, obs.lsts, obs.jds, obs.freqs, obs.pols, obs.site, obs)
 
 
 def _selection(config: CalibrationConfig) -> dict[str, Any]:
@@ -333,13 +330,11 @@ def run_calibration(
     sums, first_obs, npass = _stream_fit(config, source, sel, pols, tsky_all, model, report)
     timings["fit_s"] = time.perf_counter() - t2
 
-    solved = solve_sums(sums, scale_covariance=config.weights == "identity")
-    if config.weights == "radiometer" and config.inflate_errors:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            birge = np.where(solved["dof"] > 0, solved["chi2"] / solved["dof"], 1.0)
-        solved["cov"] = (
-            solved["cov"] * np.maximum(np.nan_to_num(birge, nan=1.0), 1.0)[..., None, None]
-        )
+    if config.weights == "identity":
+        scaling: bool | str = True
+    else:
+        scaling = "inflate" if config.inflate_errors else False
+    solved = solve_sums(sums, scale_covariance=scaling)
     provenance = {
         "autocal_version": __version__,
         "inputs": first_obs.meta.get("sha256_all", {}),
@@ -359,22 +354,17 @@ def run_calibration(
         else ("covariance x chi2/dof" if config.weights == "identity" else "covariance"),
         "created_unix": time.time(),
     }
-    solution = Solution(
-        model=model,
+    solution = Solution.from_solved(
+        model,
+        sums,
+        solved,
         antennas=first_obs.antennas,
         pols=pols,
         freqs=source.freqs,
         lsts=source.lsts,
         jds=source.jds,
-        coeffs=solved["coeffs"],
-        cov=solved["cov"],
-        chi2=solved["chi2"],
-        dof=solved["dof"],
-        count=sums.count,
-        nflagged=sums.nflagged,
-        flag_reason=solved["flag_reason"],
-        config={"calibration": config.model_dump(mode="json"), "provenance": provenance},
         antenna_names=first_obs.antenna_names,
+        config={"calibration": config.model_dump(mode="json"), "provenance": provenance},
     )
     report(0.85, "writing products")
     t3 = time.perf_counter()

@@ -80,8 +80,7 @@ import json
 import logging
 import re
 import warnings
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -89,6 +88,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from autocal.beams import file_checksum
+from autocal.io.pyuvdata_helpers import warnings_to_log
+from autocal.io.pyuvdata_helpers import x_orientation as feed_orientation
 from autocal.io.tskyfile import atomic_path
 
 if TYPE_CHECKING:
@@ -116,23 +117,8 @@ class CalsolFormatError(ValueError):
 # ---------------------------------------------------------------------------------------
 # helpers
 # ---------------------------------------------------------------------------------------
-@contextmanager
-def _warnings_to_log(context: str) -> Iterator[None]:
-    """Route warnings raised in the block (pyuvdata's) to the module logger."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        yield
-    for item in caught:
-        logger.debug("%s: %s", context, item.message)
-
-
-def _x_orientation(telescope: Any) -> str | None:
-    getter = getattr(telescope, "get_x_orientation_from_feeds", None)
-    try:
-        value = getter() if getter is not None else None
-    except Exception:  # pragma: no cover - feeds missing or inconsistent
-        value = None
-    return None if value is None else str(value).lower()
+def _warnings_to_log(context: str) -> Any:
+    return warnings_to_log(context, logger, logging.DEBUG)
 
 
 def jones_names(codes: Sequence[int], x_orientation: str | None) -> list[str]:
@@ -418,7 +404,7 @@ def _load_file(path: Path) -> _CalFile:
     if jds.size != ntime or (lsts is not None and lsts.size != ntime):
         raise CalsolFormatError(f"{path}: time axis lengths disagree")
     codes = [int(c) for c in np.asarray(uvc.jones_array).ravel()]
-    orient = _x_orientation(uvc.telescope)
+    orient = feed_orientation(uvc.telescope)
     gains = np.asarray(gains).transpose(0, 3, 2, 1)
     flags = np.asarray(flags).transpose(0, 3, 2, 1)
     order = np.argsort(freqs, kind="stable")

@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import logging
 import tempfile
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 from autocal.beams import file_checksum
+from autocal.io.pyuvdata_helpers import warnings_to_log
 from autocal.io.uvh5 import UVH5FormatError, read_uvh5
 from autocal.observation import Observation
 
@@ -61,8 +61,7 @@ def read_miriad(
                 "check the path"
             )
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+        with warnings_to_log(f"reading {[p.name for p in path_list]}", logger):
             uv = UVData.from_file([str(p) for p in path_list], ant_str="auto")
     except Exception as err:
         raise MiriadFormatError(

@@ -23,9 +23,7 @@ from __future__ import annotations
 
 import itertools
 import logging
-import warnings
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,6 +31,8 @@ from typing import Any
 import numpy as np
 
 from autocal.beams import file_checksum
+from autocal.io.pyuvdata_helpers import warnings_to_log
+from autocal.io.pyuvdata_helpers import x_orientation as feed_orientation
 from autocal.io.tskyfile import atomic_path
 from autocal.observation import Observation, ObservationError
 from autocal.sites import Site
@@ -67,14 +67,8 @@ class UVH5FormatError(ValueError):
 # ---------------------------------------------------------------------------------------
 # helpers
 # ---------------------------------------------------------------------------------------
-@contextmanager
-def _warnings_to_log(context: str) -> Iterator[None]:
-    """Route warnings raised inside the block (pyuvdata's) to the module logger."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        yield
-    for item in caught:
-        logger.info("%s: %s", context, item.message)
+def _warnings_to_log(context: str) -> Any:
+    return warnings_to_log(context, logger, logging.INFO)
 
 
 def _lst_hours(lst_rad: np.ndarray) -> np.ndarray:
@@ -95,13 +89,6 @@ def _scalar(value: Any) -> Any:
     if isinstance(value, (bool, int, float, complex, str)):
         return value
     return None
-
-
-def _x_orientation(uv: Any) -> str | None:
-    telescope = uv.telescope
-    getter = getattr(telescope, "get_x_orientation_from_feeds", None)
-    value = getter() if getter is not None else getattr(telescope, "x_orientation", None)
-    return None if value is None else str(value).lower()
 
 
 def _pol_names(codes: Sequence[int], x_orientation: str | None) -> list[str]:
@@ -429,7 +416,7 @@ def _read_meta(path: Path) -> _FileMeta:
     freqs = np.asarray(uv.freq_array, dtype=np.float64).ravel()
     width = np.broadcast_to(np.asarray(uv.channel_width, dtype=np.float64).ravel(), freqs.shape)
     codes = [int(c) for c in np.asarray(uv.polarization_array).ravel()]
-    x_orientation = _x_orientation(uv)
+    x_orientation = feed_orientation(uv.telescope)
     times, first = np.unique(uv.time_array[is_auto], return_index=True)
     lsts = _lst_hours(uv.lst_array[is_auto][first])
     return _FileMeta(

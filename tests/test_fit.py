@@ -243,3 +243,18 @@ def test_bad_inputs_are_refused_with_a_reason() -> None:
             nflagged=np.zeros((1, 1, NF)),
             flag_reason=np.zeros((1, 1, NF), np.int8),
         )
+
+
+def test_inflate_scales_errors_only_upwards() -> None:
+    rng = np.random.default_rng(4)
+    tsky = toy_tsky()
+    clean = (tsky + 150.0)[None, None]
+    model = FitModel()
+    quiet = accumulate(model, noisy(clean, rng), tsky, LSTS, bandwidth_time=5e3)
+    loud = accumulate(model, noisy(clean, rng, 5e3 / 9), tsky, LSTS, bandwidth_time=5e3)
+    for sums, expected in ((quiet, 1.0), (loud, 9.0)):
+        plain = solve_sums(sums)
+        inflated = solve_sums(sums, scale_covariance="inflate")
+        ratio = inflated["cov"][..., 0, 0] / plain["cov"][..., 0, 0]
+        assert np.all(ratio >= 1.0)
+        assert np.median(ratio) == pytest.approx(expected, rel=0.2)

@@ -6,6 +6,8 @@ the exit status. Shared argument parsing lives here.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 
@@ -63,3 +65,21 @@ def parse_int_list(text: str, what: str) -> list[int]:
         return [int(t) for t in parse_str_list(text, what)]
     except ValueError as err:
         raise CliError(f"--{what} {text!r}: give comma-separated integers") from err
+
+
+def parse_pair(text: str | None, what: str, unit: str) -> tuple[float, float] | None:
+    """Parse ``LOW:HIGH`` (``None`` stays ``None``)."""
+    if text is None:
+        return None
+    try:
+        lo, hi = (float(v) for v in text.split(":"))
+    except ValueError as err:
+        raise CliError(f"--{what} {text!r}: give LOW:HIGH in {unit}") from err
+    return lo, hi
+
+
+def validation_message(err: Any, what: str = "settings") -> str:
+    """One line listing every field a pydantic ``ValidationError`` rejected, and why."""
+    return "; ".join(
+        f"{'.'.join(str(x) for x in e['loc']) or what}: {e['msg']}" for e in err.errors()
+    )

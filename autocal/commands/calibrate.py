@@ -6,17 +6,13 @@ import argparse
 import json
 from pathlib import Path
 
-from autocal.commands import CliError, parse_int_list, parse_str_list
-
-
-def _pair(text: str | None, what: str, unit: str) -> tuple[float, float] | None:
-    if text is None:
-        return None
-    try:
-        lo, hi = (float(v) for v in text.split(":"))
-    except ValueError as err:
-        raise CliError(f"--{what} {text!r}: give LOW:HIGH in {unit}") from err
-    return lo, hi
+from autocal.commands import (
+    CliError,
+    parse_int_list,
+    parse_pair,
+    parse_str_list,
+    validation_message,
+)
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -78,16 +74,13 @@ def run(args: argparse.Namespace) -> int:
             weights=args.weights,
             antennas=parse_int_list(args.antennas, "antennas") if args.antennas else None,
             pols=parse_str_list(args.pols, "pols") if args.pols else None,
-            freq_range_mhz=_pair(args.freq_range, "freq-range", "MHz"),
-            lst_range_h=_pair(args.lst_range, "lst-range", "hours"),
+            freq_range_mhz=parse_pair(args.freq_range, "freq-range", "MHz"),
+            lst_range_h=parse_pair(args.lst_range, "lst-range", "hours"),
             products=parse_str_list(args.products, "products"),
             reference=[str(p) for p in args.reference] if args.reference else None,
         )
     except ValidationError as err:
-        problems = "; ".join(
-            f"{'.'.join(str(x) for x in e['loc']) or 'settings'}: {e['msg']}" for e in err.errors()
-        )
-        raise CliError(problems) from None
+        raise CliError(validation_message(err)) from None
     with tqdm(total=100, desc="calibrate", unit="%", disable=None) as bar:
 
         def progress(fraction: float, message: str) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from autocal.commands import CliError, parse_int_list, parse_str_list
+from autocal.commands import parse_int_list, parse_pair, parse_str_list
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -45,13 +45,8 @@ def run(args: argparse.Namespace) -> int:
     from autocal.effects import sky_templates
     from autocal.io.uvh5 import read_uvh5
 
-    freq_range = None
-    if args.freq_range:
-        try:
-            lo, hi = (float(v) * 1e6 for v in args.freq_range.split(":"))
-        except ValueError as err:
-            raise CliError(f"--freq-range {args.freq_range!r}: give LOW:HIGH in MHz") from err
-        freq_range = (lo, hi)
+    mhz = parse_pair(args.freq_range, "freq-range", "MHz")
+    freq_range = None if mhz is None else (mhz[0] * 1e6, mhz[1] * 1e6)
     obs = read_uvh5(
         args.inputs,
         antennas=parse_int_list(args.antennas, "antennas") if args.antennas else None,

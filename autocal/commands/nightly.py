@@ -18,7 +18,13 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from autocal.commands import CliError, parse_int_list, parse_str_list
+from autocal.commands import (
+    CliError,
+    parse_int_list,
+    parse_pair,
+    parse_str_list,
+    validation_message,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -156,7 +162,6 @@ def calibration_options(args: argparse.Namespace) -> dict[str, Any]:
     """
     from pydantic import ValidationError
 
-    from autocal.commands.calibrate import _pair
     from autocal.pipeline import CalibrationConfig
 
     options: dict[str, Any] = {
@@ -169,8 +174,8 @@ def calibration_options(args: argparse.Namespace) -> dict[str, Any]:
         "weights": args.weights,
         "antennas": parse_int_list(args.antennas, "antennas") if args.antennas else None,
         "pols": parse_str_list(args.pols, "pols") if args.pols else None,
-        "freq_range_mhz": _pair(args.freq_range, "freq-range", "MHz"),
-        "lst_range_h": _pair(args.lst_range, "lst-range", "hours"),
+        "freq_range_mhz": parse_pair(args.freq_range, "freq-range", "MHz"),
+        "lst_range_h": parse_pair(args.lst_range, "lst-range", "hours"),
         "products": parse_str_list(args.products, "products") if args.products else None,
         "input_format": args.format,
     }
@@ -178,10 +183,7 @@ def calibration_options(args: argparse.Namespace) -> dict[str, Any]:
     try:
         CalibrationConfig(inputs=["-"], **options)
     except ValidationError as err:
-        problems = "; ".join(
-            f"{'.'.join(str(x) for x in e['loc']) or 'options'}: {e['msg']}" for e in err.errors()
-        )
-        raise CliError(problems) from None
+        raise CliError(validation_message(err, "options")) from None
     return options
 
 

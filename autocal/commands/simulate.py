@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from autocal.commands import CliError, parse_int_list, parse_str_list
+from autocal.commands import CliError, parse_int_list, parse_str_list, validation_message
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -93,10 +93,7 @@ def run(args: argparse.Namespace) -> int:
             nside=args.nside,
         )
     except ValidationError as err:
-        problems = "; ".join(
-            f"{'.'.join(str(x) for x in e['loc']) or 'settings'}: {e['msg']}" for e in err.errors()
-        )
-        raise CliError(problems) from None
+        raise CliError(validation_message(err)) from None
     obs, truth = simulate(config, progress=None)
     write_uvh5(
         obs,
