@@ -24,6 +24,7 @@ the global parameters is marginalised over all ``(G, n)``. An optional receiver 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -174,10 +175,15 @@ def fit_extended(
         The fit.
     """
     effects = tuple(e for e in effects if e.kind != "bandpass")
-    y = np.swapaxes(np.where(weights > 0, obs.data, 0.0), 2, 3)  # (A, P, F, T)
-    w = np.swapaxes(weights, 2, 3)
     if tpl.total.shape[0] != len(obs.pols) or tpl.total.shape[1:] != (obs.ntime, obs.nfreq):
         raise DiagnoseError("templates do not match the observation's grid")
+    w = np.swapaxes(np.where(np.isfinite(weights) & (weights > 0), weights, 0.0), 2, 3)
+    # channels with fewer than 3 usable samples cannot constrain (G, n): leave them out
+    chan_ok = (w > 0).sum(-1) >= 3
+    w = np.where(chan_ok[..., None], w, 0.0)
+    y = np.where(w > 0, np.swapaxes(obs.data, 2, 3), 0.0)  # (A, P, F, T)
+    if not chan_ok.any():
+        raise DiagnoseError("no channel has 3 or more unflagged samples to fit")
     blocks = _split(effects)
     nfree = sum(b.stop - b.start for _, b in blocks)
     p = np.zeros(nfree)
@@ -211,86 +217,119 @@ def fit_extended(
         b1 = (w * a1 * y).sum(-1)
         b2 = (w * a2 * y).sum(-1)
         det = n11 * n22 - n12**2
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv = np.stack([n22 / det, -n12 / det, n11 / det])
+        good = chan_ok & np.isfinite(det) & (det > 1e-12 * np.abs(n11 * n22))
+        det = np.where(good, det, 1.0)
+        inv = np.where(good, np.stack([n22 / det, -n12 / det, n11 / det]), 0.0)
         g = inv[0] * b1 + inv[1] * b2
         nn = inv[1] * b1 + inv[2] * b2
-        return g, nn, inv
+        return g, nn, inv, good
+
+    @dataclass
+    class _State:
+        tt: np.ndarray
+        gfac: np.ndarray
+        nfac: np.ndarray
+        a1: np.ndarray
+        a2: np.ndarray
+        g: np.ndarray
+        nn: np.ndarray
+        inv: np.ndarray
+        good: np.ndarray
+        r: np.ndarray
+        rp: np.ndarray
+        chi2: float
+
+    def evaluate(pv: np.ndarray, wp: np.ndarray) -> _State:
+        tt, gfac, nfac = columns(pv)
+        a1 = np.broadcast_to(tt * gfac, y.shape)
+        a2 = np.broadcast_to(nfac * gfac, y.shape)
+        g, nn, inv, good = solve_channels(a1, a2, wp)
+        r = np.where(w > 0, y - (g[..., None] * a1 + nn[..., None] * a2), 0.0)
+        rp = np.where(good, -(nn - t0 * g), 0.0)
+        chi2 = float((w * r**2).sum() + (wp * rp**2).sum())
+        return _State(tt, gfac, nfac, a1, a2, g, nn, inv, good, r, rp, chi2)
 
     # prior weights from a reference gain
     wp = np.zeros(y.shape[:3])
-    if prior:
-        if gain_ref is None:
-            tt, gf, nf = columns(p)
-            a1 = np.broadcast_to(tt * gf, y.shape)
-            a2 = np.broadcast_to(nf * gf, y.shape)
-            gain_ref, _, _ = solve_channels(a1, a2, np.zeros(y.shape[:3]))
-        wp = 1.0 / (np.abs(gain_ref) * trxr_prior_sigma) ** 2
-
-    ident: dict[str, float] = {}
-    it = 0
-    cov = np.zeros((nfree, nfree))
-    for it in range(1, max_iter + 1):
-        tt, gfac, nfac = columns(p)
-        a1 = np.broadcast_to(tt * gfac, y.shape)
-        a2 = np.broadcast_to(nfac * gfac, y.shape)
-        g, nn, inv = solve_channels(a1, a2, wp)
-        model = g[..., None] * a1 + nn[..., None] * a2
-        r = y - model
-        rp = -(nn - t0 * g)
-        if nfree == 0:
-            break
-        # Jacobian of the model w.r.t. the free globals: (A, P, F, T, K)
-        jac = np.zeros((*y.shape, nfree))
-        for eff, sl in blocks:
-            if sl.stop == sl.start:
-                continue
-            v = p[sl]
-            if eff.kind == "tsky":
-                dj = np.swapaxes(eff.jacobian(v, tpl), 1, 2)[None]  # (1, P, F, T, k)
-                jac[..., sl] = g[..., None, None] * gfac[:, None] * dj
-            elif eff.kind == "gain":
-                base_model = g[..., None] * tt + (nn[..., None] * nfac)
-                jac[..., sl] = base_model[..., None] * bases[eff.order].T
-            else:
-                jac[..., sl] = (nn[..., None, None] * gfac[:, None]) * bases[eff.order].T
-        wj = w[..., None] * jac
-        c1 = (wj * a1[..., None]).sum(-2)  # (A, P, F, K)
-        c2 = (wj * a2[..., None]).sum(-2)
-        k1 = inv[0][..., None] * c1 + inv[1][..., None] * c2
-        k2 = inv[1][..., None] * c1 + inv[2][..., None] * c2
-        jp = jac - a1[..., None] * k1[..., None, :] - a2[..., None] * k2[..., None, :]
-        jprior = -(-t0[..., None] * k1 + k2)  # projected prior row (A, P, F, K)
-        h = np.einsum("apftk,apftl->kl", w[..., None] * jp, jp)
-        h += np.einsum("apfk,apfl->kl", wp[..., None] * jprior, jprior)
-        grad = np.einsum("apftk,apft->k", w[..., None] * jp, r)
-        grad += np.einsum("apfk,apf->k", wp[..., None] * jprior, rp)
-        if it == 1:
-            raw = np.einsum("apftk,apftk->k", wj, jac)
-            for eff, sl in blocks:
-                if sl.stop > sl.start:
-                    ident[eff.name] = float(
-                        np.min(np.diag(h)[sl] / np.where(raw[sl] > 0, raw[sl], np.inf))
-                    )
-            if any(ident.get(e.name, 1.0) < MIN_IDENTIFIABLE for e, _ in blocks):
-                cov = np.full((nfree, nfree), np.inf)
+    with np.errstate(over="ignore", invalid="ignore", under="ignore"):
+        if prior:
+            if gain_ref is None:
+                gain_ref = evaluate(p, wp).g
+            gain_ref = np.where(np.abs(gain_ref) > 0, np.abs(gain_ref), np.inf)
+            wp = np.where(chan_ok, 1.0 / (gain_ref * trxr_prior_sigma) ** 2, 0.0)
+        st = evaluate(p, wp)
+        if not np.isfinite(st.chi2):
+            raise DiagnoseError(
+                "the baseline fit is not finite: check the data for unflagged zeros, "
+                "infinities or absurd values"
+            )
+        ident: dict[str, float] = {}
+        it = 0
+        cov = np.zeros((nfree, nfree))
+        for it in range(1, max_iter + 1):
+            if nfree == 0:
                 break
-        cov = np.linalg.pinv(h)
-        step = cov @ grad
-        p = p + step
-        sig = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
-        if np.all(np.abs(step) < tol * sig):
-            tt, gfac, nfac = columns(p)
-            a1 = np.broadcast_to(tt * gfac, y.shape)
-            a2 = np.broadcast_to(nfac * gfac, y.shape)
-            g, nn, inv = solve_channels(a1, a2, wp)
-            model = g[..., None] * a1 + nn[..., None] * a2
-            r = y - model
-            rp = -(nn - t0 * g)
-            break
-    chi2 = float((w * r**2).sum() + (wp * rp**2).sum())
+            g, nn, inv, a1, a2 = st.g, st.nn, st.inv, st.a1, st.a2
+            # Jacobian of the model w.r.t. the free globals: (A, P, F, T, K)
+            jac = np.zeros((*y.shape, nfree))
+            for eff, sl in blocks:
+                if sl.stop == sl.start:
+                    continue
+                v = p[sl]
+                if eff.kind == "tsky":
+                    dj = np.swapaxes(eff.jacobian(v, tpl), 1, 2)[None]  # (1, P, F, T, k)
+                    jac[..., sl] = g[..., None, None] * st.gfac[:, None] * dj
+                elif eff.kind == "gain":
+                    base_model = g[..., None] * st.tt + (nn[..., None] * st.nfac)
+                    jac[..., sl] = base_model[..., None] * bases[eff.order].T
+                else:
+                    jac[..., sl] = (nn[..., None, None] * st.gfac[:, None]) * bases[eff.order].T
+            wj = w[..., None] * jac
+            c1 = (wj * a1[..., None]).sum(-2)  # (A, P, F, K)
+            c2 = (wj * a2[..., None]).sum(-2)
+            k1 = inv[0][..., None] * c1 + inv[1][..., None] * c2
+            k2 = inv[1][..., None] * c1 + inv[2][..., None] * c2
+            jp = jac - a1[..., None] * k1[..., None, :] - a2[..., None] * k2[..., None, :]
+            jprior = -(-t0[..., None] * k1 + k2)  # projected prior row (A, P, F, K)
+            h = np.einsum("apftk,apftl->kl", w[..., None] * jp, jp)
+            h += np.einsum("apfk,apfl->kl", wp[..., None] * jprior, jprior)
+            grad = np.einsum("apftk,apft->k", w[..., None] * jp, st.r)
+            grad += np.einsum("apfk,apf->k", wp[..., None] * jprior, st.rp)
+            if not (np.all(np.isfinite(h)) and np.all(np.isfinite(grad))):
+                raise DiagnoseError("non-finite normal equations for the global parameters")
+            if it == 1:
+                raw = np.einsum("apftk,apftk->k", wj, jac)
+                for eff, sl in blocks:
+                    if sl.stop > sl.start:
+                        ident[eff.name] = float(
+                            np.min(np.diag(h)[sl] / np.where(raw[sl] > 0, raw[sl], np.inf))
+                        )
+                if any(ident.get(e.name, 1.0) < MIN_IDENTIFIABLE for e, _ in blocks):
+                    cov = np.full((nfree, nfree), np.inf)
+                    break
+            # scale to unit diagonal before the pseudo-inverse (parameters differ by 1e6)
+            dscale = 1.0 / np.sqrt(np.where(np.diag(h) > 0, np.diag(h), 1.0))
+            cov = dscale[:, None] * np.linalg.pinv(dscale[:, None] * h * dscale) * dscale
+            step = cov @ grad
+            sig = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+            # damped Gauss-Newton: halve the step until chi^2 does not increase
+            lam, trial = 1.0, None
+            for _ in range(12):
+                cand = evaluate(p + lam * step, wp)
+                if np.isfinite(cand.chi2) and cand.chi2 <= st.chi2 * (1 + 1e-12) + 1e-9:
+                    trial = cand
+                    break
+                lam *= 0.5
+            if trial is None:
+                break  # no decrease along the Gauss-Newton direction: at the minimum
+            p = p + lam * step
+            st = trial
+            if np.all(np.abs(lam * step) < tol * sig):
+                break
+    chi2 = st.chi2
+    g, nn = np.where(st.good, st.g, np.nan), np.where(st.good, st.nn, np.nan)
     used = int((w > 0).sum())
-    nchan = int(np.isfinite(g).sum())
+    nchan = int(st.good.sum())
     ndata = used + (nchan if prior else 0)
     params: dict[str, np.ndarray] = {}
     sigmas: dict[str, np.ndarray] = {}
@@ -300,14 +339,15 @@ def fit_extended(
         sigmas[eff.name] = (
             np.zeros(len(eff.params)) if eff.fixed is not None else sig_all[sl].copy()
         )
-    resid = np.swapaxes(np.where(w > 0, r * np.sqrt(w), np.nan), 2, 3)
+    model = st.g[..., None] * st.a1 + st.nn[..., None] * st.a2
+    resid = np.swapaxes(np.where(w > 0, st.r * np.sqrt(w), np.nan), 2, 3)
     return ExtendedFit(
         effects=effects,
         params=params,
         sigmas=sigmas,
         G=g,
         n=nn,
-        sigma_G=np.sqrt(np.abs(inv[0])),
+        sigma_G=np.where(st.good, np.sqrt(np.abs(st.inv[0])), np.nan),
         chi2=chi2,
         ndata=ndata,
         nparam=2 * nchan + nfree,
@@ -316,6 +356,61 @@ def fit_extended(
         identifiable=ident,
         iterations=it,
     )
+
+
+def flag_outliers(
+    obs: Observation,
+    fit: ExtendedFit,
+    *,
+    threshold: float = 6.0,
+    window: int = 9,
+    max_fraction: float = 0.5,
+) -> np.ndarray:
+    """Flag narrow-band or impulsive outliers (RFI) in the residuals of a fit.
+
+    The normalised residuals are compared, per antenna, pol and integration, with their
+    running median over ``window`` channels, so broadband structure (the signatures of
+    every catalogue effect, smooth in frequency) is left alone and only features a few
+    channels wide are flagged: samples deviating by more than ``threshold`` robust sigma
+    (1.4826 x the median absolute deviation over all samples). A channel (integration)
+    that loses more than ``max_fraction`` of its samples is flagged entirely.
+
+    Parameters
+    ----------
+    obs
+        The observation the fit was made to.
+    fit
+        A fit of it (:func:`fit_extended`).
+    threshold
+        Robust sigmas beyond which a sample is an outlier.
+    window
+        Channels of the running median.
+    max_fraction
+        Fraction of flagged samples above which a whole channel or integration is flagged.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(Nant, Npol, Ntime, Nfreq)`` flags (the observation's own included).
+    """
+    from scipy.ndimage import median_filter
+
+    res = fit.residuals
+    ok = np.isfinite(res)
+    if not ok.any():
+        return obs.flags.copy()
+    smooth = median_filter(np.where(ok, res, 0.0), size=(1, 1, 1, window), mode="nearest")
+    dev = np.where(ok, res - smooth, np.nan)
+    centre = np.nanmedian(dev)
+    sigma = 1.4826 * np.nanmedian(np.abs(dev - centre))
+    if not np.isfinite(sigma) or sigma <= 0:
+        return obs.flags.copy()
+    new = ok & (np.abs(dev - centre) > threshold * sigma)
+    count = np.maximum(ok.sum(axis=2, keepdims=True), 1)
+    new |= (new.sum(axis=2, keepdims=True) / count > max_fraction) & ok
+    count = np.maximum(ok.sum(axis=3, keepdims=True), 1)
+    new |= (new.sum(axis=3, keepdims=True) / count > max_fraction) & ok
+    return obs.flags | new
 
 
 # the bandpass domain --------------------------------------------------------------------
@@ -330,7 +425,17 @@ class BandpassFit:
     chi2, nfreq, nparam
         Chi-square over channels (all antennas and pols), channels, parameters.
     a, sigma_a, tau_ns, sigma_tau_ns, phi, sigma_phi
-        Ripple parameters (``NaN`` for the smooth fit).
+        Ripple parameters (``NaN`` for the smooth fit); the delay is shared by all
+        antennas and pols, ``a`` and ``phi`` are those of the first (see ``per_feed``).
+    per_feed
+        ``a``, ``phi`` and their sigmas for every antenna/pol row, in order.
+    at_edge
+        The best delay lies within one resolution element of the searched range's ends:
+        unresolved bandpass structure rather than a reflection.
+    smooth_order
+        Legendre order of the smooth bandpass.
+    masked_channels
+        Channels left out as narrow-band outliers of the smooth bandpass.
     """
 
     chi2: float
@@ -342,6 +447,10 @@ class BandpassFit:
     sigma_tau_ns: float = float("nan")
     phi: float = float("nan")
     sigma_phi: float = float("nan")
+    per_feed: tuple[dict[str, float], ...] = ()
+    at_edge: bool = False
+    smooth_order: int = 0
+    masked_channels: int = 0
 
     @property
     def reduced_chi2(self) -> float:
@@ -370,21 +479,53 @@ def _bandpass_chi2(
     return chi2, coef, cov
 
 
+def auto_smooth_order(freqs: np.ndarray, min_delay_ns: float = 100.0) -> int:
+    """Legendre order of a smooth bandpass that leaves delays >= ``min_delay_ns`` alone.
+
+    A Legendre series of order ``N`` over a band ``B`` absorbs ripples of delay up to
+    about ``N / (3.3 B)`` (>= 90 % of the variance of a cosine at ``N / (1.5 B)`` is
+    left), so ``N = round(1.5 B min_delay)``, clipped to 4..24.
+    """
+    bandwidth = float(abs(freqs[-1] - freqs[0]))
+    return int(np.clip(round(1.5 * bandwidth * min_delay_ns * 1e-9), 4, 24))
+
+
+def _narrowband_outliers(
+    freqs: np.ndarray, g: np.ndarray, sg: np.ndarray, order: int, threshold: float = 6.0
+) -> np.ndarray:
+    """Channels whose gain departs from the smooth bandpass by a narrow feature (RFI)."""
+    from scipy.ndimage import median_filter
+
+    x = 2 * (freqs - freqs[0]) / (freqs[-1] - freqs[0]) - 1
+    ok = np.isfinite(g) & np.isfinite(sg) & (sg > 0)
+    if ok.sum() <= order + 2:
+        return ~ok
+    coef = legendre.legfit(x[ok], g[ok], order, w=1 / sg[ok])
+    r = np.where(ok, (g - legendre.legval(x, coef)) / np.where(ok, sg, 1.0), 0.0)
+    dev = r - median_filter(r, size=9, mode="nearest")
+    sigma = 1.4826 * np.median(np.abs(dev[ok] - np.median(dev[ok])))
+    if not np.isfinite(sigma) or sigma <= 0:
+        return ~ok
+    return ~ok | (np.abs(dev - np.median(dev[ok])) > threshold * sigma)
+
+
 def fit_cable_reflection(
     freqs: np.ndarray,
     gain: np.ndarray,
     sigma_gain: np.ndarray,
     *,
-    smooth_order: int = 6,
-    tau_range_ns: tuple[float, float] = (80.0, 500.0),
+    smooth_order: int | None = None,
+    tau_range_ns: tuple[float, float] = (90.0, 500.0),
 ) -> tuple[BandpassFit, BandpassFit]:
     """Fit ``G(nu)`` by a smooth Legendre bandpass, and by the same times ``1 + a cos``.
 
     The ripple is linearised, ``P(nu) + Pbar(nu) (c cos 2 pi nu tau + s sin 2 pi nu tau)``
     with ``Pbar`` the smooth fit; ``tau`` is scanned on a grid oversampled 8x relative to
     the delay resolution ``1 / bandwidth`` and refined parabolically; its error is where
-    ``chi^2`` rises by 1. Antennas and polarisations are fitted separately and their
-    ``chi^2`` summed (the parameters reported are the first antenna/pol's).
+    ``chi^2`` rises by 1. The delay is common to all antennas and polarisations, the
+    amplitude and phase are fitted for each (``per_feed``). Channels with narrow-band
+    outliers from the smooth bandpass (RFI absorbed by the per-channel gain) are left out
+    of both fits.
 
     Parameters
     ----------
@@ -393,7 +534,8 @@ def fit_cable_reflection(
     gain, sigma_gain
         ``(..., Nfreq)`` fitted gain and its 1-sigma.
     smooth_order
-        Legendre order of the smooth bandpass.
+        Legendre order of the smooth bandpass (default :func:`auto_smooth_order` for the
+        shortest searched delay).
     tau_range_ns
         Delays scanned (capped at the Nyquist delay ``1 / (2 dnu)``).
 
@@ -402,61 +544,71 @@ def fit_cable_reflection(
     (BandpassFit, BandpassFit)
         Smooth fit and smooth-with-ripple fit.
     """
-    g2 = np.asarray(gain).reshape(-1, freqs.size)
-    s2 = np.asarray(sigma_gain).reshape(-1, freqs.size)
+    order = auto_smooth_order(freqs, tau_range_ns[0]) if smooth_order is None else smooth_order
+    g2 = np.asarray(gain, float).reshape(-1, freqs.size)
+    s2 = np.asarray(sigma_gain, float).reshape(-1, freqs.size).copy()
+    masked = 0
+    for i in range(g2.shape[0]):
+        bad = _narrowband_outliers(freqs, g2[i], s2[i], order)
+        masked += int((bad & np.isfinite(g2[i])).sum())
+        s2[i, bad] = np.nan
     nyq = 0.5 / abs(freqs[1] - freqs[0]) * 1e9
     hi = min(tau_range_ns[1], 0.95 * nyq)
-    step = 1e9 / (freqs[-1] - freqs[0]) / 8
-    grid = np.arange(tau_range_ns[0], hi, step)
-    chi_null = sum(
-        _bandpass_chi2(freqs, g, s, smooth_order, None)[0] for g, s in zip(g2, s2, strict=True)
+    resolution = 1e9 / (freqs[-1] - freqs[0])
+    grid = np.arange(tau_range_ns[0], hi, resolution / 8)
+    rows = list(zip(g2, s2, strict=True))
+    nused = int((np.isfinite(g2) & np.isfinite(s2)).sum())
+
+    def total_chi2(tau_s: float | None) -> float:
+        return sum(_bandpass_chi2(freqs, g, s, order, tau_s)[0] for g, s in rows)
+
+    null = BandpassFit(
+        total_chi2(None),
+        nused,
+        g2.shape[0] * (order + 1),
+        smooth_order=order,
+        masked_channels=masked,
     )
-    null = BandpassFit(chi_null, int(np.isfinite(g2).sum()), g2.shape[0] * (smooth_order + 1))
     if grid.size < 3:
         return null, null
-    chis = np.array(
-        [
-            sum(
-                _bandpass_chi2(freqs, g, s, smooth_order, t * 1e-9)[0]
-                for g, s in zip(g2, s2, strict=True)
-            )
-            for t in grid
-        ]
-    )
+    chis = np.array([total_chi2(t * 1e-9) for t in grid])
     i = int(np.argmin(chis))
     fine = np.linspace(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)], 41)
-    fchis = np.array(
-        [
-            sum(
-                _bandpass_chi2(freqs, g, s, smooth_order, t * 1e-9)[0]
-                for g, s in zip(g2, s2, strict=True)
-            )
-            for t in fine
-        ]
-    )
+    fchis = np.array([total_chi2(t * 1e-9) for t in fine])
     j = int(np.argmin(fchis))
     tau = float(fine[j])
     inside = fine[fchis <= fchis[j] + 1.0]
     sig_tau = max(float(inside.max() - inside.min()) / 2, float(fine[1] - fine[0]))
-    _, coef, cov = _bandpass_chi2(freqs, g2[0], s2[0], smooth_order, tau * 1e-9)
-    c, s = coef[-2], coef[-1]
-    a = float(np.hypot(c, s))
-    ccs = cov[-2:, -2:]
-    grad_a = np.array([c, s]) / max(a, 1e-300)
-    sig_a = float(np.sqrt(grad_a @ ccs @ grad_a))
-    phi = float(np.arctan2(-s, c))
-    grad_p = np.array([s, -c]) / max(a, 1e-300) ** 2
-    sig_phi = float(np.sqrt(abs(grad_p @ ccs @ grad_p)))
+    feeds = []
+    for g, s in rows:
+        _, coef, cov = _bandpass_chi2(freqs, g, s, order, tau * 1e-9)
+        c, sn = coef[-2], coef[-1]
+        a = float(np.hypot(c, sn))
+        ccs = cov[-2:, -2:]
+        grad_a = np.array([c, sn]) / max(a, 1e-300)
+        grad_p = np.array([sn, -c]) / max(a, 1e-300) ** 2
+        feeds.append(
+            {
+                "a": a,
+                "sigma_a": float(np.sqrt(abs(grad_a @ ccs @ grad_a))),
+                "phi": float(np.arctan2(-sn, c)),
+                "sigma_phi": float(np.sqrt(abs(grad_p @ ccs @ grad_p))),
+            }
+        )
     rip = BandpassFit(
         float(fchis[j]),
         null.nfreq,
-        null.nparam + 3 * g2.shape[0],
-        a,
-        sig_a,
+        null.nparam + 2 * g2.shape[0] + 1,
+        feeds[0]["a"],
+        feeds[0]["sigma_a"],
         tau,
         sig_tau,
-        phi,
-        sig_phi,
+        feeds[0]["phi"],
+        feeds[0]["sigma_phi"],
+        per_feed=tuple(feeds),
+        at_edge=bool(tau - tau_range_ns[0] < resolution or hi - tau < resolution),
+        smooth_order=order,
+        masked_channels=masked,
     )
     return null, rip
 
@@ -477,8 +629,11 @@ def gap_metrics(
     -------
     dict
         ``chi2``, ``dof``, ``reduced_chi2``, ``rms_normalised_residual``,
-        ``time_mode_power`` (mean over channels of the squared projection of the
-        normalised residuals on ``P_0..P_{m-1}`` of LST, ~1 each when white),
+        ``integration_jitter`` (rms over integrations of the channel-summed normalised
+        residual / sqrt(channels): ~1 for white noise, >> 1 when whole integrations
+        move together, e.g. broadband gain fluctuations), ``time_mode_power`` (mean
+        over channels of the squared projection of the normalised residuals on
+        ``P_0..P_{m-1}`` of LST, ~1 each when white),
         ``residual_delay_power`` (max and its delay of the time-averaged residual power
         spectrum along frequency, ~1 when white), ``delay_peak_G`` / ``delay_peak_Trxr``
         (largest delay-spectrum amplitude beyond 100 ns, mean removed),
@@ -514,11 +669,16 @@ def gap_metrics(
         return float(np.corrcoef(t, res[ok])[0, 1])
 
     fb = np.broadcast_to(tpl.f_below[:, None, :], tpl.total.shape)
+    nused = ok.sum(axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per_int = r0.sum(axis=-1) / np.sqrt(nused)
+    jitter = float(np.sqrt(np.mean(per_int[nused > 0] ** 2))) if (nused > 0).any() else 0.0
     return {
         "chi2": fit.chi2,
         "dof": fit.dof,
         "reduced_chi2": fit.reduced_chi2,
         "rms_normalised_residual": float(np.sqrt(np.mean(res[ok] ** 2))),
+        "integration_jitter": jitter,
         "time_mode_power": [float(v) for v in np.mean(proj**2, axis=(0, 1, 2))],
         "residual_delay_power": {"max": float(ps_mean[k]), "delay_ns": float(delays[k])},
         "delay_peak_G": peak(fit.G),
@@ -596,7 +756,9 @@ def diagnose(
     bic_threshold: float = BIC_THRESHOLD,
     alpha: float = ALPHA,
     max_steps: int = 5,
-    smooth_order: int = 6,
+    smooth_order: int | None = None,
+    flag_rfi: bool = True,
+    outlier_threshold: float = 6.0,
 ) -> Diagnosis:
     """Find, one by one, the effects missing from the forward model.
 
@@ -620,7 +782,14 @@ def diagnose(
     max_steps
         Most effects added.
     smooth_order
-        Legendre order of the smooth bandpass for ``cable_reflection``.
+        Legendre order of the smooth bandpass for ``cable_reflection`` (default
+        :func:`auto_smooth_order`).
+    flag_rfi
+        Flag narrow-band and impulsive outliers (:func:`flag_outliers`) in the residuals
+        of the starting model before anything is fitted (recorded in
+        ``config["outlier_flagging"]``).
+    outlier_threshold
+        Robust sigmas beyond which a sample is an outlier.
 
     Returns
     -------
@@ -634,12 +803,16 @@ def diagnose(
         if candidates is not None
         else catalogue(include_beam_width=tpl.beam_dwidth is not None)
     )
+    if smooth_order is None:
+        smooth_order = auto_smooth_order(obs.freqs, 90.0)
     prior_kw = {"trxr_prior": trxr_prior, "trxr_prior_sigma": trxr_prior_sigma}
     active: list[Effect] = []
     cable: tuple[BandpassFit, Effect] | None = None
     diag = Diagnosis(
         config={
-            "statistic": "Delta BIC = Delta chi2 - k ln N (radiometer-weighted chi2; "
+            "statistic": "Delta BIC = Delta chi2 / c - k ln N (radiometer-weighted chi2; "
+            "c = max(1, chi2/dof of the candidate model), the overdispersion of a "
+            "quasi-likelihood, so unmodelled excess scatter does not pass for evidence; "
             "cable_reflection: chi2 of fitted G(nu) vs smooth bandpass, N = Nfreq)",
             "bic_threshold": bic_threshold,
             "alpha": alpha,
@@ -650,11 +823,37 @@ def diagnose(
             "candidates": [c.describe() for c in cands],
         }
     )
-    # weights from the model: two passes of the baseline
+    # weights from the model: two passes of the baseline, then outliers (RFI) flagged
     w = radiometer_weights(obs, obs.data)
     current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
     w = radiometer_weights(obs, current.model)
     current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
+    nflag0 = int(obs.flags.sum())
+    for _ in range(3 if flag_rfi else 0):
+        flags = flag_outliers(obs, current, threshold=outlier_threshold)
+        if int(flags.sum()) == int(obs.flags.sum()):
+            break
+        obs = dataclasses.replace(obs, flags=flags)
+        w = radiometer_weights(obs, current.model)
+        current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
+        w = radiometer_weights(obs, current.model)
+        current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
+    chan_flagged = obs.flags.all(axis=2)
+    diag.config["outlier_flagging"] = {
+        "enabled": flag_rfi,
+        "threshold_robust_sigma": outlier_threshold,
+        "samples_flagged": int(obs.flags.sum()) - nflag0,
+        "fraction_flagged": float(obs.flags.mean()),
+        "channels_fully_flagged": int(chan_flagged.sum()),
+    }
+    if flag_rfi and obs.flags.sum() > nflag0:
+        logger.info(
+            "flagged %d outlier samples (%.2f %% of the data, %d whole channels)",
+            int(obs.flags.sum()) - nflag0,
+            100 * (obs.flags.sum() - nflag0) / obs.flags.size,
+            int(chan_flagged.sum()),
+        )
+    diag.config["failed_candidates"] = {}
     bp_null, _ = fit_cable_reflection(
         obs.freqs, current.G, current.sigma_G, smooth_order=smooth_order
     )
@@ -671,11 +870,24 @@ def diagnose(
                 null, rip = fit_cable_reflection(
                     obs.freqs, current.G, current.sigma_G, smooth_order=smooth_order
                 )
+                if rip.at_edge:
+                    diag.config["failed_candidates"]["cable_reflection"] = (
+                        f"best delay {rip.tau_ns:.0f} ns at the edge of the searched range: "
+                        "unresolved bandpass structure, not a reflection"
+                    )
+                    continue
                 dchi = null.chi2 - rip.chi2
-                nn = max(null.nfreq, 2)
-                results.append((dchi - 3 * math.log(nn), dchi, 3, eff, rip, null))
+                k = rip.nparam - null.nparam
+                chat = max(1.0, rip.reduced_chi2)
+                stat = dchi / chat - k * math.log(max(null.nfreq, 2))
+                results.append((stat, dchi, k, eff, rip, chat))
                 continue
-            trial = fit_extended(obs, tpl, [*active, eff], weights=w, **prior_kw)
+            try:
+                trial = fit_extended(obs, tpl, [*active, eff], weights=w, **prior_kw)
+            except (DiagnoseError, np.linalg.LinAlgError) as exc:
+                logger.warning("candidate %s (order %d) failed: %s", eff.name, eff.order, exc)
+                diag.config["failed_candidates"][f"{eff.name}/{eff.order}"] = str(exc)
+                continue
             if eff.name not in diag.identifiability:
                 diag.identifiability[eff.name] = trial.identifiable.get(eff.name, 0.0)
             if trial.identifiable.get(eff.name, 0.0) < MIN_IDENTIFIABLE:
@@ -690,14 +902,16 @@ def diagnose(
                 stat_fit = (stat_fit, trial, fixed_eff)  # type: ignore[assignment]
             fit_for_chi = stat_fit[0] if isinstance(stat_fit, tuple) else stat_fit
             dchi = current.chi2 - fit_for_chi.chi2
-            results.append((dchi - k * math.log(current.ndata), dchi, k, eff, stat_fit, None))
+            chat = max(1.0, fit_for_chi.reduced_chi2)
+            stat = dchi / chat - k * math.log(current.ndata)
+            results.append((stat, dchi, k, eff, stat_fit, chat))
         if not results:
             break
         # best variant of each effect name first, then best overall
         results.sort(key=lambda r: -r[0])
         best = results[0]
-        stat, dchi, k, eff, payload, null = best
-        pval = float(stats.chi2.sf(dchi, max(k, 1)))
+        stat, dchi, k, eff, payload, chat = best
+        pval = float(stats.chi2.sf(dchi / chat, max(k, 1)))
         candidates_report = {}
         for r in results:
             candidates_report.setdefault(r[3].name, float(r[0]))
@@ -706,6 +920,7 @@ def diagnose(
             diag.config["last_rejected"] = {"name": eff.name, "statistic": stat, "p_value": pval}
             break
         gap_before = gap_metrics(current, obs, tpl, bp_null)
+        step_extra: dict[str, Any] = {}
         if eff.kind == "bandpass":
             rip: BandpassFit = payload
             cable = (rip, eff)
@@ -714,6 +929,13 @@ def diagnose(
                 "tau_ns": {"value": rip.tau_ns, "sigma": rip.sigma_tau_ns},
                 "phi": {"value": rip.phi, "sigma": rip.sigma_phi},
             }
+            feeds = [(a, p) for a in obs.antennas for p in obs.pols]
+            step_extra["per_feed"] = [
+                {"antenna": int(a), "pol": str(p), **vals}
+                for (a, p), vals in zip(feeds, rip.per_feed, strict=True)
+            ]
+            step_extra["smooth_bandpass_order"] = rip.smooth_order
+            step_extra["masked_channels"] = rip.masked_channels
             gap_after = dict(gap_before)
             gap_after["bandpass_reduced_chi2"] = rip.reduced_chi2
             bp_null = rip
@@ -747,7 +969,9 @@ def diagnose(
                 "p_value": pval,
                 "gap_before": gap_before,
                 "gap_after": gap_after,
+                "overdispersion": float(chat),
                 "candidates": candidates_report,
+                **step_extra,
             }
         )
         diag.effects.append(eff.name)
