@@ -188,7 +188,7 @@ def fit_extended(
     nfree = sum(b.stop - b.start for _, b in blocks)
     p = np.zeros(nfree)
     fixed = {e.name: np.asarray(e.fixed, float) for e in effects if e.fixed is not None}
-    bases = {e.order: time_basis(obs.lsts, e.order) for e in effects if e.kind != "tsky"}
+    bases = {(e.basis, e.order): e.time_basis(obs.lsts) for e in effects if e.kind != "tsky"}
     prior = trxr_prior is not None
     t0 = np.broadcast_to(np.asarray(trxr_prior if prior else 0.0, float), (obs.nfreq,))
 
@@ -204,9 +204,9 @@ def fit_extended(
             if eff.kind == "tsky":
                 tsky = tsky + eff.delta(v, tpl)
             elif eff.kind == "gain":
-                gfac = gfac + v @ bases[eff.order]
+                gfac = gfac + v @ bases[eff.basis, eff.order]
             else:
-                nfac = nfac + v @ bases[eff.order]
+                nfac = nfac + v @ bases[eff.basis, eff.order]
         tt = np.swapaxes(tsky, 1, 2)[None]  # (1, P, F, T)
         return tt, gfac, nfac
 
@@ -281,9 +281,11 @@ def fit_extended(
                     jac[..., sl] = g[..., None, None] * st.gfac[:, None] * dj
                 elif eff.kind == "gain":
                     base_model = g[..., None] * st.tt + (nn[..., None] * st.nfac)
-                    jac[..., sl] = base_model[..., None] * bases[eff.order].T
+                    jac[..., sl] = base_model[..., None] * bases[eff.basis, eff.order].T
                 else:
-                    jac[..., sl] = (nn[..., None, None] * st.gfac[:, None]) * bases[eff.order].T
+                    jac[..., sl] = (nn[..., None, None] * st.gfac[:, None]) * bases[
+                        eff.basis, eff.order
+                    ].T
             wj = w[..., None] * jac
             c1 = (wj * a1[..., None]).sum(-2)  # (A, P, F, K)
             c2 = (wj * a2[..., None]).sum(-2)
@@ -579,6 +581,8 @@ def fit_cable_reflection(
     tau = float(fine[j])
     inside = fine[fchis <= fchis[j] + 1.0]
     sig_tau = max(float(inside.max() - inside.min()) / 2, float(fine[1] - fine[0]))
+    # the phase is referred to nu = 0: its marginal error includes the delay's
+    nu_mean = float(np.mean(freqs))
     feeds = []
     for g, s in rows:
         _, coef, cov = _bandpass_chi2(freqs, g, s, order, tau * 1e-9)
@@ -592,7 +596,11 @@ def fit_cable_reflection(
                 "a": a,
                 "sigma_a": float(np.sqrt(abs(grad_a @ ccs @ grad_a))),
                 "phi": float(np.arctan2(-sn, c)),
-                "sigma_phi": float(np.sqrt(abs(grad_p @ ccs @ grad_p))),
+                "sigma_phi": float(
+                    np.hypot(
+                        np.sqrt(abs(grad_p @ ccs @ grad_p)), 2 * np.pi * nu_mean * sig_tau * 1e-9
+                    )
+                ),
             }
         )
     rip = BandpassFit(
@@ -725,6 +733,7 @@ class Diagnosis:
     config: dict[str, Any] = field(default_factory=dict)
     residual_snapshots: list[tuple[str, np.ndarray]] = field(default_factory=list, repr=False)
     final_fit: ExtendedFit | None = field(default=None, repr=False)
+    final_parameters: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form (without residual arrays)."""
@@ -734,6 +743,7 @@ class Diagnosis:
             "initial_gap": self.initial_gap,
             "final_gap": self.final_gap,
             "identifiability": self.identifiability,
+            "final_parameters": self.final_parameters,
             "config": self.config,
         }
 
@@ -885,8 +895,9 @@ def diagnose(
             try:
                 trial = fit_extended(obs, tpl, [*active, eff], weights=w, **prior_kw)
             except (DiagnoseError, np.linalg.LinAlgError) as exc:
-                logger.warning("candidate %s (order %d) failed: %s", eff.name, eff.order, exc)
-                diag.config["failed_candidates"][f"{eff.name}/{eff.order}"] = str(exc)
+                label = f"{eff.name}/{eff.basis}{eff.order}"
+                logger.warning("candidate %s failed: %s", label, exc)
+                diag.config["failed_candidates"][label] = str(exc)
                 continue
             if eff.name not in diag.identifiability:
                 diag.identifiability[eff.name] = trial.identifiable.get(eff.name, 0.0)
@@ -959,6 +970,7 @@ def diagnose(
                 params = _params_dict(eff, current)
         if eff.order:
             params["order"] = {"value": float(eff.order), "sigma": 0.0}
+            step_extra["time_basis"] = eff.basis
         diag.steps.append(
             {
                 "name": eff.name,
@@ -977,6 +989,17 @@ def diagnose(
         diag.effects.append(eff.name)
     diag.final_gap = gap_metrics(current, obs, tpl, bp_null)
     diag.final_fit = current
+    # every accepted effect's parameters from the final joint fit (a step's parameters
+    # are those of the model at that step, before later effects were added)
+    for st in diag.steps:
+        if st["name"] == "cable_reflection" or st["name"] not in current.params:
+            final = dict(st["parameters"])
+        else:
+            eff = next(e for e in active if e.name == st["name"])
+            final = _params_dict(eff, current) if eff.fixed is None else dict(st["parameters"])
+            if "order" in st["parameters"]:
+                final["order"] = st["parameters"]["order"]
+        diag.final_parameters[st["name"]] = final
     return diag
 
 

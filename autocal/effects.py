@@ -115,6 +115,12 @@ class SkyTemplates:
     beam_dwidth
         ``(Npol, Ntime, Nfreq)`` ``dTsky / dw`` for a fractional beam-width change ``w``
         (central difference), or ``None``.
+    beam_width_poly
+        ``(K, Npol, Ntime, Nfreq)`` coefficients ``c_k`` of ``Tsky(w) - Tsky(0) =
+        sum_k c_k w^k`` (k = 1..K), the polynomial through Tsky computed with the beam
+        width scaled by ``1 + w`` at ``K`` nodes ``w != 0`` (+-h/2, +-h), or ``None``.
+        It makes ``beam_width`` exact at the nodes and accurate between them for the
+        5-15 % width errors of real beam models.
     nu0
         Reference frequency (Hz) of the spectral-index error ``(nu / nu0)^dbeta``.
     meta
@@ -130,6 +136,7 @@ class SkyTemplates:
     f_above: np.ndarray
     f_below: np.ndarray
     beam_dwidth: np.ndarray | None = None
+    beam_width_poly: np.ndarray | None = None
     nu0: float = 150e6
     meta: dict[str, Any] = field(default_factory=dict)
 
@@ -142,6 +149,8 @@ class SkyTemplates:
                 raise EffectError(f"template {name} has the wrong shape")
         if self.beam_dwidth is not None and self.beam_dwidth.shape != shape:
             raise EffectError("template beam_dwidth has the wrong shape")
+        if self.beam_width_poly is not None and self.beam_width_poly.shape[1:] != shape:
+            raise EffectError("template beam_width_poly has the wrong shape")
 
 
 def sky_templates(
@@ -155,7 +164,7 @@ def sky_templates(
     tgnd: float = 300.0,
     nside: int = 64,
     epoch: Any = None,
-    beam_width_step: float | None = 0.02,
+    beam_width_step: float | None = 0.2,
     nu0: float | None = None,
 ) -> SkyTemplates:
     """Compute the model Tsky and its effect templates (one FFT Tsky pass per beam).
@@ -181,7 +190,9 @@ def sky_templates(
     epoch
         Epoch of the equatorial frame (use the observation date).
     beam_width_step
-        Fractional width step of the ``beam_width`` template (``None``: no template).
+        Largest fractional width change ``h`` of the ``beam_width`` template: Tsky is
+        computed with the width scaled by ``1 +- h/2`` and ``1 +- h`` and a quartic in
+        ``w`` passed through them (``None``: no template).
     nu0
         Reference of the spectral-index error; default the sky's ``nu0`` for a power-law
         sky, else the band centre.
@@ -215,19 +226,20 @@ def sky_templates(
         fb.append(res.f_below)
         meta = res.meta
         if beam_width_step:
-            hi, lo = (
-                compute_tsky(
-                    sky,
-                    ScaledBeam(base=b, factor=1 + sgn * beam_width_step),
-                    site,
-                    freqs,
-                    lsts,
-                    cache=False,
-                    **kw,
-                ).tsky
-                for sgn in (1, -1)
+            nodes = beam_width_step * np.array([-1.0, -0.5, 0.5, 1.0])
+            deltas = np.stack(
+                [
+                    compute_tsky(
+                        sky, ScaledBeam(base=b, factor=1 + w), site, freqs, lsts, cache=False, **kw
+                    ).tsky
+                    - res.tsky
+                    for w in nodes
+                ]
             )
-            parts["bw"].append((hi - lo) / (2 * beam_width_step))
+            # solve sum_k c_k w_j^k = delta_j for c_1..c_4 (exact through the 5 nodes)
+            vander = nodes[:, None] ** np.arange(1, nodes.size + 1)[None, :]
+            coef = np.tensordot(np.linalg.inv(vander), deltas, axes=([1], [0]))
+            parts["bw"].append(coef)
     if nu0 is None:
         nu0 = float(meta.get("sky", {}).get("nu0_Hz") or 0.5 * (freqs[0] + freqs[-1]))
     return SkyTemplates(
@@ -239,7 +251,8 @@ def sky_templates(
         ground=np.stack(parts["gnd"]),
         f_above=np.stack(fa),
         f_below=np.stack(fb),
-        beam_dwidth=np.stack(parts["bw"]) if parts["bw"] else None,
+        beam_dwidth=np.stack([c[0] for c in parts["bw"]]) if parts["bw"] else None,
+        beam_width_poly=np.stack(parts["bw"], axis=1) if parts["bw"] else None,
         nu0=nu0,
         meta={"tsky": meta, "tgnd_K": tgnd, "beam_width_step": beam_width_step},
     )
@@ -254,6 +267,15 @@ def time_basis(lsts: np.ndarray, order: int) -> np.ndarray:
 
     model = FitModel.for_lsts(np.asarray(lsts), "legendre", max(order, 1))
     return legendre.legvander(model.s(lsts), order)[:, 1:].T
+
+
+def diurnal_basis(lsts: np.ndarray, harmonics: int) -> np.ndarray:
+    """``(2 harmonics, Ntime)``: ``sin(2 pi k L / 24 h)``, ``cos(2 pi k L / 24 h)``, k = 1.."""
+    phase = 2 * np.pi * np.asarray(lsts, np.float64) / 24.0
+    rows = []
+    for k in range(1, harmonics + 1):
+        rows += [np.sin(k * phase), np.cos(k * phase)]
+    return np.array(rows)
 
 
 @dataclass(frozen=True)
@@ -272,7 +294,8 @@ class Effect:
     units
         Parameter units.
     order
-        Legendre order of drift effects.
+        Legendre order (``basis="legendre"``) or number of harmonics of the sidereal day
+        (``basis="diurnal"``) of drift effects.
     fixed
         For discrete hypotheses (``missing_cmb``): parameter values held fixed.
     signature
@@ -286,6 +309,13 @@ class Effect:
     order: int = 0
     fixed: tuple[float, ...] | None = None
     signature: str = ""
+    basis: Literal["legendre", "diurnal"] = "legendre"
+
+    def time_basis(self, lsts: np.ndarray) -> np.ndarray:
+        """``(k, Ntime)`` time basis of a drift effect (:func:`time_basis`)."""
+        if self.basis == "diurnal":
+            return diurnal_basis(lsts, self.order)
+        return time_basis(lsts, self.order)
 
     @property
     def nfree(self) -> int:
@@ -300,6 +330,9 @@ class Effect:
         if self.name == "sky_spectral_index":
             ratio = tpl.freqs / tpl.nu0
             return tpl.galactic * (ratio ** p[0] - 1.0)[None, None, :]
+        if self.name == "beam_width" and tpl.beam_width_poly is not None:
+            powers = float(p[0]) ** np.arange(1, tpl.beam_width_poly.shape[0] + 1)
+            return np.tensordot(powers, tpl.beam_width_poly, axes=([0], [0]))
         return np.tensordot(self.jacobian(p, tpl), p, axes=([-1], [0]))
 
     def jacobian(self, p: np.ndarray, tpl: SkyTemplates) -> np.ndarray:
@@ -317,6 +350,10 @@ class Effect:
             if tpl.beam_dwidth is None:
                 raise EffectError("beam_width needs templates built with beam_width_step")
             t = tpl.beam_dwidth
+            if tpl.beam_width_poly is not None:
+                k = np.arange(1, tpl.beam_width_poly.shape[0] + 1)
+                dpow = k * float(p[0]) ** (k - 1)
+                t = np.tensordot(dpow, tpl.beam_width_poly, axes=([0], [0]))
         elif self.name == "sky_spectral_index":
             ratio = tpl.freqs / tpl.nu0
             t = tpl.galactic * (np.log(ratio) * ratio ** float(p[0]))[None, None, :]
@@ -334,6 +371,7 @@ class Effect:
             "order": self.order,
             "fixed": None if self.fixed is None else list(self.fixed),
             "signature": self.signature,
+            "basis": self.basis,
         }
 
 
@@ -371,6 +409,19 @@ def catalogue(max_drift_order: int = 2, include_beam_width: bool = True) -> list
                 signature="n(t) = n (1 + sum_k e_k P_k(s)), achromatic",
             )
         )
+    for kind, name, letter in (("gain", "gain_drift", "d"), ("noise", "noise_drift", "e")):
+        out.append(
+            Effect(
+                name,
+                kind,  # type: ignore[arg-type]
+                (f"{letter}_sin", f"{letter}_cos"),
+                ("1", "1"),
+                1,
+                signature=f"{'G' if kind == 'gain' else 'n'}(t) x (1 + {letter}_sin sin(2 pi "
+                f"L / 24 h) + {letter}_cos cos(2 pi L / 24 h)), diurnal, achromatic",
+                basis="diurnal",
+            )
+        )
     out += [
         Effect("sky_scale", "tsky", ("s",), ("1",), signature="S -> (1 + s) S"),
         Effect("sky_offset", "tsky", ("T_offset",), ("K",), signature="+ T_offset f_above"),
@@ -404,7 +455,7 @@ def catalogue(max_drift_order: int = 2, include_beam_width: bool = True) -> list
                 "tsky",
                 ("w",),
                 ("1",),
-                signature="beam width x (1 + w), first order: + w dTsky/dw",
+                signature="beam width x (1 + w): + sum_k c_k w^k (quartic via Tsky at 4 widths)",
             )
         )
     return out
