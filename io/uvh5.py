@@ -21,10 +21,13 @@ is always given to pyuvdata explicitly.
 
 from __future__ import annotations
 
+import io
 import itertools
 import logging
+import os
+import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -109,14 +112,14 @@ def _describe_freqs(freqs: np.ndarray) -> str:
 # ---------------------------------------------------------------------------------------
 # writing
 # ---------------------------------------------------------------------------------------
-def _hera_telescope(obs: Observation) -> Any:
+def _hera_telescope(antennas: np.ndarray, site: Site) -> Any:
     from pyuvdata import Telescope
 
     telescope = Telescope.from_known_telescopes("HERA")
     if not telescope.instrument:
         telescope.instrument = telescope.name
     known = set(int(a) for a in telescope.antenna_numbers)
-    missing = sorted(set(obs.antennas.tolist()) - known)
+    missing = sorted(set(np.asarray(antennas).tolist()) - known)
     if missing:
         raise ObservationError(
             f"antenna number(s) {missing} do not exist in HERA (known antennas are "
@@ -124,29 +127,31 @@ def _hera_telescope(obs: Observation) -> Any:
         )
     # The file takes pyuvdata's HERA location; warn if the observation says otherwise.
     known_xyz = np.array([q.to_value("m") for q in telescope.location.geocentric], float)
-    site_xyz = np.array([q.to_value("m") for q in obs.site.location.geocentric], float)
+    site_xyz = np.array([q.to_value("m") for q in site.location.geocentric], float)
     offset = float(np.linalg.norm(known_xyz - site_xyz))
     if offset > 1000.0:
         logger.warning(
             "observation site %s is %.0f m from pyuvdata's HERA location; the file uses "
             "HERA's location",
-            obs.site.describe(),
+            site.describe(),
             offset,
         )
     return telescope
 
 
-def _generic_telescope(obs: Observation) -> Any:
+def _generic_telescope(
+    name: str, site: Site, antennas: np.ndarray, antenna_names: Sequence[str]
+) -> Any:
     from pyuvdata import Telescope
 
     with _warnings_to_log("building the telescope"):
         return Telescope.new(
-            name=obs.telescope_name,
-            location=obs.site.location,
-            antenna_positions=np.zeros((obs.nant, 3)),
-            antenna_names=list(obs.antenna_names),
-            antenna_numbers=obs.antennas.tolist(),
-            instrument=obs.telescope_name,
+            name=name,
+            location=site.location,
+            antenna_positions=np.zeros((len(antennas), 3)),
+            antenna_names=list(antenna_names),
+            antenna_numbers=np.asarray(antennas).tolist(),
+            instrument=name,
             mount_type="fixed",
             update_from_known=False,
         )
@@ -168,13 +173,13 @@ def _pol_codes_for_write(pols: Sequence[str]) -> tuple[list[int], str | None]:
     return [int(c) for c in np.atleast_1d(codes)], x_orientation
 
 
-def _extra_keywords(obs: Observation, extra: dict | None) -> dict[str, Any]:
+def _extra_keywords(meta: dict[str, Any], extra: dict | None) -> dict[str, Any]:
     keywords: dict[str, Any] = {}
-    inherited = obs.meta.get("extra_keywords")
+    inherited = meta.get("extra_keywords")
     candidates: list[tuple[str, Any]] = []
     if isinstance(inherited, dict):
         candidates += list(inherited.items())
-    candidates += [(k, v) for k, v in obs.meta.items() if k not in _RESERVED_META]
+    candidates += [(k, v) for k, v in meta.items() if k not in _RESERVED_META]
     candidates += list((extra or {}).items())
     for key, value in candidates:
         scalar = _scalar(value)
@@ -185,20 +190,95 @@ def _extra_keywords(obs: Observation, extra: dict | None) -> dict[str, Any]:
     return keywords
 
 
-def _history(obs: Observation, history: str) -> str:
+def _history(meta: dict[str, Any], history: str, writer: str = "write_uvh5") -> str:
     from autocal import __version__
 
     parts = []
-    upstream = obs.meta.get("history")
+    upstream = meta.get("history")
     if isinstance(upstream, str) and upstream.strip():
         parts.append(upstream.rstrip())
-    files = obs.meta.get("files")
+    files = meta.get("files")
     if files:
         parts.append("autocal: derived from " + ", ".join(str(f) for f in np.atleast_1d(files)))
     if history:
         parts.append(history.rstrip())
-    parts.append(f"autocal {__version__}: auto-correlations written by autocal.io.uvh5.write_uvh5")
+    parts.append(f"autocal {__version__}: auto-correlations written by autocal.io.uvh5.{writer}")
     return "\n".join(parts) + "\n"
+
+
+def _build_uvdata(
+    name: str,
+    *,
+    freqs: np.ndarray,
+    pols: Sequence[str],
+    jds: np.ndarray,
+    lsts: np.ndarray,
+    antennas: np.ndarray,
+    antenna_names: Sequence[str],
+    site: Site,
+    telescope_name: str,
+    integration_time: np.ndarray,
+    channel_width: np.ndarray,
+    history: str,
+    extra_keywords: dict[str, Any],
+    arrays: dict[str, np.ndarray] | None = None,
+) -> Any:
+    """Build the UVData of an autos-only file (metadata only when ``arrays`` is None).
+
+    The baseline-time axis is time-major (antennas fastest). Checks that pyuvdata kept
+    that order and that its LSTs agree with ``lsts`` to 1 s.
+    """
+    from pyuvdata import UVData
+
+    antennas = np.asarray(antennas)
+    codes, x_orientation = _pol_codes_for_write(pols)
+    is_hera = telescope_name.strip().upper() == "HERA"
+    telescope = (
+        _hera_telescope(antennas, site)
+        if is_hera
+        else _generic_telescope(telescope_name, site, antennas, antenna_names)
+    )
+    if x_orientation is not None:
+        telescope.set_feeds_from_x_orientation(
+            x_orientation, feeds=["x", "y"], polarization_array=codes
+        )
+    nant = antennas.size
+    with _warnings_to_log(f"building UVData for {name}"):
+        uv = UVData.new(
+            freq_array=np.asarray(freqs, dtype=np.float64),
+            polarization_array=codes,
+            times=np.asarray(jds, dtype=np.float64),
+            telescope=telescope,
+            antpairs=[(int(a), int(a)) for a in antennas],
+            do_blt_outer=True,
+            time_axis_faster_than_bls=False,
+            integration_time=np.asarray(integration_time, dtype=np.float64),
+            channel_width=np.asarray(channel_width, dtype=np.float64),
+            history=history,
+            vis_units="uncalib",
+            phase_center_catalog={0: dict(ZENITH)},
+            update_telescope_from_known=is_hera,
+            **(arrays or {}),
+        )
+    # Guard against a silent reordering of the blt axis by pyuvdata.
+    expected_ants = np.tile(antennas, np.size(jds))
+    if not (
+        np.array_equal(uv.ant_1_array, expected_ants)
+        and np.allclose(uv.time_array, np.repeat(jds, nant), rtol=0, atol=1e-9)
+    ):  # pragma: no cover - depends on pyuvdata internals
+        raise RuntimeError("pyuvdata reordered the baseline-time axis; cannot write safely")
+
+    file_lsts = _lst_hours(uv.lst_array[::nant])
+    worst = float(np.max(np.abs(_wrap_hours(file_lsts - np.asarray(lsts)))))
+    if worst > LST_TOLERANCE_HOURS:
+        raise ObservationError(
+            f"the observation's LSTs disagree with those pyuvdata computes from its JDs at "
+            f"{telescope.name} by up to {worst * 3600:.1f} s (allowed 1 s): check the JDs "
+            "(UTC Julian dates of the integration centres), the LSTs (apparent, hours) and "
+            "the site"
+        )
+    uv.extra_keywords = extra_keywords
+    return uv
 
 
 def write_uvh5(
@@ -255,8 +335,6 @@ def write_uvh5(
     ``path``, so a failed write leaves no partial file. Non-finite data (which
     :class:`~autocal.observation.Observation` always flags) are stored as 0.
     """
-    from pyuvdata import UVData
-
     path = Path(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
@@ -267,14 +345,6 @@ def write_uvh5(
     if obs.ntime > 1 and np.any(np.diff(obs.jds) <= 0):
         raise ObservationError("JDs must be strictly increasing to write UVH5")
 
-    codes, x_orientation = _pol_codes_for_write(obs.pols)
-    is_hera = obs.telescope_name.strip().upper() == "HERA"
-    telescope = _hera_telescope(obs) if is_hera else _generic_telescope(obs)
-    if x_orientation is not None:
-        telescope.set_feeds_from_x_orientation(
-            x_orientation, feeds=["x", "y"], polarization_array=codes
-        )
-
     nant, npol, ntime, nfreq = obs.shape
 
     # Baseline-time axis: time slowest, antennas fastest -> index it * nant + ia.
@@ -282,48 +352,26 @@ def write_uvh5(
         return np.ascontiguousarray(arr.transpose(2, 0, 3, 1)).reshape(ntime * nant, nfreq, npol)
 
     real = np.where(np.isfinite(obs.data), obs.data, 0.0)
-    data = to_blt(real).astype(np.complex128)
-    flags = to_blt(obs.flags)
-    nsamples = to_blt(obs.nsamples).astype(np.float64)
-    antpairs = [(int(a), int(a)) for a in obs.antennas]
-
-    with _warnings_to_log(f"building UVData for {path.name}"):
-        uv = UVData.new(
-            freq_array=np.asarray(obs.freqs, dtype=np.float64),
-            polarization_array=codes,
-            times=np.asarray(obs.jds, dtype=np.float64),
-            telescope=telescope,
-            antpairs=antpairs,
-            do_blt_outer=True,
-            time_axis_faster_than_bls=False,
-            integration_time=np.asarray(obs.integration_time, dtype=np.float64),
-            channel_width=np.asarray(obs.channel_width, dtype=np.float64),
-            data_array=data,
-            flag_array=flags,
-            nsample_array=nsamples,
-            history=_history(obs, history),
-            vis_units="uncalib",
-            phase_center_catalog={0: dict(ZENITH)},
-            update_telescope_from_known=is_hera,
-        )
-    # Guard against a silent reordering of the blt axis by pyuvdata.
-    expected_ants = np.tile(obs.antennas, ntime)
-    if not (
-        np.array_equal(uv.ant_1_array, expected_ants)
-        and np.allclose(uv.time_array, np.repeat(obs.jds, nant), rtol=0, atol=1e-9)
-    ):  # pragma: no cover - depends on pyuvdata internals
-        raise RuntimeError("pyuvdata reordered the baseline-time axis; cannot write safely")
-
-    lsts = _lst_hours(uv.lst_array[::nant])
-    worst = float(np.max(np.abs(_wrap_hours(lsts - obs.lsts))))
-    if worst > LST_TOLERANCE_HOURS:
-        raise ObservationError(
-            f"the observation's LSTs disagree with those pyuvdata computes from its JDs at "
-            f"{telescope.name} by up to {worst * 3600:.1f} s (allowed 1 s): check the JDs "
-            "(UTC Julian dates of the integration centres), the LSTs (apparent, hours) and "
-            "the site"
-        )
-    uv.extra_keywords = _extra_keywords(obs, extra_keywords)
+    uv = _build_uvdata(
+        path.name,
+        freqs=obs.freqs,
+        pols=obs.pols,
+        jds=obs.jds,
+        lsts=obs.lsts,
+        antennas=obs.antennas,
+        antenna_names=obs.antenna_names,
+        site=obs.site,
+        telescope_name=obs.telescope_name,
+        integration_time=obs.integration_time,
+        channel_width=obs.channel_width,
+        history=_history(obs.meta, history),
+        extra_keywords=_extra_keywords(obs.meta, extra_keywords),
+        arrays={
+            "data_array": to_blt(real).astype(np.complex128),
+            "flag_array": to_blt(obs.flags),
+            "nsample_array": to_blt(obs.nsamples).astype(np.float64),
+        },
+    )
 
     with atomic_path(path) as tmp, _warnings_to_log(f"writing {path.name}"):
         # atomic_path creates the temporary file; remove it so that pyuvdata need not
@@ -339,6 +387,253 @@ def write_uvh5(
         nfreq,
     )
     return path
+
+
+#: Data types :class:`UVH5AutosWriter` can store: complex64, complex128, and the HERA
+#: correlator's int32 compound type (fields ``r``, ``i``; values rounded to integers).
+WRITE_DTYPES: dict[str, Any] = {
+    "c8": np.dtype("c8"),
+    "c16": np.dtype("c16"),
+    "int32": np.dtype([("r", "<i4"), ("i", "<i4")]),
+}
+
+
+class UVH5AutosWriter:
+    """Write a UVH5 file of auto-correlations in parts (memory bounded by a part).
+
+    The header comes from pyuvdata (:meth:`pyuvdata.UVData.initialize_uvh5_file` on a
+    metadata-only UVData, so it is what :func:`write_uvh5` writes); the three data sets
+    ``Data/visdata``, ``Data/flags`` and ``Data/nsamples`` of shape ``(Nblts, Nfreqs,
+    Npols)`` are created with chunks of one integration (all antennas) by
+    ``chunk_channels`` channels by one polarisation, HDF5 byte shuffle and LZF (or
+    gzip) compression, which pyuvdata and h5py read without plugins. The
+    baseline-time axis is time-major (antennas fastest), as HERA's correlator writes it.
+
+    Use as a context manager: the file is written under a temporary name and renamed
+    onto ``path`` only when every integration was written and the block exits cleanly.
+
+    Parameters
+    ----------
+    path
+        Output file.
+    freqs, channel_width
+        ``(Nfreq,)`` Hz.
+    jds, lsts, integration_time
+        ``(Ntime,)`` Julian dates, LSTs (hours) and integration times (s).
+    antennas
+        Antenna numbers.
+    pols
+        Polarisation names (``ee``/``nn`` or ``xx``/``yy``).
+    site
+        Telescope site.
+    telescope_name
+        ``"HERA"`` takes pyuvdata's HERA telescope metadata (all 350 antennas).
+    antenna_names
+        Names when the telescope is not HERA (default ``ant<N>``).
+    history, extra_keywords
+        Header history and extra keywords.
+    dtype
+        ``"c8"`` (default), ``"c16"`` or ``"int32"`` (HERA correlator compound type).
+    compression
+        ``"lzf"`` (default), ``"gzip"`` or ``None``.
+    compression_level
+        gzip level (1-9).
+    shuffle
+        Apply HDF5's byte-shuffle filter before compressing (default True: the zero
+        imaginary parts and the slowly varying high bytes then compress to little).
+    chunk_channels
+        Channels per chunk.
+    overwrite
+        Replace an existing file.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        freqs: np.ndarray,
+        channel_width: np.ndarray | float,
+        jds: np.ndarray,
+        lsts: np.ndarray,
+        integration_time: np.ndarray | float,
+        antennas: Sequence[int],
+        pols: Sequence[str],
+        site: Site,
+        telescope_name: str = "HERA",
+        antenna_names: Sequence[str] | None = None,
+        history: str = "",
+        extra_keywords: dict[str, Any] | None = None,
+        dtype: str = "c8",
+        compression: str | None = "lzf",
+        compression_level: int = 4,
+        shuffle: bool = True,
+        chunk_channels: int = 256,
+        overwrite: bool = False,
+    ) -> None:
+        self.path = Path(path)
+        if self.path.exists() and not overwrite:
+            raise FileExistsError(f"{self.path} exists; pass overwrite=True to replace it")
+        if dtype not in WRITE_DTYPES:
+            raise ObservationError(f"unknown UVH5 data type {dtype!r}: use {list(WRITE_DTYPES)}")
+        if compression not in ("lzf", "gzip", None):
+            raise ObservationError(f"unknown compression {compression!r}: use lzf, gzip or None")
+        self.freqs = np.atleast_1d(np.asarray(freqs, np.float64))
+        self.jds = np.atleast_1d(np.asarray(jds, np.float64))
+        self.antennas = np.atleast_1d(np.asarray(antennas, np.int64))
+        self.pols = tuple(str(p).lower() for p in pols)
+        nfreq, ntime, nant = self.freqs.size, self.jds.size, self.antennas.size
+        width = np.broadcast_to(np.asarray(channel_width, np.float64), (nfreq,))
+        tint = np.broadcast_to(np.asarray(integration_time, np.float64), (ntime,))
+        if np.any(width <= 0) or np.any(tint <= 0):
+            raise ObservationError("channel widths and integration times must be positive")
+        if ntime > 1 and np.any(np.diff(self.jds) <= 0):
+            raise ObservationError("JDs must be strictly increasing to write UVH5")
+        if np.unique(self.antennas).size != nant:
+            raise ObservationError("antenna numbers are not unique")
+        names = tuple(antenna_names or (f"ant{a}" for a in self.antennas))
+        self.uv = _build_uvdata(
+            self.path.name,
+            freqs=self.freqs,
+            pols=self.pols,
+            jds=self.jds,
+            lsts=np.asarray(lsts, np.float64),
+            antennas=self.antennas,
+            antenna_names=names,
+            site=site,
+            telescope_name=telescope_name,
+            integration_time=np.asarray(tint),
+            channel_width=np.asarray(width),
+            history=_history({}, history, writer="UVH5AutosWriter"),
+            extra_keywords=_extra_keywords({}, extra_keywords),
+        )
+        self.dtype = dtype
+        self._options = {
+            "compression": compression,
+            "compression_opts": int(compression_level) if compression == "gzip" else None,
+            "shuffle": bool(shuffle and compression is not None),
+        }
+        self._chunks = (nant, max(1, min(int(chunk_channels), nfreq)), 1)
+        self._written = np.zeros(ntime, bool)
+        self._tmp: Path | None = None
+        self._h5: Any = None
+
+    @property
+    def shape(self) -> tuple[int, int, int, int]:
+        """``(Nant, Npol, Ntime, Nfreq)`` of the file."""
+        return (self.antennas.size, len(self.pols), self.jds.size, self.freqs.size)
+
+    def __enter__(self) -> UVH5AutosWriter:
+        import h5py
+
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.{time.time_ns()}.tmp")
+        self._tmp = tmp
+        with _warnings_to_log(f"initialising {self.path.name}"):
+            self.uv.initialize_uvh5_file(str(tmp), clobber=False)
+        nblt, nfreq, npol = self.uv.Nblts, self.freqs.size, len(self.pols)
+        h5 = h5py.File(tmp, "r+")
+        try:
+            del h5["Data"]  # re-create the data sets with our chunks and filters
+            group = h5.create_group("Data")
+            shape = (nblt, nfreq, npol)
+            group.create_dataset(
+                "visdata",
+                shape,
+                dtype=WRITE_DTYPES[self.dtype],
+                chunks=self._chunks,
+                **self._options,
+            )
+            lzf = {"compression": "lzf"}
+            group.create_dataset("flags", shape, dtype="b1", chunks=self._chunks, **lzf)
+            group.create_dataset(
+                "nsamples", shape, dtype="f4", chunks=self._chunks, shuffle=True, **lzf
+            )
+        except Exception:
+            h5.close()
+            tmp.unlink(missing_ok=True)
+            raise
+        self._h5 = h5
+        return self
+
+    def write(
+        self,
+        start: int,
+        data: np.ndarray,
+        flags: np.ndarray | None = None,
+        nsamples: np.ndarray | float = 1.0,
+    ) -> None:
+        """Write integrations ``start .. start + Ntime_part - 1``.
+
+        Parameters
+        ----------
+        start
+            Index of the first integration of the part.
+        data
+            ``(Nant, Npol, Ntime_part, Nfreq)`` real auto-correlation power. Non-finite
+            values are stored as 0 and flagged.
+        flags
+            Boolean flags like ``data`` (default none).
+        nsamples
+            Sample counts, broadcastable to ``data``.
+        """
+        if self._h5 is None:
+            raise RuntimeError("use UVH5AutosWriter as a context manager (with ... as w:)")
+        data = np.asarray(data)
+        nant, npol, ntime, nfreq = self.shape
+        if data.ndim != 4 or data.shape[:2] != (nant, npol) or data.shape[3] != nfreq:
+            raise ObservationError(
+                f"part has shape {data.shape}; expected (Nant, Npol, Ntime, Nfreq) with "
+                f"Nant={nant}, Npol={npol}, Nfreq={nfreq}"
+            )
+        nt = data.shape[2]
+        if not 0 <= start <= ntime - nt:
+            raise ObservationError(
+                f"integrations {start}..{start + nt - 1} are outside 0..{ntime - 1}"
+            )
+        bad = ~np.isfinite(data)
+        flag = bad if flags is None else (np.broadcast_to(flags, data.shape) | bad)
+        real = np.where(bad, 0.0, data) if np.any(bad) else data
+
+        def to_blt(arr: np.ndarray) -> np.ndarray:
+            return arr.transpose(2, 0, 3, 1).reshape(nt * nant, nfreq, npol)
+
+        rows = slice(start * nant, (start + nt) * nant)
+        out = np.zeros((nt * nant, nfreq, npol), WRITE_DTYPES[self.dtype])
+        if self.dtype == "int32":
+            values = np.rint(to_blt(real))
+            if np.any(np.abs(values) > np.iinfo(np.int32).max):
+                raise ObservationError("data exceed the int32 range of the correlator type")
+            out["r"] = values
+        else:
+            out.real = to_blt(real)
+        group = self._h5["Data"]
+        group["visdata"][rows] = out
+        del out
+        group["flags"][rows] = to_blt(np.asarray(flag, bool))
+        group["nsamples"][rows] = to_blt(
+            np.broadcast_to(np.asarray(nsamples, np.float32), data.shape)
+        )
+        self._written[start : start + nt] = True
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        h5, tmp = self._h5, self._tmp
+        self._h5 = None
+        if h5 is not None:
+            h5.close()
+        if tmp is None:
+            return
+        if exc_type is not None:
+            tmp.unlink(missing_ok=True)
+            return
+        if not np.all(self._written):
+            tmp.unlink(missing_ok=True)
+            missing = np.flatnonzero(~self._written)
+            raise ObservationError(
+                f"{self.path.name}: {missing.size} integration(s) were never written "
+                f"(first {missing[0]}); the file was not created"
+            )
+        os.replace(tmp, self.path)
+        logger.info("wrote %s: %s (ant, pol, time, chan) in parts", self.path, self.shape)
 
 
 # ---------------------------------------------------------------------------------------
@@ -690,6 +985,8 @@ class UVH5File:
     antennas: tuple[int, ...]
     pols: tuple[str, ...]
     site: Site
+    header: Any = field(default=None, repr=False, compare=False)
+    """The file's metadata as scanned (lets :func:`iter_uvh5_blocks` skip a re-scan)."""
 
 
 def scan_uvh5(paths: str | Path | Sequence[str | Path]) -> list[UVH5File]:
@@ -707,6 +1004,7 @@ def scan_uvh5(paths: str | Path | Sequence[str | Path]) -> list[UVH5File]:
             tuple(m.auto_ants),
             tuple(m.pol_names),
             _site(m.uv),
+            m,
         )
         for m in _scan(paths)
     ]
@@ -719,18 +1017,369 @@ def iter_uvh5(
     pols: Sequence[str] | None = None,
     freq_range: tuple[float, float] | None = None,
     lst_range: tuple[float, float] | None = None,
+    block_size: int | None = None,
+    stats: ReadStats | None = None,
 ) -> Iterator[Observation]:
     """Yield the observation file by file (same selections as :func:`read_uvh5`).
 
     Files with no integration in ``lst_range`` are skipped. Only one file's autos are in
     memory at a time, so a whole night can be streamed into the fit's normal sums.
+    With ``block_size`` (integrations; ``0`` = automatic, see :func:`iter_uvh5_blocks`)
+    each file is yielded in blocks of integrations, so memory is bounded by the block,
+    not the file.
     """
     for meta in _scan(paths):
         if not np.any(_lst_mask(meta.lsts, lst_range)):
             continue
+        if block_size is not None:
+            yield from _iter_blocks(
+                meta,
+                antennas=antennas,
+                pols=pols,
+                freq_range=freq_range,
+                lst_range=lst_range,
+                block_size=block_size or None,
+                stats=stats,
+            )
+            continue
         yield read_uvh5(
             [meta.path], antennas=antennas, pols=pols, freq_range=freq_range, lst_range=lst_range
         )
+
+
+# ---------------------------------------------------------------------------------------
+# block reading (bounded memory)
+# ---------------------------------------------------------------------------------------
+#: Default largest number of values (antennas x pols x integrations x channels) in one
+#: block of :func:`iter_uvh5_blocks`: 2**23 = 8.4 M values, i.e. 67 MB as float64.
+BLOCK_SAMPLES = 1 << 23
+
+
+@dataclass
+class ReadStats:
+    """What :func:`iter_uvh5_blocks` read (counters add up over files and blocks).
+
+    Attributes
+    ----------
+    files, blocks, integrations
+        Files opened, blocks yielded, integrations yielded.
+    samples
+        Values yielded (antennas x pols x integrations x channels).
+    bytes_read
+        Bytes the HDF5 library read from the files (headers, chunk indices and the
+        compressed chunks), counted at the file object.
+    bytes_decoded
+        Bytes of the arrays the data sets were decoded into.
+    largest_array
+        Bytes of the largest single array read from a data set (bounded by the block).
+    checksum_bytes
+        Bytes read to compute the files' SHA-256 (provenance).
+    """
+
+    files: int = 0
+    blocks: int = 0
+    integrations: int = 0
+    samples: int = 0
+    bytes_read: int = 0
+    bytes_decoded: int = 0
+    largest_array: int = 0
+    checksum_bytes: int = 0
+
+    def add(self, other: ReadStats) -> None:
+        """Add another reader's counters to these (``largest_array``: the maximum)."""
+        for key, value in asdict(other).items():
+            if key == "largest_array":
+                self.largest_array = max(self.largest_array, value)
+            else:
+                setattr(self, key, getattr(self, key) + value)
+
+    def as_dict(self) -> dict[str, int]:
+        """Return the counters as a dictionary."""
+        return asdict(self)
+
+
+class _CountingFile(io.FileIO):
+    """A binary file that counts the bytes read through it (h5py file-object driver)."""
+
+    def __init__(self, path: Path) -> None:
+        super().__init__(path, "rb")
+        self.nread = 0
+
+    def readinto(self, buffer: Any) -> int | None:
+        n = super().readinto(buffer)
+        self.nread += n or 0
+        return n
+
+    def read(self, size: int = -1) -> bytes:
+        data = super().read(size)
+        self.nread += len(data)
+        return data
+
+
+def _time_blocks(kept: np.ndarray, block_size: int) -> list[tuple[int, int]]:
+    """Split kept time indices into runs of consecutive indices of at most block_size."""
+    blocks: list[tuple[int, int]] = []
+    if kept.size == 0:
+        return blocks
+    breaks = np.flatnonzero(np.diff(kept) != 1) + 1
+    for run in np.split(kept, breaks):
+        for start in range(0, run.size, block_size):
+            part = run[start : start + block_size]
+            blocks.append((int(part[0]), int(part[-1]) + 1))
+    return blocks
+
+
+def _read_rows(
+    dset: Any, rows: np.ndarray, chans: slice, pols: slice, stats: ReadStats
+) -> np.ndarray:
+    """Read ``rows`` (sorted blt indices) of a data set as ``(Nrows, Nchan, Npol)``.
+
+    A dense set of rows is read as one slab (one hyperslab, whole chunks) and the rows
+    picked in memory; a sparse one (e.g. autos among cross-correlations) by h5py's
+    point selection, so memory stays bounded by the rows asked for.
+    """
+    lo, hi = int(rows[0]), int(rows[-1]) + 1
+    dense = rows.size >= 0.5 * (hi - lo)
+    first: slice | np.ndarray = slice(lo, hi) if dense else rows
+    index: tuple[Any, ...] = (first, 0, chans, pols) if dset.ndim == 4 else (first, chans, pols)
+    arr = dset[index]
+    if arr.dtype.names:  # the HERA correlator's compound type (fields r, i)
+        arr = arr["r"] + 1j * arr["i"].astype(np.float64)
+    stats.bytes_decoded += arr.nbytes
+    stats.largest_array = max(stats.largest_array, arr.nbytes)
+    if dense and rows.size != hi - lo:
+        arr = arr[rows - lo]
+    return arr
+
+
+#: Polarisation codes whose autos are real powers (pyuvdata makes them real with abs()).
+SAME_FEED_POL_CODES = (-1, -2, -5, -6, 1, 2, 3, 4)
+
+
+def _auto_power(arr: np.ndarray, same_feed: np.ndarray) -> np.ndarray:
+    """Real auto power of complex ``(Nrows, Nchan, Npol)`` values, as pyuvdata reads it.
+
+    pyuvdata replaces same-feed autos that carry an imaginary part by their modulus
+    (``UVData.check(fix_autos=True)``); other values keep their real part.
+    """
+    real = arr.real
+    imag = arr.imag
+    if not np.any(imag[..., same_feed]):
+        return real
+    fix = (imag != 0) & same_feed[None, None, :]
+    logger.debug("replacing %d same-feed autos with imaginary parts by |V|", int(fix.sum()))
+    return np.where(fix, np.abs(arr), real)
+
+
+def _meta_of(file: UVH5File | _FileMeta | str | Path) -> _FileMeta:
+    if isinstance(file, _FileMeta):
+        return file
+    if isinstance(file, UVH5File) and isinstance(file.header, _FileMeta):
+        return file.header
+    path = file.path if isinstance(file, UVH5File) else Path(file)
+    return _scan([path])[0]
+
+
+def iter_uvh5_blocks(
+    file: UVH5File | str | Path,
+    *,
+    antennas: Sequence[int] | None = None,
+    pols: Sequence[str] | None = None,
+    freq_range: tuple[float, float] | None = None,
+    lst_range: tuple[float, float] | None = None,
+    block_size: int | None = None,
+    max_block_samples: int = BLOCK_SAMPLES,
+    stats: ReadStats | None = None,
+    checksum: bool = True,
+) -> Iterator[Observation]:
+    """Yield the autos of one UVH5 file in blocks of consecutive integrations.
+
+    The data sets are sliced with h5py along the baseline-time axis, so memory is
+    bounded by the block, not by the file (a HERA file of 350 antennas x 1536 channels
+    x 192 integrations is 1.65 GB as complex64). Selections are those of
+    :func:`read_uvh5`; the values equal what :func:`read_uvh5` returns for the same
+    integrations.
+
+    Parameters
+    ----------
+    file
+        A :class:`UVH5File` from :func:`scan_uvh5` (its header is reused) or a path.
+    antennas, pols, freq_range, lst_range
+        As for :func:`read_uvh5`.
+    block_size
+        Integrations per block (default: as many as fit in ``max_block_samples``).
+        Blocks never span a gap in the LST selection.
+    max_block_samples
+        Largest number of values per block when ``block_size`` is not given.
+    stats
+        Counters to add to (bytes read, largest array, blocks, ...).
+    checksum
+        Compute the file's SHA-256 (``meta["sha256"]``; memoised per process). It is
+        read before the data, so the data are then served from the page cache.
+
+    Yields
+    ------
+    Observation
+        One block: ``meta`` has ``source``, ``files``, ``sha256``, ``block`` and
+        ``nblocks``, ``x_orientation``, ``vis_units``.
+
+    Raises
+    ------
+    UVH5FormatError, ObservationError
+        As :func:`read_uvh5`; ``ValueError`` for a block size below 1.
+    """
+    yield from _iter_blocks(
+        _meta_of(file),
+        antennas=antennas,
+        pols=pols,
+        freq_range=freq_range,
+        lst_range=lst_range,
+        block_size=block_size,
+        max_block_samples=max_block_samples,
+        stats=stats,
+        checksum=checksum,
+    )
+
+
+def _iter_blocks(
+    meta: _FileMeta,
+    *,
+    antennas: Sequence[int] | None,
+    pols: Sequence[str] | None,
+    freq_range: tuple[float, float] | None,
+    lst_range: tuple[float, float] | None,
+    block_size: int | None = None,
+    max_block_samples: int = BLOCK_SAMPLES,
+    stats: ReadStats | None = None,
+    checksum: bool = True,
+) -> Iterator[Observation]:
+    import h5py
+
+    stats = stats if stats is not None else ReadStats()
+    ants = _select_antennas(meta, antennas)
+    pol_idx = _select_pols(meta, pols)
+    chans = _select_channels(meta, freq_range)
+    kept = np.flatnonzero(_lst_mask(meta.lsts, lst_range))
+    if kept.size == 0:
+        return
+    nant, npol, nfreq = len(ants), len(pol_idx), chans.size
+    if block_size is None:
+        block_size = max(1, int(max_block_samples) // (nant * npol * nfreq))
+    if int(block_size) < 1:
+        raise ValueError(f"block_size must be at least 1 integration, got {block_size}")
+    blocks = _time_blocks(kept, int(block_size))
+
+    telescope = meta.uv.telescope
+    names_by_number = {
+        int(n): str(name)
+        for n, name in zip(telescope.antenna_numbers, telescope.antenna_names, strict=True)
+    }
+    common: dict[str, Any] = {
+        "freqs": meta.freqs[chans],
+        "antennas": np.array(ants),
+        "pols": tuple(meta.pol_names[i] for i in pol_idx),
+        "site": _site(meta.uv),
+        "channel_width": meta.channel_width[chans],
+        "antenna_names": tuple(names_by_number.get(a, f"ant{a}") for a in ants),
+        "telescope_name": str(telescope.name),
+    }
+    file_meta: dict[str, Any] = {
+        "source": "uvh5",
+        "files": [str(meta.path)],
+        "x_orientation": meta.x_orientation,
+        "vis_units": str(meta.uv.vis_units),
+    }
+    if checksum:
+        file_meta["sha256"] = {str(meta.path): file_checksum(meta.path)}
+        stats.checksum_bytes += meta.path.stat().st_size
+    c0, c1 = int(chans.min()), int(chans.max()) + 1
+    fidx = chans - c0
+    fidx_all = bool(np.array_equal(fidx, np.arange(c1 - c0)))
+    p0, p1 = min(pol_idx), max(pol_idx) + 1
+    pidx = np.asarray(pol_idx) - p0
+    pidx_all = bool(np.array_equal(pidx, np.arange(p1 - p0)))
+    same_feed = np.array([meta.pol_codes[i] in SAME_FEED_POL_CODES for i in pol_idx])
+
+    raw = _CountingFile(meta.path)
+    counted = 0
+    try:
+        with h5py.File(raw, "r") as h5:
+            try:
+                header = h5["Header"]
+                ant1 = np.asarray(header["ant_1_array"][()])
+                ant2 = np.asarray(header["ant_2_array"][()])
+                times = np.asarray(header["time_array"][()], np.float64)
+                tint_blt = np.broadcast_to(
+                    np.asarray(header["integration_time"][()], np.float64), times.shape
+                )
+                datasets = [h5["Data/visdata"], h5["Data/flags"], h5["Data/nsamples"]]
+            except KeyError as err:
+                raise UVH5FormatError(f"{meta.path} lacks a UVH5 data set: {err}") from err
+            if datasets[0].dtype.names is None and datasets[0].dtype.kind != "c":
+                raise UVH5FormatError(
+                    f"{meta.path}: visdata has data type {datasets[0].dtype}, not complex"
+                )
+            # Map every baseline-time row onto (selected antenna, file time index).
+            tpos = np.searchsorted(meta.times, times)
+            tclip = np.clip(tpos, 0, meta.times.size - 1)
+            tvalid = np.isclose(meta.times[tclip], times, rtol=0, atol=1e-9)
+            order = np.argsort(ants)
+            sorted_ants = np.asarray(ants)[order]
+            k = np.clip(np.searchsorted(sorted_ants, ant1), 0, nant - 1)
+            ia_all = np.where((sorted_ants[k] == ant1) & (ant1 == ant2) & tvalid, order[k], -1)
+            wrows = np.flatnonzero(ia_all >= 0)
+            wrows = wrows[np.argsort(tclip[wrows], kind="stable")]
+            wtimes = tclip[wrows]
+            for iblock, (t0, t1) in enumerate(blocks):
+                lo, hi = np.searchsorted(wtimes, [t0, t1])
+                rows = np.sort(wrows[lo:hi])
+                nt = t1 - t0
+                block = {
+                    "data": np.full((nant, npol, nt, nfreq), np.nan),
+                    "flags": np.ones((nant, npol, nt, nfreq), bool),
+                    "nsamples": np.zeros((nant, npol, nt, nfreq)),
+                }
+                tint = np.full(nt, np.nan)
+                if rows.size:
+                    ia, it = ia_all[rows], tclip[rows] - t0
+                    for key, dset in zip(block, datasets, strict=True):
+                        arr = _read_rows(dset, rows, slice(c0, c1), slice(p0, p1), stats)
+                        if not fidx_all:
+                            arr = arr[:, fidx]
+                        if not pidx_all:
+                            arr = arr[:, :, pidx]
+                        if arr.dtype.kind == "c":
+                            arr = _auto_power(arr, same_feed)
+                        block[key][ia, :, it, :] = arr.transpose(0, 2, 1)
+                        del arr
+                    tint[it] = tint_blt[rows]
+                if rows.size < nant * nt:
+                    logger.warning(
+                        "%s: %d antenna-time samples are missing; they are flagged",
+                        meta.name,
+                        nant * nt - rows.size,
+                    )
+                if np.any(np.isnan(tint)):
+                    fallback = float(np.nanmedian(tint)) if np.any(np.isfinite(tint)) else 0.0
+                    tint = np.where(np.isnan(tint), fallback, tint)
+                stats.bytes_read += raw.nread - counted
+                counted = raw.nread
+                stats.blocks += 1
+                stats.integrations += nt
+                stats.samples += block["data"].size
+                yield Observation(
+                    **block,
+                    **common,
+                    lsts=meta.lsts[t0:t1],
+                    jds=meta.times[t0:t1],
+                    integration_time=tint,
+                    meta={**file_meta, "block": iblock, "nblocks": len(blocks)},
+                )
+                del block
+    finally:
+        stats.bytes_read += raw.nread - counted
+        stats.files += 1
+        raw.close()
 
 
 def read_uvh5(
