@@ -370,10 +370,11 @@ def flag_outliers(
 ) -> np.ndarray:
     """Flag narrow-band or impulsive outliers (RFI) in the residuals of a fit.
 
-    The normalised residuals are compared, per antenna, pol and integration, with their
-    running median over ``window`` channels, so broadband structure (the signatures of
-    every catalogue effect, smooth in frequency) is left alone and only features a few
-    channels wide are flagged: samples deviating by more than ``threshold`` robust sigma
+    The normalised residuals are high-passed by subtracting their running median over
+    ``window`` integrations and then over ``window`` channels, so structure smooth in
+    time or in frequency (the signatures of every catalogue effect, and the bending of
+    a channel's fit by an outlier) is left alone and only features a few samples wide
+    are flagged: samples deviating by more than ``threshold`` robust sigma
     (1.4826 x the median absolute deviation over all samples). A channel (integration)
     that loses more than ``max_fraction`` of its samples is flagged entirely.
 
@@ -386,7 +387,7 @@ def flag_outliers(
     threshold
         Robust sigmas beyond which a sample is an outlier.
     window
-        Channels of the running median.
+        Integrations and channels of the running medians.
     max_fraction
         Fraction of flagged samples above which a whole channel or integration is flagged.
 
@@ -401,8 +402,12 @@ def flag_outliers(
     ok = np.isfinite(res)
     if not ok.any():
         return obs.flags.copy()
-    smooth = median_filter(np.where(ok, res, 0.0), size=(1, 1, 1, window), mode="nearest")
-    dev = np.where(ok, res - smooth, np.nan)
+    # high-pass in time, then in frequency: what a fit bent by an outlier spreads over
+    # its channel is smooth in time and goes; the outlier itself stays
+    filled = np.where(ok, res, 0.0)
+    hp = filled - median_filter(filled, size=(1, 1, window, 1), mode="mirror")
+    hp = hp - median_filter(hp, size=(1, 1, 1, window), mode="mirror")
+    dev = np.where(ok, hp, np.nan)
     centre = np.nanmedian(dev)
     sigma = 1.4826 * np.nanmedian(np.abs(dev - centre))
     if not np.isfinite(sigma) or sigma <= 0:
@@ -504,7 +509,7 @@ def _narrowband_outliers(
         return ~ok
     coef = legendre.legfit(x[ok], g[ok], order, w=1 / sg[ok])
     r = np.where(ok, (g - legendre.legval(x, coef)) / np.where(ok, sg, 1.0), 0.0)
-    dev = r - median_filter(r, size=9, mode="nearest")
+    dev = r - median_filter(r, size=9, mode="mirror")
     sigma = 1.4826 * np.median(np.abs(dev[ok] - np.median(dev[ok])))
     if not np.isfinite(sigma) or sigma <= 0:
         return ~ok
@@ -839,7 +844,7 @@ def diagnose(
     w = radiometer_weights(obs, current.model)
     current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
     nflag0 = int(obs.flags.sum())
-    for _ in range(3 if flag_rfi else 0):
+    for _ in range(5 if flag_rfi else 0):
         flags = flag_outliers(obs, current, threshold=outlier_threshold)
         if int(flags.sum()) == int(obs.flags.sum()):
             break
