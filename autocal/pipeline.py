@@ -1,14 +1,23 @@
 """Calibrate one observation end to end: configuration in, products out.
 
-``files -> scan -> Tsky(nu, LST) -> normal sums, file by file -> Solution -> products``
+``files -> scan -> Tsky(nu, LST) -> normal sums, block by block -> Solution -> products``
 
-The data are streamed: each file's autos are read, turned into normal-equation sums
-(:func:`autocal.fit.accumulate`) and dropped, so memory does not grow with the length of
-the night. Radiometer weights built from the data bias ``G`` by ``-2 / (dnu dt N)``
-relative; when that exceeds :data:`REWEIGHT_THRESHOLD` (simulations with the paper's
-``dnu dt = 5000``) a second pass weights by the first pass's model, otherwise (real HERA
-data: ``dnu dt ~ 1e6``) the data are read once. The residual waterfall plot reads the
-autos of at most :data:`MAX_PLOTTED` antenna-polarisations once more.
+The data are streamed: each UVH5 file is read in blocks of integrations
+(:func:`autocal.io.uvh5.iter_uvh5_blocks`), each block is turned into normal-equation
+sums (:func:`autocal.fit.accumulate`) and dropped, so memory is bounded by the block,
+whatever the length of the night or the size of a file. A file's blocks add up to the
+file's partial sums (:func:`compute_partial`), and the files' partials are added in file
+order, on this process or mapped over a Dask cluster (:mod:`autocal.scaleout`): the
+two give the same result bit for bit. The Tsky table is computed once for the night
+(and cached) and sliced per block.
+
+Radiometer weights built from the data bias ``G`` by ``-2 / (dnu dt N)`` relative; when
+that exceeds :data:`REWEIGHT_THRESHOLD` (simulations with the paper's ``dnu dt = 5000``)
+a second pass weights by the first pass's model, otherwise (HERA data: ``dnu dt >~ 2e5``)
+the data are read once. The residual waterfall plot needs no second read either: during
+the pass the weighted sums of the data and of the model's design columns are kept per
+time bin for the shown antennas (:data:`MAX_PLOTTED` antenna-polarisations, at most
+:data:`MAX_WATERFALL_ROWS` bins), which give the normalised residuals once solved.
 
 Products are written to a staging folder inside ``out`` and moved into place only when
 all of them succeeded, so a failed run never leaves a half-written product set.
@@ -46,6 +55,10 @@ logger = logging.getLogger(__name__)
 REWEIGHT_THRESHOLD = 1e-5
 #: Antenna-polarisations shown in the residual waterfall.
 MAX_PLOTTED = 4
+#: Rows (time bins) of the residual waterfall; longer observations are binned in time.
+MAX_WATERFALL_ROWS = 512
+#: Antennas drawn in ``solution.png`` (every antenna is in the other products).
+MAX_SOLUTION_PLOTTED = 16
 
 ProductName = Literal["calh5", "calfits", "hdf5", "png"]
 Progress = Callable[[float, str], None]
@@ -132,18 +145,25 @@ class _Source:
     site: Any
     observation: Observation | None = None  # small inputs read whole (Miriad, EDGES)
     weights: np.ndarray | None = None  # inverse variances when the format defines them
+    scanned: tuple[Any, ...] = ()  # UVH5File per file (uvh5)
+    ntimes: tuple[int, ...] = ()  # selected integrations per file (uvh5)
 
-    def chunks(self, **selection: Any) -> Iterator[Observation]:
-        if self.kind == "uvh5":
-            from autocal.io.uvh5 import iter_uvh5
-
-            yield from iter_uvh5(self.files, **selection)
-        else:  # small inputs read whole at the scan (Miriad, EDGES): reuse, never re-read
+    def tasks(self, tsky_all: np.ndarray) -> list[FileTask]:
+        """One task per file (uvh5) or one for the whole in-memory observation."""
+        if self.kind != "uvh5":
             assert self.observation is not None
-            obs = self.observation
-            if selection.get("antennas") is not None:
-                obs = obs.select(antennas=selection["antennas"])
-            yield obs
+            return [FileTask(0, None, 0, self.lsts, tsky_all, self.observation, self.weights)]
+        tasks = []
+        offset = 0
+        for index, (file, nt) in enumerate(zip(self.scanned, self.ntimes, strict=True)):
+            window = slice(offset, offset + nt)
+            tasks.append(FileTask(index, file, offset, self.lsts[window], tsky_all[:, window]))
+            offset += nt
+        return tasks
+
+    def disk_bytes(self) -> int:
+        """Bytes of the input files on disk (UVH5 only; 0 otherwise)."""
+        return sum(Path(f).stat().st_size for f in self.files) if self.kind == "uvh5" else 0
 
 
 def _detect(paths: list[Path], fmt: str) -> str:
@@ -219,6 +239,8 @@ def _open_source(config: CalibrationConfig) -> _Source:
             freqs,
             kept[0].pols,
             kept[0].site,
+            scanned=tuple(kept),
+            ntimes=tuple(int(m.sum()) for m in masks),
         )
     from autocal.io.miriad import read_miriad
 
@@ -249,6 +271,317 @@ def _beam_pol(pol: str) -> str:
     return mapping[pol]
 
 
+# per-file partial sums (the unit of work, serial or on a Dask worker) ------------------
+
+
+@dataclass(frozen=True)
+class PartialSpec:
+    """What every file's partial sums of one pass need (shared by all tasks of a pass).
+
+    Attributes
+    ----------
+    model
+        The fit model (its LST span covers the whole observation).
+    weights
+        ``"radiometer"`` or ``"identity"``.
+    selection
+        Antennas, pols, frequency range (Hz) and LST range (hours) to read.
+    nshow
+        Antennas (the first of the selection) whose residual waterfall is kept.
+    bin_size
+        Integrations per waterfall row.
+    block_size
+        Integrations per read block (``None``: automatic, see
+        :data:`autocal.io.uvh5.BLOCK_SAMPLES`).
+    coeffs
+        ``(Nant, Npol, Nfreq, nparam)`` the previous pass's solution: radiometer
+        weights then use its model instead of the data (``None`` in the first pass).
+    """
+
+    model: FitModel
+    weights: str
+    selection: dict[str, Any]
+    nshow: int
+    bin_size: int
+    block_size: int | None = None
+    coeffs: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class FileTask:
+    """One file of the observation (or the whole in-memory observation).
+
+    Attributes
+    ----------
+    index
+        Position of the file in time order.
+    file
+        The scanned UVH5 file (``None`` for an in-memory observation).
+    offset
+        Index of the file's first selected integration in the observation.
+    lsts
+        The file's selected LSTs (hours), as scanned.
+    tsky
+        ``(Npol, Ntime_file, Nfreq)`` model Tsky of the file's integrations.
+    observation
+        In-memory data (Miriad, EDGES) instead of a file.
+    weights
+        Inverse variances of in-memory data whose format defines them (EDGES).
+    """
+
+    index: int
+    file: Any
+    offset: int
+    lsts: np.ndarray
+    tsky: np.ndarray
+    observation: Observation | None = None
+    weights: np.ndarray | None = None
+
+
+@dataclass
+class FilePartial:
+    """A file's normal sums and the by-products of reading it once.
+
+    Attributes
+    ----------
+    index
+        The task's index.
+    sums
+        The file's normal sums (its blocks added in order).
+    waterfall
+        ``(Nshow, Npol, Nbins_file, Nfreq, nparam + 2)`` per waterfall row: the sums
+        over its integrations of ``w R``, ``w`` and ``w a_m`` (``a`` the design columns).
+    bin0
+        Waterfall row of ``waterfall[:, :, 0]``.
+    ntime
+        Integrations read.
+    antennas, antenna_names
+        The selected antennas.
+    checksums
+        ``{path: sha256}`` of the inputs read.
+    bt_min
+        Smallest positive ``dnu dt N`` of the usable samples (``inf`` when none).
+    stats
+        :class:`autocal.io.uvh5.ReadStats` counters.
+    seconds
+        Wall time spent on the file.
+    """
+
+    index: int
+    sums: NormalSums
+    waterfall: np.ndarray
+    bin0: int
+    ntime: int
+    antennas: np.ndarray
+    antenna_names: tuple[str, ...]
+    checksums: dict[str, str]
+    bt_min: float
+    stats: dict[str, int]
+    seconds: float
+
+
+def compute_partial(
+    spec: PartialSpec, task: FileTask, tick: Callable[[int], None] | None = None
+) -> FilePartial:
+    """Read one file block by block and return its partial normal sums.
+
+    This is the unit of work of the serial run and of a Dask worker: both add the
+    blocks of a file in order, so the partial is the same wherever it is computed.
+
+    Parameters
+    ----------
+    spec
+        The pass's settings.
+    task
+        The file.
+    tick
+        Called with the number of integrations after each block (progress).
+
+    Returns
+    -------
+    FilePartial
+        The file's sums, waterfall sums, checksums and read counters.
+
+    Raises
+    ------
+    PipelineError
+        If the file's LSTs changed since the scan, it yields a different number of
+        integrations, or radiometer weights lack channel widths / times / nsamples.
+    """
+    from autocal.io.uvh5 import ReadStats, iter_uvh5_blocks
+
+    start = time.perf_counter()
+    stats = ReadStats()
+    sel = spec.selection
+    if task.observation is not None:
+        obs = task.observation
+        if sel.get("antennas") is not None:
+            obs = obs.select(antennas=sel["antennas"])
+        chunks: Iterator[Observation] = iter([obs])
+    else:
+        chunks = iter_uvh5_blocks(task.file, **sel, block_size=spec.block_size, stats=stats)
+    ntot = task.lsts.size
+    bin0 = task.offset // spec.bin_size
+    nbins = (task.offset + ntot - 1) // spec.bin_size - bin0 + 1
+    sums: NormalSums | None = None
+    waterfall: np.ndarray | None = None
+    checksums: dict[str, str] = {}
+    antennas: np.ndarray | None = None
+    names: tuple[str, ...] = ()
+    bt_min = np.inf
+    offset = 0
+    for chunk in chunks:
+        nt = chunk.ntime
+        window = slice(offset, offset + nt)
+        if offset + nt > ntot or not np.allclose(chunk.lsts, task.lsts[window], atol=1e-6):
+            raise PipelineError(f"{chunk.meta.get('files')}: LSTs changed between scan and read")
+        if antennas is None:
+            antennas, names = chunk.antennas, chunk.antenna_names
+            nshow = min(spec.nshow, chunk.nant)
+            waterfall = np.zeros(
+                (nshow, chunk.data.shape[1], nbins, chunk.nfreq, spec.model.nparam + 2)
+            )
+        checksums.update(chunk.meta.get("sha256", {}))
+        tsky = task.tsky[:, window]
+        weights: str | np.ndarray = spec.weights
+        bt = chunk.bandwidth_time() if spec.weights == "radiometer" else None
+        if task.weights is not None and spec.weights == "radiometer":
+            weights, bt = task.weights[:, :, window], None
+        if bt is not None:
+            usable_bt = bt[~chunk.flags]
+            if not np.all(usable_bt > 0):
+                raise PipelineError(
+                    f"{chunk.meta.get('files')}: radiometer weights need positive channel "
+                    "width, integration time and nsamples; use weights='identity'"
+                )
+            if usable_bt.size:
+                bt_min = min(bt_min, float(usable_bt.min()))
+            del usable_bt
+        reference = None
+        if spec.coeffs is not None:
+            pred = np.einsum("pftm,apfm->aptf", design(spec.model, tsky, chunk.lsts), spec.coeffs)
+            reference = np.where(np.isfinite(pred) & (pred > 0), pred, chunk.data)
+            del pred
+        part = accumulate(
+            spec.model,
+            chunk.data,
+            tsky,
+            chunk.lsts,
+            flags=chunk.flags,
+            weights=weights,
+            bandwidth_time=bt,
+            reference=reference,
+        )
+        sums = part if sums is None else sums + part
+        assert waterfall is not None
+        _add_waterfall(
+            waterfall,
+            spec,
+            chunk,
+            tsky,
+            weights,
+            bt,
+            reference,
+            task.offset + offset - bin0 * spec.bin_size,
+        )
+        offset += nt
+        del chunk, part, bt, reference
+        if tick is not None:
+            tick(nt)
+    if sums is None or antennas is None or waterfall is None:
+        raise PipelineError(f"file {task.index}: the selection left no data")
+    if offset != ntot:
+        raise PipelineError(f"file {task.index} yielded {offset} integrations, {ntot} were scanned")
+    return FilePartial(
+        task.index,
+        sums,
+        waterfall,
+        bin0,
+        offset,
+        antennas,
+        names,
+        checksums,
+        bt_min,
+        stats.as_dict(),
+        time.perf_counter() - start,
+    )
+
+
+def _add_waterfall(
+    waterfall: np.ndarray,
+    spec: PartialSpec,
+    chunk: Observation,
+    tsky: np.ndarray,
+    weights: str | np.ndarray,
+    bt: np.ndarray | None,
+    reference: np.ndarray | None,
+    row0: int,
+) -> None:
+    """Add a block's weighted sums of the shown antennas into the waterfall rows.
+
+    ``row0`` is the block's first integration counted from the start of the file's
+    first waterfall row.
+    """
+    ns = waterfall.shape[0]
+    data = chunk.data[:ns]
+    usable = np.isfinite(data) & ~chunk.flags[:ns]
+    if isinstance(weights, np.ndarray):
+        w = np.where(usable, np.broadcast_to(weights, chunk.data.shape)[:ns], 0.0)
+    else:
+        w = weights_for(
+            weights,
+            data,
+            usable,
+            None if bt is None else bt[:ns],
+            None if reference is None else reference[:ns],
+        )
+    a = design(spec.model, tsky, chunk.lsts)  # (P, F, T, M)
+    terms = np.concatenate(
+        [
+            (w * np.where(usable, data, 0.0))[..., None],
+            w[..., None],
+            w[..., None] * np.swapaxes(a, 1, 2)[None],
+        ],
+        axis=-1,
+    )  # (S, P, T, F, M + 2)
+    rows = (row0 + np.arange(chunk.ntime)) // spec.bin_size
+    starts = np.flatnonzero(np.r_[True, np.diff(rows) != 0])
+    waterfall[:, :, rows[starts]] += np.add.reduceat(terms, starts, axis=2)
+
+
+def _fold(
+    partials: Iterator[FilePartial],
+    ntasks: int,
+    waterfall_shape: tuple[int, ...] | None,
+    report: Callable[[float, str], None],
+    progress_range: tuple[float, float],
+) -> tuple[NormalSums, np.ndarray, list[FilePartial]]:
+    """Add the files' partials in file order (the same order serially and on Dask)."""
+    sums: NormalSums | None = None
+    waterfall: np.ndarray | None = None
+    infos: list[FilePartial] = []
+    lo, hi = progress_range
+    for i, partial in enumerate(partials):
+        if partial.index != i:  # pragma: no cover - executors yield in order
+            raise PipelineError(f"partial {partial.index} arrived in place of {i}")
+        sums = partial.sums if sums is None else sums + partial.sums
+        if waterfall is None:
+            waterfall = np.zeros(
+                (*partial.waterfall.shape[:2], waterfall_shape[0], *partial.waterfall.shape[3:])
+                if waterfall_shape is not None
+                else partial.waterfall.shape
+            )
+        nb = partial.waterfall.shape[2]
+        waterfall[:, :, partial.bin0 : partial.bin0 + nb] += partial.waterfall
+        partial.sums = None  # type: ignore[assignment]  # free the file's arrays
+        partial.waterfall = None  # type: ignore[assignment]
+        infos.append(partial)
+        report(lo + (hi - lo) * (i + 1) / ntasks, f"file {i + 1}/{ntasks} summed")
+    if sums is None or waterfall is None:
+        raise PipelineError("the selection left no data")
+    return sums, waterfall, infos
+
+
 # the run --------------------------------------------------------------------------------
 
 
@@ -258,6 +591,9 @@ def run_calibration(
     *,
     progress: Progress | None = None,
     should_stop: Callable[[], bool] | None = None,
+    dask_scheduler: str | None = None,
+    dask_workers: int | None = None,
+    block_size: int | None = None,
 ) -> CalibrationResult:
     """Calibrate one observation and write its products.
 
@@ -272,14 +608,43 @@ def run_calibration(
     progress
         Called with (fraction done, message).
     should_stop
-        Polled between files; returning ``True`` aborts with :class:`PipelineError`
-        (the service's cancellation).
+        Polled between blocks (serial) or files (Dask); returning ``True`` aborts with
+        :class:`PipelineError` (the service's cancellation).
+    dask_scheduler
+        Map the files' partial sums over a Dask cluster: a scheduler address
+        (``tcp://host:8786``) or ``"local"`` for a local cluster of ``dask_workers``
+        processes. ``None`` (default): in this process. The solution is identical.
+    dask_workers
+        Workers of the local cluster (default: the number of CPUs).
+    block_size
+        Integrations read per block (default: about 8 M values per block).
 
     Returns
     -------
     CalibrationResult
-        The solution, product paths and a JSON-serialisable summary.
+        The solution, product paths and a JSON-serialisable summary (with the read
+        counters under ``execution``).
     """
+    if block_size is not None and int(block_size) < 1:
+        raise PipelineError(f"block_size must be at least 1 integration, got {block_size}")
+    if dask_scheduler is None:
+        return _calibrate(config, Path(out), progress, should_stop, None, block_size)
+    from autocal.scaleout import dask_client
+
+    # Connect first: a wrong address fails before any work is done.
+    with dask_client(dask_scheduler, dask_workers) as executor:
+        return _calibrate(config, Path(out), progress, should_stop, executor, block_size)
+
+
+def _calibrate(
+    config: CalibrationConfig,
+    out: Path,
+    progress: Progress | None,
+    should_stop: Callable[[], bool] | None,
+    executor: Any,
+    block_size: int | None,
+) -> CalibrationResult:
+    """Run the calibration (see :func:`run_calibration`); ``executor``: Dask or None."""
     from autocal import __version__
     from autocal.tsky import compute_tsky
 
@@ -297,16 +662,15 @@ def run_calibration(
     timings["scan_s"] = time.perf_counter() - t0
 
     pols = tuple(p.lower() for p in (config.pols or source.pols))
-    sel = _selection(config)
     epoch = float(np.mean(source.jds))
     report(
         0.05, f"Tsky for {len(pols)} pol(s), {source.freqs.size} channels, {source.lsts.size} LSTs"
     )
     t1 = time.perf_counter()
     site = source.site
-    tsky_tables = {}
+    tsky_all: np.ndarray | None = None
     tsky_meta: dict[str, Any] = {}
-    for pol in pols:
+    for ip, pol in enumerate(pols):
         result = compute_tsky(
             config.sky,
             config.beam,
@@ -318,26 +682,41 @@ def run_calibration(
             epoch=epoch,
             pol=_beam_pol(pol),
         )
-        tsky_tables[pol] = result.tsky
+        if tsky_all is None:  # (P, T, F), filled pol by pol (no stacked copy)
+            tsky_all = np.empty((len(pols), *result.tsky.shape))
+        tsky_all[ip] = result.tsky
         tsky_meta = result.meta
-    tsky_all = np.stack([tsky_tables[p] for p in pols])  # (P, T, F)
+        del result
+    assert tsky_all is not None
     timings["tsky_s"] = time.perf_counter() - t1
 
     model = FitModel.for_lsts(
         source.lsts, config.model, 0 if config.model == "constant" else config.order
     )
     t2 = time.perf_counter()
-    sums, first_obs, npass = _stream_fit(config, source, sel, pols, tsky_all, model, report)
+    run = _run_passes(
+        config,
+        source,
+        pols,
+        tsky_all,
+        model,
+        report,
+        progress,
+        should_stop,
+        executor,
+        block_size,
+    )
     timings["fit_s"] = time.perf_counter() - t2
 
     if config.weights == "identity":
         scaling: bool | str = True
     else:
         scaling = "inflate" if config.inflate_errors else False
+    sums = run.sums
     solved = solve_sums(sums, scale_covariance=scaling)
     provenance = {
         "autocal_version": __version__,
-        "inputs": first_obs.meta.get("sha256_all", {}),
+        "inputs": run.checksums,
         "input_format": source.kind,
         "sky": tsky_meta.get("sky"),
         "beam": tsky_meta.get("beam"),
@@ -348,7 +727,7 @@ def run_calibration(
         "epoch_jd": epoch,
         "nside": config.nside,
         "weights": config.weights,
-        "passes": npass,
+        "passes": run.npass,
         "errors": "covariance x max(1, chi2/dof)"
         if (config.weights == "radiometer" and config.inflate_errors)
         else ("covariance x chi2/dof" if config.weights == "identity" else "covariance"),
@@ -358,17 +737,17 @@ def run_calibration(
         model,
         sums,
         solved,
-        antennas=first_obs.antennas,
+        antennas=run.antennas,
         pols=pols,
         freqs=source.freqs,
         lsts=source.lsts,
         jds=source.jds,
-        antenna_names=first_obs.antenna_names,
+        antenna_names=run.antenna_names,
         config={"calibration": config.model_dump(mode="json"), "provenance": provenance},
     )
     report(0.85, "writing products")
     t3 = time.perf_counter()
-    products = _write_products(config, solution, source, sel, pols, tsky_all, Path(out))
+    products = _write_products(config, solution, source, run, Path(out))
     timings["products_s"] = time.perf_counter() - t3
     timings["total_s"] = time.perf_counter() - t0
     summary = {
@@ -378,6 +757,7 @@ def run_calibration(
         "provenance": provenance,
         "products": products,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
+        "execution": run.execution,
     }
     summary_path = Path(out) / "summary.json"
     from autocal.io.tskyfile import atomic_path
@@ -404,130 +784,165 @@ def _json_default(value: Any) -> Any:
     return str(value)
 
 
-def _stream_fit(
+@dataclass
+class _Run:
+    """What the passes over the data produced."""
+
+    sums: NormalSums
+    waterfall: np.ndarray  # (S, P, Nbins, F, M + 2)
+    bin_size: int
+    npass: int
+    antennas: np.ndarray
+    antenna_names: tuple[str, ...]
+    checksums: dict[str, str]
+    execution: dict[str, Any]
+
+
+def _run_passes(
     config: CalibrationConfig,
     source: _Source,
-    sel: dict[str, Any],
     pols: tuple[str, ...],
     tsky_all: np.ndarray,
     model: FitModel,
     report: Callable[[float, str], None],
-) -> tuple[NormalSums, Observation, int]:
-    """Accumulate the normal sums file by file (one or two passes)."""
+    progress: Progress | None,
+    should_stop: Callable[[], bool] | None,
+    executor: Any,
+    block_size: int | None,
+) -> _Run:
+    """Accumulate the normal sums file by file (one or two passes), serially or on Dask."""
     npass = 1 if config.weights != "radiometer" or config.passes == 1 else 2
+    if source.weights is not None:
+        npass = 1  # inverse variances given by the format: nothing to re-weight
+    tasks = source.tasks(tsky_all)
+    ntime = source.lsts.size
+    bin_size = max(1, -(-ntime // MAX_WATERFALL_ROWS))
+    nbins = -(-ntime // bin_size)
+    nshow = max(1, MAX_PLOTTED // len(pols))
+    use_dask = executor is not None and source.kind == "uvh5"
+    if executor is not None and not use_dask:
+        logger.info("%s input is read whole in this process; Dask is not used", source.kind)
+    execution: dict[str, Any] = {
+        "executor": "dask" if use_dask else "serial",
+        "block_size": block_size or "auto",
+        "files": len(tasks),
+        "bytes_on_disk": source.disk_bytes(),
+    }
+    stats_total: dict[str, int] = {}
     coeffs = None
-    sums: NormalSums | None = None
-    first_obs: Observation | None = None
-    checksums: dict[str, str] = {}
-    nfiles = max(len(source.files), 1)
     ipass = 0
+    infos: list[FilePartial] = []
+    sums: NormalSums | None = None
+    waterfall: np.ndarray | None = None
+    client = executor if use_dask else None
+    if client is not None:
+        execution["dask"] = client.describe()
     while ipass < npass:
-        sums = None
-        offset = 0
-        for ichunk, chunk in enumerate(source.chunks(**sel)):
-            if first_obs is None:
-                first_obs = chunk
-            checksums.update(chunk.meta.get("sha256", {}))
-            nt = chunk.ntime
-            tsky = tsky_all[:, offset : offset + nt]
-            if not np.allclose(chunk.lsts, source.lsts[offset : offset + nt], atol=1e-6):
-                raise PipelineError("file LSTs changed between the scan and the read")
-            weights: str | np.ndarray = config.weights
-            bt = chunk.bandwidth_time() if config.weights == "radiometer" else None
-            if source.weights is not None and config.weights == "radiometer":
-                weights, bt, npass = source.weights[:, :, offset : offset + nt], None, 1
-            if bt is not None and not np.all(bt[~chunk.flags] > 0):
-                raise PipelineError(
-                    f"{chunk.meta.get('files')}: radiometer weights need positive channel "
-                    "width, integration time and nsamples; use weights='identity'"
+        spec = PartialSpec(
+            model, config.weights, _selection(config), nshow, bin_size, block_size, coeffs
+        )
+        lo = 0.1 + 0.7 * ipass / npass
+        hi = 0.1 + 0.7 * (ipass + 1) / npass
+        if client is not None:
+            partials = client.map_ordered(compute_partial, spec, tasks)
+        else:
+            partials = _serial_partials(spec, tasks, ntime, (lo, hi), progress, should_stop)
+        sums, waterfall, infos = _fold(partials, len(tasks), (nbins,), report, (lo, hi))
+        for info in infos:
+            for key, value in info.stats.items():
+                if key == "largest_array":
+                    stats_total[key] = max(stats_total.get(key, 0), value)
+                else:
+                    stats_total[key] = stats_total.get(key, 0) + value
+        if ipass == 0 and config.passes == "auto" and npass == 2:
+            bt_min = min(info.bt_min for info in infos)
+            bias = 2.0 / bt_min if np.isfinite(bt_min) and bt_min > 0 else 0.0
+            if bias < REWEIGHT_THRESHOLD:
+                logger.info(
+                    "data-weight bias 2/(dnu dt N) = %.2g < %.0e: one pass",
+                    bias,
+                    REWEIGHT_THRESHOLD,
                 )
-            reference = None
-            if coeffs is not None:
-                pred = np.einsum("pftm,apfm->aptf", design(model, tsky, chunk.lsts), coeffs)
-                reference = np.where(np.isfinite(pred) & (pred > 0), pred, chunk.data)
-            part = accumulate(
-                model,
-                chunk.data,
-                tsky,
-                chunk.lsts,
-                flags=chunk.flags,
-                weights=weights,
-                bandwidth_time=bt,
-                reference=reference,
-            )
-            sums = part if sums is None else sums + part
-            offset += nt
-            done = (ipass + (ichunk + 1) / nfiles) / npass
-            report(0.1 + 0.7 * done, f"pass {ipass + 1}/{npass}: {chunk.meta.get('files')}")
-            if ipass == 0 and ichunk == 0 and config.passes == "auto" and npass == 2:
-                bias = 2.0 / np.min(bt[bt > 0]) if bt is not None and np.any(bt > 0) else 0.0
-                if bias < REWEIGHT_THRESHOLD:
-                    npass = 1
-        if sums is None or first_obs is None:
-            raise PipelineError("the selection left no data")
-        if offset != source.lsts.size:
-            raise PipelineError("the files yielded a different number of integrations than scanned")
+                npass = 1
         if ipass + 1 < npass:
             coeffs = solve_sums(sums)["coeffs"]
         ipass += 1
-    assert sums is not None and first_obs is not None
-    first_obs.meta["sha256_all"] = checksums
-    return sums, first_obs, npass
+    if client is not None:
+        execution["dask"]["worker_peak_rss_bytes"] = client.worker_peak_rss()
+    assert sums is not None and waterfall is not None and infos
+    checksums: dict[str, str] = {}
+    for info in infos:
+        checksums.update(info.checksums)
+    nant = len(infos[0].antennas)
+    execution["samples_per_pass"] = int(ntime * source.freqs.size * len(pols) * nant)
+    execution["passes"] = npass
+    execution["io"] = stats_total
+    execution["file_seconds"] = [round(info.seconds, 3) for info in infos]
+    return _Run(
+        sums,
+        waterfall,
+        bin_size,
+        npass,
+        infos[0].antennas,
+        infos[0].antenna_names,
+        checksums,
+        execution,
+    )
 
 
-def _residual_waterfalls(
-    solution: Solution,
-    config: CalibrationConfig,
-    source: _Source,
-    sel: dict[str, Any],
-    tsky_all: np.ndarray,
-) -> tuple[list[str], np.ndarray]:
-    """Normalised residuals of up to MAX_PLOTTED antenna-pols: labels, (K, T, F)."""
-    ants = solution.antennas[: max(1, MAX_PLOTTED // len(solution.pols))].tolist()
-    rows: list[np.ndarray] = []
-    offset = 0
-    for chunk in source.chunks(**{**sel, "antennas": ants}):
-        nt = chunk.ntime
-        tsky = tsky_all[:, offset : offset + nt]
-        sub = replace(
-            solution,
-            antennas=np.asarray(ants),
-            coeffs=solution.coeffs[: len(ants)],
-            cov=solution.cov[: len(ants)],
-            chi2=solution.chi2[: len(ants)],
-            dof=solution.dof[: len(ants)],
-            count=solution.count[: len(ants)],
-            nflagged=solution.nflagged[: len(ants)],
-            flag_reason=solution.flag_reason[: len(ants)],
-            lsts=chunk.lsts,
-            jds=chunk.jds,
-            antenna_names=(),
-        )
-        pred = sub.predict(tsky, chunk.lsts)
-        usable = np.isfinite(chunk.data) & ~chunk.flags
-        if source.weights is not None and config.weights == "radiometer":
-            w = np.where(usable, source.weights[: len(ants), :, offset : offset + nt], 0.0)
-        else:
-            bt = chunk.bandwidth_time() if config.weights == "radiometer" else None
-            w = weights_for(
-                config.weights, chunk.data, usable, bt, pred if bt is not None else None
-            )
+def _serial_partials(
+    spec: PartialSpec,
+    tasks: list[FileTask],
+    ntime: int,
+    progress_range: tuple[float, float],
+    progress: Progress | None,
+    should_stop: Callable[[], bool] | None,
+) -> Iterator[FilePartial]:
+    """Compute the files' partials in this process, reporting block by block."""
+    done = 0
+    lo, hi = progress_range
+
+    def tick(nt: int) -> None:
+        nonlocal done
+        done += nt
+        if progress is not None:
+            progress(lo + (hi - lo) * done / max(ntime, 1), f"{done}/{ntime} integrations")
+        if should_stop is not None and should_stop():
+            raise PipelineError("cancelled")
+
+    for task in tasks:
+        yield compute_partial(spec, task, tick)
+
+
+def _waterfall_residuals(
+    solution: Solution, run: _Run, config: CalibrationConfig, lsts: np.ndarray
+) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Normalised residuals of the shown antenna-pols: labels, (K, Nbins, F), bin LSTs.
+
+    A row's residual is ``sum w (R - model) / sqrt(sum w)`` over its integrations: the
+    per-sample normalised residuals ``(R - model) sqrt(w)`` when a row is one
+    integration, and a unit-variance average of them when rows are binned.
+    """
+    wf = run.waterfall
+    ns = wf.shape[0]
+    coeffs = solution.coeffs[:ns]  # (S, P, F, M)
+    model_sum = np.einsum("spbfm,spfm->spbf", wf[..., 2:], coeffs)
+    wsum = wf[..., 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        resid = np.where(wsum > 0, (wf[..., 0] - model_sum) / np.sqrt(wsum), np.nan)
         if config.weights == "identity":
-            w = w / sub.reduced_chi2[:, :, None, :]
-        rows.append(np.where(usable, (chunk.data - pred) * np.sqrt(w), np.nan))
-        offset += nt
-    resid = np.concatenate(rows, axis=2)
+            resid = resid / np.sqrt(solution.reduced_chi2[:ns])[:, :, None, :]
+    ants = solution.antennas[:ns].tolist()
     labels = [f"ant {a} {p}" for a in ants for p in solution.pols]
-    return labels, resid.reshape(-1, resid.shape[2], resid.shape[3])
+    centre = np.minimum(np.arange(wf.shape[2]) * run.bin_size + run.bin_size // 2, lsts.size - 1)
+    return labels, resid.reshape(-1, *resid.shape[2:]), lsts[centre]
 
 
 def _write_products(
     config: CalibrationConfig,
     solution: Solution,
     source: _Source,
-    sel: dict[str, Any],
-    pols: tuple[str, ...],
-    tsky_all: np.ndarray,
+    run: _Run,
     out: Path,
 ) -> dict[str, str]:
     """Write every product into a staging folder, then move them into ``out``."""
@@ -556,9 +971,17 @@ def _write_products(
         if "png" in config.products:
             from autocal.plots import plot_residuals, plot_solution
 
-            plot_solution(solution, staging / "solution.png")
-            labels, resid = _residual_waterfalls(solution, config, source, sel, tsky_all)
-            plot_residuals(labels, resid, solution.freqs, source.lsts, staging / "residuals.png")
+            shown = solution
+            if solution.antennas.size > MAX_SOLUTION_PLOTTED:
+                logger.info(
+                    "solution.png shows the first %d of %d antennas",
+                    MAX_SOLUTION_PLOTTED,
+                    solution.antennas.size,
+                )
+                shown = _first_antennas(solution, MAX_SOLUTION_PLOTTED)
+            plot_solution(shown, staging / "solution.png")
+            labels, resid, bin_lsts = _waterfall_residuals(solution, run, config, source.lsts)
+            plot_residuals(labels, resid, solution.freqs, bin_lsts, staging / "residuals.png")
             names["png"] = "solution.png"
             names["residuals_png"] = "residuals.png"
         if config.reference:
@@ -577,3 +1000,20 @@ def _write_products(
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return written
+
+
+def _first_antennas(solution: Solution, n: int) -> Solution:
+    """Return the solution of its first ``n`` antennas (for plots)."""
+    keep = slice(0, n)
+    return replace(
+        solution,
+        antennas=solution.antennas[keep],
+        coeffs=solution.coeffs[keep],
+        cov=solution.cov[keep],
+        chi2=solution.chi2[keep],
+        dof=solution.dof[keep],
+        count=solution.count[keep],
+        nflagged=solution.nflagged[keep],
+        flag_reason=solution.flag_reason[keep],
+        antenna_names=tuple(solution.antenna_names[keep]),
+    )

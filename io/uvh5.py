@@ -405,9 +405,10 @@ class UVH5AutosWriter:
     metadata-only UVData, so it is what :func:`write_uvh5` writes); the three data sets
     ``Data/visdata``, ``Data/flags`` and ``Data/nsamples`` of shape ``(Nblts, Nfreqs,
     Npols)`` are created with chunks of one integration (all antennas) by
-    ``chunk_channels`` channels by one polarisation, HDF5 byte shuffle and LZF (or
-    gzip) compression, which pyuvdata and h5py read without plugins. The
-    baseline-time axis is time-major (antennas fastest), as HERA's correlator writes it.
+    ``chunk_channels`` channels by one polarisation, HDF5 byte shuffle and LZF or gzip
+    compression (flags and nsamples with the same filter; LZF when the data are not
+    compressed), which pyuvdata and h5py read without plugins. The baseline-time axis
+    is time-major (antennas fastest), as HERA's correlator writes it.
 
     Use as a context manager: the file is written under a temporary name and renamed
     onto ``path`` only when every integration was written and the block exits cleanly.
@@ -437,7 +438,8 @@ class UVH5AutosWriter:
     compression
         ``"lzf"`` (default), ``"gzip"`` or ``None``.
     compression_level
-        gzip level (1-9).
+        gzip level (1-9; 1 decodes fastest and compresses noise-like data nearly as
+        well as higher levels).
     shuffle
         Apply HDF5's byte-shuffle filter before compressing (default True: the zero
         imaginary parts and the slowly varying high bytes then compress to little).
@@ -465,7 +467,7 @@ class UVH5AutosWriter:
         extra_keywords: dict[str, Any] | None = None,
         dtype: str = "c8",
         compression: str | None = "lzf",
-        compression_level: int = 4,
+        compression_level: int = 1,
         shuffle: bool = True,
         chunk_channels: int = 256,
         overwrite: bool = False,
@@ -543,11 +545,9 @@ class UVH5AutosWriter:
                 chunks=self._chunks,
                 **self._options,
             )
-            lzf = {"compression": "lzf"}
-            group.create_dataset("flags", shape, dtype="b1", chunks=self._chunks, **lzf)
-            group.create_dataset(
-                "nsamples", shape, dtype="f4", chunks=self._chunks, shuffle=True, **lzf
-            )
+            aux = {**self._options, "compression": self._options["compression"] or "lzf"}
+            group.create_dataset("flags", shape, dtype="b1", chunks=self._chunks, **aux)
+            group.create_dataset("nsamples", shape, dtype="f4", chunks=self._chunks, **aux)
         except Exception:
             h5.close()
             tmp.unlink(missing_ok=True)
@@ -1334,14 +1334,28 @@ def _iter_blocks(
                 lo, hi = np.searchsorted(wtimes, [t0, t1])
                 rows = np.sort(wrows[lo:hi])
                 nt = t1 - t0
-                block = {
-                    "data": np.full((nant, npol, nt, nfreq), np.nan),
-                    "flags": np.ones((nant, npol, nt, nfreq), bool),
-                    "nsamples": np.zeros((nant, npol, nt, nfreq)),
-                }
+                shape = (nant, npol, nt, nfreq)
+                ia, it = ia_all[rows], tclip[rows] - t0
+                # Time-major rows in the selection's antenna order: a reshape, no scatter.
+                regular = (
+                    rows.size == nant * nt
+                    and np.array_equal(ia, np.tile(np.arange(nant), nt))
+                    and np.array_equal(it, np.repeat(np.arange(nt), nant))
+                )
+                if regular:
+                    block = {
+                        "data": np.empty(shape),
+                        "flags": np.empty(shape, bool),
+                        "nsamples": np.empty(shape),
+                    }
+                else:
+                    block = {
+                        "data": np.full(shape, np.nan),
+                        "flags": np.ones(shape, bool),
+                        "nsamples": np.zeros(shape),
+                    }
                 tint = np.full(nt, np.nan)
                 if rows.size:
-                    ia, it = ia_all[rows], tclip[rows] - t0
                     for key, dset in zip(block, datasets, strict=True):
                         arr = _read_rows(dset, rows, slice(c0, c1), slice(p0, p1), stats)
                         if not fidx_all:
@@ -1350,7 +1364,12 @@ def _iter_blocks(
                             arr = arr[:, :, pidx]
                         if arr.dtype.kind == "c":
                             arr = _auto_power(arr, same_feed)
-                        block[key][ia, :, it, :] = arr.transpose(0, 2, 1)
+                        if regular:
+                            block[key][...] = arr.reshape(nt, nant, nfreq, npol).transpose(
+                                1, 3, 0, 2
+                            )
+                        else:
+                            block[key][ia, :, it, :] = arr.transpose(0, 2, 1)
                         del arr
                     tint[it] = tint_blt[rows]
                 if rows.size < nant * nt:

@@ -50,6 +50,24 @@ def add(sub: argparse._SubParsersAction) -> None:
         help="reference gains (calfits/calh5, abscal or redcal) to compare |g| with",
     )
     p.add_argument("--format", default="auto", choices=["auto", "uvh5", "miriad"])
+    p.add_argument(
+        "--dask",
+        metavar="SCHEDULER",
+        help="map the files over a Dask cluster: a scheduler address (tcp://HOST:8786) or "
+        "'local' for a local cluster (same solution as the default in-process run)",
+    )
+    p.add_argument(
+        "--dask-workers",
+        type=int,
+        metavar="N",
+        help="worker processes of --dask local (default: the number of CPUs)",
+    )
+    p.add_argument(
+        "--block-size",
+        type=int,
+        metavar="N",
+        help="integrations read per block (default: about 8 M values; bounds the memory)",
+    )
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.set_defaults(func=run)
 
@@ -81,6 +99,12 @@ def run(args: argparse.Namespace) -> int:
         )
     except ValidationError as err:
         raise CliError(validation_message(err)) from None
+    if args.dask_workers is not None and args.dask_workers < 1:
+        raise CliError("--dask-workers must be at least 1")
+    if args.dask_workers is not None and args.dask is None:
+        raise CliError("--dask-workers needs --dask local")
+    if args.block_size is not None and args.block_size < 1:
+        raise CliError("--block-size must be at least 1 integration")
     with tqdm(total=100, desc="calibrate", unit="%", disable=None) as bar:
 
         def progress(fraction: float, message: str) -> None:
@@ -88,7 +112,14 @@ def run(args: argparse.Namespace) -> int:
             bar.set_postfix_str(message[-60:])
             bar.refresh()
 
-        result = run_calibration(config, args.out, progress=progress)
+        result = run_calibration(
+            config,
+            args.out,
+            progress=progress,
+            dask_scheduler=args.dask,
+            dask_workers=args.dask_workers,
+            block_size=args.block_size,
+        )
     print(json.dumps(result.summary["solution"], indent=2))
     for name, path in result.products.items():
         print(f"wrote {name}: {path}")
