@@ -49,6 +49,7 @@ logger = logging.getLogger(__name__)
 #: The catalogue's identifiers.
 EFFECT_NAMES = (
     "gain_drift",
+    "gain_jitter",
     "noise_drift",
     "sky_scale",
     "sky_offset",
@@ -309,12 +310,19 @@ class Effect:
     order: int = 0
     fixed: tuple[float, ...] | None = None
     signature: str = ""
-    basis: Literal["legendre", "diurnal"] = "legendre"
+    basis: Literal["legendre", "diurnal", "integration"] = "legendre"
 
     def time_basis(self, lsts: np.ndarray) -> np.ndarray:
         """``(k, Ntime)`` time basis of a drift effect (:func:`time_basis`)."""
         if self.basis == "diurnal":
             return diurnal_basis(lsts, self.order)
+        if self.basis == "integration":
+            if len(self.params) != len(lsts) - 1:
+                raise EffectError(
+                    f"gain_jitter was built for {len(self.params) + 1} integrations, "
+                    f"the data have {len(lsts)}"
+                )
+            return np.eye(len(lsts))[1:]
         return time_basis(lsts, self.order)
 
     @property
@@ -375,7 +383,9 @@ class Effect:
         }
 
 
-def catalogue(max_drift_order: int = 2, include_beam_width: bool = True) -> list[Effect]:
+def catalogue(
+    max_drift_order: int = 2, include_beam_width: bool = True, ntime: int | None = None
+) -> list[Effect]:
     """Return the candidate effects (drifts in every order ``1..max_drift_order``).
 
     Parameters
@@ -384,8 +394,24 @@ def catalogue(max_drift_order: int = 2, include_beam_width: bool = True) -> list
         Highest Legendre order of ``gain_drift`` and ``noise_drift``.
     include_beam_width
         Include ``beam_width`` (needs :attr:`SkyTemplates.beam_dwidth`).
+    ntime
+        Number of integrations: with 3 or more, include ``gain_jitter`` (one broadband
+        gain factor per integration, the first one the reference).
     """
     out: list[Effect] = []
+    if ntime is not None and ntime >= 3:
+        out.append(
+            Effect(
+                "gain_jitter",
+                "gain",
+                tuple(f"eps_{t}" for t in range(1, ntime)),
+                ("1",) * (ntime - 1),
+                1,
+                signature="G(t_i) = G (1 + eps_i), every integration its own achromatic "
+                "gain factor (broadband gain fluctuations)",
+                basis="integration",
+            )
+        )
     for order in range(1, max_drift_order + 1):
         names = tuple(f"d_{k}" for k in range(1, order + 1))
         out.append(
