@@ -25,7 +25,7 @@ import logging
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +59,26 @@ class BeamEvaluator:
     def __call__(self, freqs: np.ndarray) -> np.ndarray:
         """Return ``(Nfreq, Ndir)`` beam values at ``freqs`` (Hz)."""
         return self.beam.power(freqs, self.az, self.za)
+
+    def by_direction(self, freqs: np.ndarray, rows: slice | None = None) -> np.ndarray:
+        """Return the values direction-major: C-contiguous ``(Nrows, Nfreq)``.
+
+        Parameters
+        ----------
+        freqs
+            Frequencies in Hz.
+        rows
+            The directions to evaluate (a slice of the bound ones; ``None``: all).
+
+        Notes
+        -----
+        The Tsky engine evaluates the beam block by block of directions, with the
+        frequencies as the fastest axis (it Fourier-transforms along HEALPix rings).
+        Evaluators that can produce this layout directly override this method.
+        It may be called from several threads at once.
+        """
+        rows = slice(None) if rows is None else rows
+        return np.ascontiguousarray(self.beam.power(freqs, self.az[rows], self.za[rows]).T)
 
 
 class Beam(ABC):
@@ -275,6 +295,11 @@ class PerturbedBeam(Beam):
                 freqs = outer.check_freqs(freqs)
                 return inner(freqs) * outer.factor(freqs, self.za)
 
+            def by_direction(self, freqs, rows=None):
+                freqs = outer.check_freqs(freqs)
+                rows = slice(None) if rows is None else rows
+                return inner.by_direction(freqs, rows) * outer.factor(freqs, self.za[rows]).T
+
         return _Eval(self, az, za)
 
     def describe(self):  # noqa: D102
@@ -306,7 +331,18 @@ def file_checksum(path: str | Path) -> str:
 
 
 class _GriddedFileBeam(Beam):
-    """Common frequency interpolation of beams tabulated at native frequencies."""
+    """Common frequency interpolation of beams tabulated at native frequencies.
+
+    A cubic spline in frequency (scipy's ``CubicSpline``, not-a-knot ends) through the
+    tabulated values ``y_j``, clipped at zero. It is evaluated in its local form: on the
+    interval ``[x_i, x_i+1]`` (width ``h``, ``a = (x_i+1 - x) / h``, ``b = 1 - a``)
+
+        S(x) = a y_i + b y_i+1 + [(a^3 - a) M_i + (b^3 - b) M_i+1] h^2 / 6
+
+    with the knot second derivatives ``M = Q y`` (``Q`` from the spline of the identity).
+    So every frequency needs four tabulated rows and a band of neighbouring frequencies a
+    handful, whatever the number of native frequencies.
+    """
 
     native_freqs: np.ndarray
 
@@ -318,39 +354,128 @@ class _GriddedFileBeam(Beam):
     def _spatial(self, az: np.ndarray, za: np.ndarray) -> np.ndarray:
         """Beam at native frequencies ``(Nnative, Ndir)``."""
 
+    def _spatial_t(self, az: np.ndarray, za: np.ndarray) -> np.ndarray:
+        """Beam at native frequencies, direction-major ``(Ndir, Nnative)`` float64."""
+        return np.ascontiguousarray(self._spatial(az, za).T)
+
+    def _knots(self, native_t: np.ndarray) -> np.ndarray:
+        """Interleave values and second derivatives: ``(Ndir, 2 Nnative)`` = y0 M0 y1 M1..."""
+        nat = self.native_freqs.size
+        out = np.empty((native_t.shape[0], 2 * nat))
+        out[:, 0::2] = native_t
+        out[:, 1::2] = native_t @ self._curvature.T
+        return out
+
+    @cached_property
+    def _curvature(self) -> np.ndarray:
+        """``(Nnative, Nnative)`` matrix ``Q``: knot second derivatives ``M = Q y``."""
+        nat = self.native_freqs.size
+        if nat < 3:  # constant or linear: no curvature
+            return np.zeros((nat, nat))
+        spline = CubicSpline(self.native_freqs, np.eye(nat), axis=0)
+        return spline.derivative(2)(self.native_freqs)  # (knot, basis)
+
+    def _local_weights(self, freqs: np.ndarray) -> tuple[slice, np.ndarray]:
+        """Rows of :meth:`_knots` used by ``freqs`` and their ``(Nrows, Nfreq)`` weights."""
+        x = self.native_freqs
+        if x.size == 1:
+            return slice(0, 1), np.ones((1, freqs.size))
+        f = np.clip(freqs, *self.freq_range)
+        i = np.clip(np.searchsorted(x, f, side="right") - 1, 0, x.size - 2)
+        h = x[i + 1] - x[i]
+        a = (x[i + 1] - f) / h
+        b = 1.0 - a
+        first = 2 * int(i.min())
+        rows = 2 * int(i.max()) + 4 - first
+        weights = np.zeros((rows, f.size))
+        cols = np.arange(f.size)
+        r = 2 * i - first
+        weights[r, cols] = a
+        weights[r + 1, cols] = (a**3 - a) * h**2 / 6
+        weights[r + 2, cols] = b
+        weights[r + 3, cols] = (b**3 - b) * h**2 / 6
+        return slice(first, first + rows), weights
+
     def _interp_freq(self, native: np.ndarray, freqs: np.ndarray) -> np.ndarray:
-        if self.native_freqs.size == 1:
-            return np.repeat(native, freqs.size, axis=0)
-        spline = CubicSpline(self.native_freqs, native, axis=0)
-        return np.clip(spline(np.clip(freqs, *self.freq_range)), 0.0, None)
+        rows, weights = self._local_weights(freqs)
+        out = weights.T @ self._knots(native.T)[:, rows].T
+        return np.maximum(out, 0.0, out=out)
 
     def power(self, freqs, az, za):
         freqs = self.check_freqs(freqs)
         return self._interp_freq(self._spatial(np.asarray(az), np.asarray(za)), freqs)
 
     def on(self, az, za):
-        native = self._spatial(np.asarray(az, dtype=float), np.asarray(za, dtype=float))
-        outer = self
+        return _GriddedEvaluator(self, az, za)
 
-        class _Eval(BeamEvaluator):
-            def __call__(self, freqs):
-                return outer._interp_freq(native, outer.check_freqs(freqs))
 
-        return _Eval(self, az, za)
+class _GriddedEvaluator(BeamEvaluator):
+    """A gridded file beam bound to directions, with its spline knots precomputed.
+
+    Holds the ``(Ndir, 2 Nnative)`` knot table (values and second derivatives in
+    frequency, see :class:`_GriddedFileBeam`); a chunk of frequencies costs one thin
+    matrix product with the few knot columns it needs, then the clip at zero.
+    """
+
+    #: Largest ``rows x Nfreq`` of one matrix product in :meth:`by_direction`: such small
+    #: products run single-threaded in OpenBLAS, which avoids its thread hand-offs (they
+    #: dominate for these thin memory-bound products, badly so on a busy machine).
+    _BLOCK = 16384
+
+    def __init__(self, beam: _GriddedFileBeam, az: np.ndarray, za: np.ndarray) -> None:
+        super().__init__(beam, az, za)
+        self.beam: _GriddedFileBeam = beam
+        self._table = beam._knots(beam._spatial_t(self.az, self.za))
+        self._memo: dict[bytes, tuple[slice, np.ndarray]] = {}
+
+    def _weights(self, freqs: np.ndarray) -> tuple[slice, np.ndarray]:
+        """Return the checked local spline weights (memoised for recent ``freqs``).
+
+        The engine asks for the same frequency chunk block after block of directions.
+        """
+        freqs = np.asarray(freqs, dtype=np.float64)
+        key = freqs.tobytes()
+        hit = self._memo.get(key)
+        if hit is None:
+            hit = self.beam._local_weights(self.beam.check_freqs(freqs))
+            if len(self._memo) >= 16:
+                self._memo.clear()
+            self._memo[key] = hit
+        return hit
+
+    def __call__(self, freqs: np.ndarray) -> np.ndarray:
+        """Return ``(Nfreq, Ndir)`` beam values at ``freqs`` (Hz)."""
+        rows, weights = self._weights(freqs)
+        out = weights.T @ self._table[:, rows].T
+        return np.maximum(out, 0.0, out=out)
+
+    def by_direction(self, freqs: np.ndarray, rows: slice | None = None) -> np.ndarray:
+        """Return ``(Nrows, Nfreq)`` beam values (see :meth:`BeamEvaluator.by_direction`)."""
+        cols, weights = self._weights(freqs)
+        table = self._table[:, cols] if rows is None else self._table[rows, cols]
+        nf = weights.shape[1]
+        out = np.empty((table.shape[0], nf))
+        step = max(16, self._BLOCK // nf)
+        for start in range(0, table.shape[0], step):
+            np.matmul(table[start : start + step], weights, out=out[start : start + step])
+        return np.maximum(out, 0.0, out=out)
 
 
 def _upsampled(path: str, pol: str, nside_out: int, mtime: int, maps: np.ndarray) -> np.ndarray:
-    """Harmonic upsampling of beam maps, memoised per file, pol and resolution."""
+    """Harmonic upsampling of beam maps, memoised per file, pol and resolution.
+
+    Returns the direction-major ``(Npix_out, Nfreq)`` float32 maps (bilinear
+    interpolation then reads each neighbour's spectrum contiguously).
+    """
     key = (path, pol, nside_out, mtime)
     if key not in _UPSAMPLED:
         nside = hp.npix2nside(maps.shape[1])
         lmax = 3 * nside - 1
-        fine = np.array(
-            [hp.alm2map(hp.map2alm(m, lmax=lmax, iter=3), nside_out, lmax=lmax) for m in maps],
-            dtype=np.float32,
-        )
+        fine = np.empty((hp.nside2npix(nside_out), maps.shape[0]), dtype=np.float32)
+        for i, m in enumerate(maps):
+            fine[:, i] = hp.alm2map(hp.map2alm(m, lmax=lmax, iter=3), nside_out, lmax=lmax)
         _UPSAMPLED.clear()  # keep one beam's maps (~330 MB at nside 512 for 26 freqs)
-        _UPSAMPLED[key] = np.clip(fine, 0.0, None)
+        _UPSAMPLED[key] = np.maximum(fine, 0.0, out=fine)
     return _UPSAMPLED[key]
 
 
@@ -390,22 +515,30 @@ class HealpixFileBeam(_GriddedFileBeam):
             )
         self.upsample_nside = max(int(upsample_nside), nside)
         if self.upsample_nside > nside:
-            full = _upsampled(
+            self._maps_t = _upsampled(
                 str(self.path.resolve()),
                 self.pol,
                 self.upsample_nside,
                 self.path.stat().st_mtime_ns,
                 full,
             )
-        self._maps = full
+        else:
+            self._maps_t = np.ascontiguousarray(full.T)  # (Npix, Nfreq)
 
     def _spatial(self, az, za):
-        phi = np.mod(np.pi / 2 - az, 2 * np.pi)  # pyuvdata: azimuth from east to north
+        return self._spatial_t(az, za).T
+
+    def _spatial_t(self, az, za):
+        phi = np.mod(np.pi / 2 - np.asarray(az), 2 * np.pi)  # pyuvdata: east to north
         theta = np.clip(za, 0.0, np.pi)
-        theta, phi = np.atleast_1d(theta), np.atleast_1d(phi)
-        out = np.empty((self._maps.shape[0], theta.size))
-        for i, m in enumerate(self._maps):
-            out[i] = np.reshape(hp.get_interp_val(m, theta, phi), theta.size)
+        theta, phi = np.atleast_1d(theta).ravel(), np.atleast_1d(phi).ravel()
+        # healpy's bilinear interpolation (as hp.get_interp_val), with the neighbours and
+        # weights found once for all native frequencies
+        nside = hp.npix2nside(self._maps_t.shape[0])
+        pix, wgt = hp.get_interp_weights(nside, theta, phi)
+        out = self._maps_t[pix[0]] * wgt[0][:, None]
+        for k in range(1, 4):
+            out += self._maps_t[pix[k]] * wgt[k][:, None]
         return out
 
     def describe(self):  # noqa: D102

@@ -15,9 +15,13 @@ Two implementations:
   ``Re sum_m D_m exp(-i m L)`` with ``D_m = sum_rings w_m B_m conj(T_m) / n_ring``: a
   ring-wise circular cross-correlation, exact up to pixelisation (band-limited
   interpolation in LST). The cost is independent of the number of LSTs; sky components
-  are transformed once whatever the number of frequencies.
+  are transformed once whatever the number of frequencies. Frequency chunks run in
+  parallel threads; the beam integrals and the ``m = 0`` term are float64, the ring
+  FFTs of the beam and the ``m >= 1`` terms float32 (relative error ~1e-7, i.e. < 1 mK).
 * :func:`tsky_brute` (the reference). For each LST the beam is evaluated afresh at every
   pixel's (az, alt) and the sums above are taken directly.
+* :class:`BruteForceTsky` (the benchmark baseline): beam precomputed once, sky rotated
+  per LST, one matrix product per LST.
 
 :func:`compute_tsky` is the public entry point: it resolves names, checks the grids,
 chooses the method, and reads/writes the on-disk cache (:mod:`autocal.tsky_cache`).
@@ -26,15 +30,19 @@ chooses the method, and reads/writes the on-disk cache (:mod:`autocal.tsky_cache
 from __future__ import annotations
 
 import logging
+import os
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from typing import Any
 
 import healpy as hp
 import numpy as np
+import scipy.fft as sp_fft
 from tqdm.auto import tqdm
 
-from autocal.beams import Beam, get_beam
+from autocal.beams import Beam, BeamEvaluator, get_beam
 from autocal.coords import hadec_to_altaz, healpix_ra_dec, parse_epoch
 from autocal.sites import Site, get_site
 from autocal.sky import SkyComponents, SkyModel, get_sky
@@ -44,7 +52,7 @@ logger = logging.getLogger(__name__)
 #: Default ground temperature in kelvin.
 T_GROUND = 300.0
 #: Bump when the numerical method changes, so cached tables are recomputed.
-ENGINE_VERSION = "ringfft-1"
+ENGINE_VERSION = "ringfft-2"
 
 
 class TskyError(ValueError):
@@ -182,6 +190,275 @@ def _lst_radians(lsts_hours: np.ndarray) -> np.ndarray:
     return np.mod(lsts_hours, 24.0) * (2 * np.pi / 24.0)
 
 
+#: Precision of the ring FFTs and of the per-m overlaps (``m >= 1``); the ``m = 0`` term,
+#: the beam integrals and all accumulations are float64.
+_FFT_DTYPE = np.float32
+#: Target size of one frequency chunk of the beam (float64 ``Npix x Nf``) in bytes: large
+#: enough for efficient batched FFTs and matrix products, small enough to stay in cache.
+_CHUNK_BYTES = 16 << 20
+
+
+@dataclass(frozen=True)
+class _RingPlan:
+    """Which HEALPix rings the engine transforms, and the sky side of the overlap.
+
+    Rings are RING-ordered and contiguous in pixel index. Only rings where the horizon
+    weight is somewhere positive are transformed (``[lo, hi)`` covers them); the
+    ``2 nside + 1`` equatorial rings (``4 nside`` pixels each) form one contiguous block
+    transformed in a single batched FFT, the polar-cap rings one by one.
+
+    Attributes
+    ----------
+    lo, hi
+        Pixel range covering every transformed ring.
+    eq_start, eq_rings, eq_len
+        First pixel, number of rings and ring length of the equatorial block (``eq_rings``
+        is 0 when no equatorial ring is transformed).
+    caps
+        ``(first pixel, length)`` of each transformed polar-cap ring.
+    y_eq
+        ``(M, Ncomp, eq_rings)`` complex: ``conj(S_m) w_m / n`` of the sky components on
+        the equatorial rings, zero at ``m = 0`` (computed exactly in float64 instead).
+    y_cap
+        ``(M, Ncomp, Ncap)`` the same for the cap rings (zero beyond each ring's ``n/2``).
+    mean_ring
+        ``(Ncomp, Npix)``: each component's ring average at every pixel (the ``m = 0``
+        term of the ring correlation).
+    """
+
+    lo: int
+    hi: int
+    eq_start: int
+    eq_rings: int
+    eq_len: int
+    caps: tuple[tuple[int, int], ...]
+    y_eq: np.ndarray
+    y_cap: np.ndarray
+    mean_ring: np.ndarray
+
+
+def _ring_plan(maps: np.ndarray, w_above: np.ndarray, nside: int) -> _RingPlan:
+    """Prepare the ring transforms of the sky components ``maps`` (``(Ncomp, Npix)``)."""
+    nring = 4 * nside - 1
+    start, length, _, _, _ = hp.ringinfo(nside, np.arange(1, nring + 1))
+    start, length = start.astype(np.int64), length.astype(np.int64)
+    ncomp, mmax = maps.shape[0], 2 * nside
+    ctype = np.result_type(_FFT_DTYPE, np.complex64)
+    ring_of_pixel = np.repeat(np.arange(nring), length)
+    ring_mean = np.add.reduceat(maps, start, axis=1) / length  # (Ncomp, Nring)
+    mean_ring = ring_mean[:, ring_of_pixel]
+    needed = np.maximum.reduceat(w_above, start) > 0
+    if not np.any(needed):
+        empty = np.zeros((mmax + 1, ncomp, 0), dtype=ctype)
+        return _RingPlan(0, 0, 0, 0, 4 * nside, (), empty, empty, mean_ring)
+    rings = np.flatnonzero(needed)
+    lo, hi = int(start[rings[0]]), int(start[rings[-1]] + length[rings[-1]])
+    eq = np.arange(nside - 1, 3 * nside)
+    eq_used = needed[eq].any()
+    eq_rings = eq.size if eq_used else 0
+    eq_start = int(start[eq[0]])
+    n_eq = 4 * nside
+    y_eq = np.zeros((mmax + 1, ncomp, eq_rings), dtype=ctype)
+    if eq_used:
+        block = maps[:, eq_start : eq_start + eq.size * n_eq].reshape(ncomp, eq.size, n_eq)
+        s_hat = np.conj(np.fft.rfft(block, axis=-1)) * (_ring_weights(n_eq) / n_eq)
+        y_eq[:] = s_hat.transpose(2, 0, 1)
+        y_eq[0] = 0
+        lo, hi = min(lo, eq_start), max(hi, eq_start + eq.size * n_eq)
+    caps = [int(r) for r in rings if not (nside - 1 <= r < 3 * nside)]
+    y_cap = np.zeros((mmax + 1, ncomp, len(caps)), dtype=ctype)
+    for j, r in enumerate(caps):
+        n = int(length[r])
+        ring = maps[:, start[r] : start[r] + n]
+        s_hat = np.conj(np.fft.rfft(ring, axis=-1)) * (_ring_weights(n) / n)
+        y_cap[: n // 2 + 1, :, j] = s_hat.T
+    y_cap[0] = 0
+    cap_rings = tuple((int(start[r]), int(length[r])) for r in caps)
+    return _RingPlan(lo, hi, eq_start, eq_rings, n_eq, cap_rings, y_eq, y_cap, mean_ring)
+
+
+class _Clock:
+    """CPU time of the calling thread per stage (reported at DEBUG level).
+
+    Thread CPU time rather than wall time: stage costs stay meaningful on a busy machine.
+    """
+
+    def __init__(self) -> None:
+        self.times: dict[str, float] = {}
+        self._last = time.thread_time()
+
+    def lap(self, stage: str | None = None) -> None:
+        """Charge the time since the previous lap to ``stage`` (``None``: discard)."""
+        now = time.thread_time()
+        if stage is not None:
+            self.times[stage] = self.times.get(stage, 0.0) + now - self._last
+        self._last = now
+
+    def merge(self, times: dict[str, float]) -> None:
+        """Add another clock's stage times (e.g. a worker thread's)."""
+        for key, value in times.items():
+            self.times[key] = self.times.get(key, 0.0) + value
+
+    def report(self) -> str:
+        """``stage=seconds`` pairs and their total."""
+        parts = [f"{k}={v:.3f}s" for k, v in self.times.items()]
+        return " ".join([*parts, f"sum={sum(self.times.values()):.3f}s"])
+
+
+def _default_chunk(npix: int) -> int:
+    """Frequencies per chunk: a power of two in [4, 64], the float32 beam within ~12 MB."""
+    nf = 4
+    while nf < 64 and 2 * nf * npix * 4 <= 12 << 20:
+        nf *= 2
+    return nf
+
+
+def _default_workers() -> int:
+    """Return the number of CPUs this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+@dataclass
+class _FftJob:
+    """Everything one frequency chunk of :func:`tsky_fft` needs (shared by the workers).
+
+    ``weights`` rows: 1 (beam integral), ``1 - w`` (below-horizon part) and ``w`` times
+    each component's ring average (the exact ``m = 0`` overlaps); ``sums`` and
+    ``overlap`` receive the results, each chunk writing its own frequency columns.
+    """
+
+    plan: _RingPlan
+    evaluator: BeamEvaluator
+    beam_name: str
+    freqs: np.ndarray
+    chunk: int
+    weights: np.ndarray
+    w_above: np.ndarray
+    sums: np.ndarray
+    overlap: np.ndarray
+    local: threading.local = field(default_factory=threading.local)
+
+    def buffers(self) -> tuple[np.ndarray, np.ndarray]:
+        """Return the calling thread's work arrays (allocated once; ``cap_buf`` kept zero)."""
+        if not hasattr(self.local, "b_sky"):
+            plan, nf = self.plan, min(self.chunk, self.freqs.size)
+            self.local.b_sky = np.empty((plan.hi - plan.lo, nf), dtype=_FFT_DTYPE)
+            shape = (plan.y_cap.shape[0], len(plan.caps), nf)
+            self.local.cap_buf = np.zeros(shape, dtype=plan.y_cap.dtype)
+        return self.local.b_sky, self.local.cap_buf
+
+    def run(self, start: int) -> dict[str, float]:
+        """Process the frequencies ``start : start + chunk``; return the stage times."""
+        clock = _Clock()
+        sel = slice(start, min(start + self.chunk, self.freqs.size))
+        freqs = self.freqs[sel]
+        nf = freqs.size
+        plan = self.plan
+        b_sky, cap_buf = self.buffers()
+        b_sky, cap_buf = b_sky[:, :nf], cap_buf[:, :, :nf]
+        npix = self.w_above.size
+        acc = np.zeros((self.weights.shape[0], nf))
+        # Blocks of directions small enough to stay in cache, and for the products
+        # below to run single-threaded in BLAS (parallelism comes from the chunks).
+        step = max(256, 32768 // nf)
+        for b0 in range(0, npix, step):
+            b1 = min(b0 + step, npix)
+            vals = self.evaluator.by_direction(freqs, slice(b0, b1))  # (rows, Nf) float64
+            clock.lap("beam")
+            if not vals.min() >= 0:  # also catches NaN
+                raise TskyError(f"beam {self.beam_name} gave negative or non-finite values")
+            acc += self.weights[:, b0:b1] @ vals
+            o0, o1 = max(b0, plan.lo), min(b1, plan.hi)
+            if o0 < o1:
+                np.multiply(
+                    vals[o0 - b0 : o1 - b0],
+                    self.w_above[o0:o1, None],
+                    out=b_sky[o0 - plan.lo : o1 - plan.lo],
+                    casting="same_kind",
+                )
+            clock.lap("sums+horizon")
+        self.sums[:, sel] = acc
+        if plan.hi > plan.lo:
+            _overlap_chunk(plan, b_sky, self.overlap[:, :, sel], cap_buf, clock)
+        return clock.times
+
+
+def _overlap_chunk(
+    plan: _RingPlan, b_sky: np.ndarray, out: np.ndarray, cap_buf: np.ndarray, clock: _Clock
+) -> None:
+    """Add the ``m >= 1`` ring overlaps of one frequency chunk to ``out`` (``(M, Ncomp, Nf)``).
+
+    ``b_sky`` is the ``(hi - lo, Nf)`` horizon-weighted beam over the transformed rings,
+    ``cap_buf`` a zeroed ``(M, Ncap, Nf)`` complex work array (only the entries
+    ``m <= n/2`` of each cap ring are ever written, so it stays zero elsewhere).
+    """
+    nf = b_sky.shape[1]
+    if plan.eq_rings:
+        first = plan.eq_start - plan.lo
+        block = b_sky[first : first + plan.eq_rings * plan.eq_len]
+        x_eq = sp_fft.rfft(block.reshape(plan.eq_rings, plan.eq_len, nf), axis=1)
+        clock.lap("fft")
+        out += np.matmul(plan.y_eq, x_eq.transpose(1, 0, 2))
+        clock.lap("ring_sum")
+    if plan.caps:
+        for j, (first, n) in enumerate(plan.caps):
+            ring = b_sky[first - plan.lo : first - plan.lo + n]
+            cap_buf[: n // 2 + 1, j] = sp_fft.rfft(ring, axis=0)
+        clock.lap("fft")
+        out += np.matmul(plan.y_cap, cap_buf)
+        clock.lap("ring_sum")
+
+
+def _regular_grid(lst_rad: np.ndarray, mmax: int) -> tuple[int, np.ndarray] | None:
+    """``(N, k)`` if every LST is ``lst[0] + k 2 pi / N`` (phase error < 1e-9 rad), else None."""
+    if lst_rad.size < 2:
+        return None
+    diffs = np.diff(np.unique(lst_rad))
+    if diffs.size == 0:
+        return None
+    n = round(float(2 * np.pi / diffs.min()))
+    if n < 2 or n > (1 << 22):
+        return None
+    step = 2 * np.pi / n
+    k = (lst_rad - lst_rad[0]) / step
+    kr = np.round(k)
+    if np.max(np.abs(k - kr)) * step * max(mmax, 1) > 1e-9:
+        return None
+    return n, np.mod(kr.astype(np.int64), n)
+
+
+def _synthesise(coef: np.ndarray, lst_rad: np.ndarray) -> np.ndarray:
+    """``Re sum_m coef[m] exp(-i m L)`` for every LST: ``(M, K)`` -> ``(Nlst, K)``.
+
+    LSTs on a regular grid of ``N`` points per day use one inverse real FFT of length
+    ``N`` (or, with fewer than ``2 M`` points per day, a complex FFT of the harmonics
+    folded modulo ``N``); other LSTs a matrix product with ``cos``/``sin``.
+    """
+    nm = coef.shape[0]
+    grid = _regular_grid(lst_rad, nm - 1)
+    if grid is not None and grid[0] * max(np.log2(grid[0]), 1.0) <= 4 * lst_rad.size * nm:
+        n, k = grid
+        shifted = coef * np.exp(-1j * np.arange(nm) * lst_rad[0])[:, None]
+        if 2 * (nm - 1) < n:
+            # irfft(X)_k = [X_0 + 2 Re sum_m X_m e^{2 pi i m k / N}] / N with X_m = conj
+            half = np.zeros((n // 2 + 1, coef.shape[1]), dtype=np.complex128)
+            half[0] = n * shifted[0].real
+            half[1:nm] = (n / 2) * np.conj(shifted[1:])
+            full = sp_fft.irfft(half, n=n, axis=0, workers=-1)
+        else:  # fewer LSTs per day than harmonics: alias m onto m mod N
+            folded = np.zeros((n, coef.shape[1]), dtype=np.complex128)
+            np.add.at(folded, np.arange(nm) % n, shifted)
+            full = sp_fft.fft(folded, axis=0, workers=-1).real
+        if k.size == n and np.array_equal(k, np.arange(n)):
+            return full
+        return full[k]
+    phase = np.outer(lst_rad, np.arange(nm))
+    return np.cos(phase) @ coef.real + np.sin(phase) @ coef.imag
+
+
 def tsky_fft(
     sky: SkyComponents,
     beam: Beam,
@@ -189,11 +466,22 @@ def tsky_fft(
     lsts: np.ndarray,
     tgnd: float | np.ndarray = T_GROUND,
     horizon_width_deg: float = HORIZON_WIDTH_DEG,
-    freq_chunk: int = 32,
+    freq_chunk: int | None = None,
     keep_components: bool = False,
     progress: bool | None = None,
+    workers: int | None = None,
 ) -> TskyResult:
     """Tsky at all LSTs by ring-wise FFT cross-correlation (see module docstring).
+
+    Implementation: the beam is evaluated once per frequency chunk at the LST-0
+    position of every pixel (direction-major, :meth:`BeamEvaluator.by_direction`); one
+    float64 matrix product gives its integral, its below-horizon part and the exact
+    ``m = 0`` overlap with every sky component (ring averages); the horizon-weighted beam
+    is cast to float32 and Fourier-transformed along the rings that ever rise (one
+    batched FFT for the equatorial block, one per polar-cap ring); the ``m >= 1``
+    overlaps are summed over rings by batched complex matrix products with the
+    precomputed sky transforms and accumulated in float64. Finally one inverse transform
+    over ``m`` (an FFT for a regular LST grid, else a matrix product) gives every LST.
 
     Parameters
     ----------
@@ -210,11 +498,15 @@ def tsky_fft(
     horizon_width_deg
         Width of the soft horizon (:func:`horizon_weight`).
     freq_chunk
-        Frequencies processed together (bounds memory to ~``freq_chunk * Npix`` floats).
+        Frequencies processed together (bounds memory to a few ``freq_chunk * Npix``
+        floats); ``None`` chooses it from the map size (cache-sized chunks).
     keep_components
         Also return the per-component contributions (``TskyResult.components``).
     progress
         Show a progress bar (``None``: only on a terminal).
+    workers
+        Threads processing frequency chunks in parallel (``None``: one per available
+        CPU). The beam evaluator is called from these threads.
 
     Returns
     -------
@@ -225,49 +517,78 @@ def tsky_fft(
     lsts = check_grid(lsts, "LST")
     tg = _tgnd_array(tgnd, freqs.size)
     nside = sky.nside
+    npix = hp.nside2npix(nside)
+    wall0 = time.perf_counter()
+    clock = _Clock()
     az, za = topocentric_at_lst0(nside, site)
     w_above = horizon_weight(np.pi / 2 - za, horizon_width_deg)
     evaluator = beam.on(az, za)
-    groups = ring_groups(nside)
-    mmax = 2 * nside
-    # sky side: one FFT per component per ring group
-    sky_hat = [np.conj(np.fft.rfft(sky.maps[:, g.pix], axis=-1)) for g in groups]
-    ncomp, nfreq = sky.ncomp, freqs.size
-    overlap = np.zeros((ncomp, nfreq, mmax + 1), dtype=np.complex128)
-    sum_all = np.empty(nfreq)
-    sum_below = np.empty(nfreq)
-    chunks = range(0, nfreq, freq_chunk)
-    for start in tqdm(chunks, desc="Tsky (ring FFT)", unit="chunk", disable=_no_bar(progress)):
-        sel = slice(start, min(start + freq_chunk, nfreq))
-        bvals = evaluator(freqs[sel])  # (Nf, Npix)
-        if np.any(~np.isfinite(bvals)) or np.any(bvals < 0):
-            raise TskyError(f"beam {beam.name} gave negative or non-finite values")
-        sum_all[sel] = bvals.sum(axis=1)
-        sum_below[sel] = bvals @ (1.0 - w_above)
-        b_above = bvals * w_above[None, :]
-        for g, s_hat in zip(groups, sky_hat, strict=True):
-            b_hat = np.fft.rfft(b_above[:, g.pix], axis=-1)  # (Nf, Nr, m)
-            b_hat *= _ring_weights(g.n) / g.n
-            # sum over rings for every (component, freq, m): batched over m
-            contrib = np.einsum("frm,crm->cfm", b_hat, s_hat, optimize=True)
-            overlap[:, sel, : g.n // 2 + 1] += contrib
+    clock.lap("beam_bind")
+    plan = _ring_plan(sky.maps, w_above, nside)
+    ncomp, nfreq, mmax = sky.ncomp, freqs.size, 2 * nside
+    chunk = int(freq_chunk) if freq_chunk is not None else _default_chunk(npix)
+    if chunk < 1:
+        raise TskyError("freq_chunk must be >= 1")
+    job = _FftJob(
+        plan=plan,
+        evaluator=evaluator,
+        beam_name=beam.name,
+        freqs=freqs,
+        chunk=chunk,
+        weights=np.vstack([np.ones(npix), 1.0 - w_above, w_above * plan.mean_ring]),
+        w_above=w_above,
+        sums=np.empty((2 + ncomp, nfreq)),
+        overlap=np.zeros((mmax + 1, ncomp, nfreq), dtype=np.complex128),
+    )
+    starts = list(range(0, nfreq, chunk))
+    nworkers = max(1, min(int(workers) if workers is not None else _default_workers(), len(starts)))
+    clock.lap("setup")
+    bar = tqdm(total=len(starts), desc="Tsky (ring FFT)", unit="chunk", disable=_no_bar(progress))
+    with bar:
+        if nworkers == 1:
+            for start in starts:
+                clock.merge(job.run(start))
+                bar.update()
+        else:
+            with ThreadPoolExecutor(max_workers=nworkers) as pool:
+                futures = [pool.submit(job.run, start) for start in starts]
+                try:
+                    for future in as_completed(futures):
+                        clock.merge(future.result())
+                        bar.update()
+                except BaseException:
+                    for future in futures:
+                        future.cancel()
+                    raise
+    clock.lap()
+    sums, overlap = job.sums, job.overlap
+    sum_all, sum_below = sums[0], sums[1]
+    if not np.all(np.isfinite(sums)):
+        raise TskyError(f"beam {beam.name} gave negative or non-finite values")
     if np.any(sum_all <= 0):
         bad = freqs[sum_all <= 0] / 1e6
         raise TskyError(f"beam {beam.name} integrates to zero at {bad[:5]} MHz")
-    mvec = np.arange(mmax + 1)
-    phase = np.outer(_lst_radians(lsts), mvec)  # (Nlst, M)
-    cos_m, sin_m = np.cos(phase), np.sin(phase)
-    total = np.einsum("fc,cfm->fm", sky.spectra, overlap)
-    numerator = total.real @ cos_m.T + total.imag @ sin_m.T  # (Nf, Nlst)
-    tsky = (numerator + (tg * sum_below)[:, None]) / sum_all[:, None]
+    overlap[0] = sums[2:]
+    clock.lap()
+    lst_rad = _lst_radians(lsts)
+    total = np.einsum("fc,mcf->mf", sky.spectra, overlap)
+    tsky = _synthesise(total, lst_rad)  # (Nlst, Nf): the numerator
+    tsky += tg * sum_below
+    tsky /= sum_all
     comps = None
     if keep_components:
-        comps = (
-            np.einsum("cfm,lm->lfc", overlap.real, cos_m)
-            + np.einsum("cfm,lm->lfc", overlap.imag, sin_m)
-        ) / sum_all[None, :, None]
+        per_comp = _synthesise(overlap.reshape(mmax + 1, ncomp * nfreq), lst_rad)
+        comps = per_comp.reshape(lsts.size, ncomp, nfreq).transpose(0, 2, 1) / sum_all[:, None]
+    clock.lap("synthesis")
+    logger.debug(
+        "tsky_fft %d freqs x %d LSTs in %.3f s wall; thread CPU per stage: %s",
+        nfreq,
+        lsts.size,
+        time.perf_counter() - wall0,
+        clock.report(),
+    )
     return TskyResult(
-        tsky=tsky.T.copy(),
+        tsky=tsky,
         freqs=freqs,
         lsts=lsts,
         f_above=1 - sum_below / sum_all,
@@ -310,6 +631,146 @@ def tsky_brute(
         f_below[i] = below / total
     fb = f_below.mean(axis=0)
     return TskyResult(tsky=out, freqs=freqs, lsts=lsts, f_above=1 - fb, f_below=fb)
+
+
+class BruteForceTsky:
+    """Vectorised per-LST brute force: the reference the engine is benchmarked against.
+
+    What is precomputed once (:meth:`__init__`, "preparation"):
+
+    * the beam at every frequency on the equatorial HEALPix grid at LST 0 (each pixel's
+      azimuth and zenith angle at LST 0, one :meth:`Beam.on` evaluator), its integral
+      and below-horizon part per frequency, and the horizon-weighted beam ``A w`` on the
+      pixels where the weight is positive, stored as one C-contiguous
+      ``(Nfreq, Nabove)`` matrix of ``dtype``;
+    * the Fourier transforms along each iso-latitude ring of the sky's spatial
+      components (``Ncomp``, 4 for GSM2008 with the CMB).
+
+    What is done per LST ``L`` (:meth:`__call__`): the sky components are rotated about
+    the celestial pole by ``L``: on every ring the map is shifted by ``L`` in right
+    ascension *exactly* for a ring-band-limited map (phase factor ``exp(i m L)`` on
+    each ring harmonic, inverse FFT), then one matrix product
+    ``(Nfreq, Nabove) @ (Nabove, Ncomp)`` (BLAS) gives every frequency's overlap with
+    every component, combined with the component spectra. The beam fixed in the
+    topocentric frame and the sky turning under it is the same physics as
+    :func:`tsky_brute` (which instead evaluates the beam afresh at each LST on the fixed
+    sky pixels); the two differ only by pixelisation (mK at nside 128, tested).
+
+    The ring rotation is the same band-limited interpolation the ring-FFT engine
+    implies, so :func:`tsky_fft` and this class agree to rounding: the comparison checks
+    the engine's implementation, :func:`tsky_brute` its physics.
+
+    Parameters
+    ----------
+    sky, beam, site, tgnd, horizon_width_deg
+        As for :func:`tsky_fft`.
+    dtype
+        Precision of the beam matrix and of the per-LST products.
+    freq_chunk
+        Frequencies evaluated together while building the beam matrix (memory bound).
+    """
+
+    def __init__(
+        self,
+        sky: SkyComponents,
+        beam: Beam,
+        site: Site,
+        tgnd: float | np.ndarray = T_GROUND,
+        horizon_width_deg: float = HORIZON_WIDTH_DEG,
+        dtype: type = np.float64,
+        freq_chunk: int = 64,
+    ) -> None:
+        self.freqs = beam.check_freqs(sky.freqs)
+        self.tgnd = _tgnd_array(tgnd, self.freqs.size)
+        self.spectra = sky.spectra
+        self.dtype = np.dtype(dtype)
+        nside, nfreq = sky.nside, self.freqs.size
+        az, za = topocentric_at_lst0(nside, site)
+        w_above = horizon_weight(np.pi / 2 - za, horizon_width_deg)
+        self.above = np.flatnonzero(w_above > 0)
+        evaluator = beam.on(az, za)
+        self.beam_matrix = np.empty((nfreq, self.above.size), dtype=self.dtype)
+        self.sum_all = np.empty(nfreq)
+        self.sum_below = np.empty(nfreq)
+        w_sel = w_above[self.above]
+        for start in range(0, nfreq, freq_chunk):
+            sel = slice(start, min(start + freq_chunk, nfreq))
+            vals = evaluator(self.freqs[sel])  # (Nf, Npix)
+            self.sum_all[sel] = vals.sum(axis=1)
+            self.sum_below[sel] = vals @ (1.0 - w_above)
+            self.beam_matrix[sel] = vals[:, self.above] * w_sel
+        # ring transforms of the sky components
+        nring = 4 * nside - 1
+        start, length, _, _, _ = hp.ringinfo(nside, np.arange(1, nring + 1))
+        self._npix = hp.nside2npix(nside)
+        self._eq = (int(start[nside - 1]), 2 * nside + 1, 4 * nside)  # first, rings, n
+        first, rings, n = self._eq
+        block = sky.maps[:, first : first + rings * n].reshape(sky.ncomp, rings, n)
+        self._eq_hat = np.fft.rfft(block, axis=-1)
+        eq_rings = range(nside - 1, 3 * nside)
+        self._caps = [
+            (
+                int(start[r]),
+                int(length[r]),
+                np.fft.rfft(sky.maps[:, start[r] : start[r] + length[r]]),
+            )
+            for r in range(nring)
+            if r not in eq_rings
+        ]
+        self._ncomp = sky.ncomp
+
+    def rotated_sky(self, lst_rad: float) -> np.ndarray:
+        """Sky components turned by the LST: ``(Ncomp, Npix)``, value at pixel p = S(RA_p + L)."""
+        out = np.empty((self._ncomp, self._npix))
+        first, rings, n = self._eq
+        phase = np.exp(1j * lst_rad * np.arange(n // 2 + 1))
+        out[:, first : first + rings * n] = np.fft.irfft(self._eq_hat * phase, n=n).reshape(
+            self._ncomp, -1
+        )
+        for start, length, s_hat in self._caps:
+            phase = np.exp(1j * lst_rad * np.arange(length // 2 + 1))
+            out[:, start : start + length] = np.fft.irfft(s_hat * phase, n=length)
+        return out
+
+    def __call__(
+        self, lsts: np.ndarray, lsts_per_product: int = 1, progress: bool | None = None
+    ) -> TskyResult:
+        """Tsky at ``lsts`` (hours).
+
+        Parameters
+        ----------
+        lsts
+            LSTs in hours.
+        lsts_per_product
+            LSTs whose rotated skies share one matrix product (1: one product per LST;
+            more trades memory for BLAS efficiency).
+        progress
+            Progress bar (``None``: only on a terminal).
+
+        Returns
+        -------
+        TskyResult
+            The table (``f_above``/``f_below`` as for :func:`tsky_fft`).
+        """
+        lsts = check_grid(lsts, "LST")
+        lst_rad = _lst_radians(lsts)
+        out = np.empty((lsts.size, self.freqs.size))
+        batch = max(1, int(lsts_per_product))
+        ncomp = self._ncomp
+        starts = range(0, lsts.size, batch)
+        for i0 in tqdm(starts, desc="Tsky (vectorised brute force)", disable=_no_bar(progress)):
+            sel = lst_rad[i0 : i0 + batch]
+            sky_rot = np.empty((self.above.size, ncomp * sel.size), dtype=self.dtype)
+            for j, lst in enumerate(sel):
+                sky_rot[:, j * ncomp : (j + 1) * ncomp] = self.rotated_sky(lst)[:, self.above].T
+            overlap = self.beam_matrix @ sky_rot  # (Nf, Ncomp * Nbatch): the per-LST product
+            overlap = overlap.reshape(self.freqs.size, sel.size, ncomp)
+            numerator = np.einsum("fc,flc->lf", self.spectra, overlap)
+            out[i0 : i0 + sel.size] = (numerator + self.tgnd * self.sum_below) / self.sum_all
+        f_below = self.sum_below / self.sum_all
+        return TskyResult(
+            tsky=out, freqs=self.freqs, lsts=lsts, f_above=1 - f_below, f_below=f_below
+        )
 
 
 def _no_bar(progress: bool | None) -> bool | None:
