@@ -444,19 +444,18 @@ def compute_partial(
         checksums.update(chunk.meta.get("sha256", {}))
         tsky = task.tsky[:, window]
         weights: str | np.ndarray = spec.weights
-        bt = chunk.bandwidth_time() if spec.weights == "radiometer" else None
+        bt = None
+        if spec.weights == "radiometer":  # dnu dt N (Observation.bandwidth_time, one pass)
+            bt = chunk.nsamples * (chunk.integration_time[:, None] * chunk.channel_width)
         if task.weights is not None and spec.weights == "radiometer":
             weights, bt = task.weights[:, :, window], None
         if bt is not None:
-            usable_bt = bt[~chunk.flags]
-            if not np.all(usable_bt > 0):
+            if np.any((bt <= 0) & ~chunk.flags):
                 raise PipelineError(
                     f"{chunk.meta.get('files')}: radiometer weights need positive channel "
                     "width, integration time and nsamples; use weights='identity'"
                 )
-            if usable_bt.size:
-                bt_min = min(bt_min, float(usable_bt.min()))
-            del usable_bt
+            bt_min = min(bt_min, float(np.min(bt, where=~chunk.flags, initial=np.inf)))
         reference = None
         if spec.coeffs is not None:
             pred = np.einsum("pftm,apfm->aptf", design(spec.model, tsky, chunk.lsts), spec.coeffs)
@@ -472,7 +471,7 @@ def compute_partial(
             bandwidth_time=bt,
             reference=reference,
         )
-        sums = part if sums is None else sums + part
+        sums = part if sums is None else _add_into(sums, part)
         assert waterfall is not None
         _add_waterfall(
             waterfall,
@@ -505,6 +504,24 @@ def compute_partial(
         stats.as_dict(),
         time.perf_counter() - start,
     )
+
+
+def _add_into(total: NormalSums, part: NormalSums) -> NormalSums:
+    """Add ``part`` into ``total`` in place (the same values as ``total + part``).
+
+    Saves a new set of arrays per block; ``total`` must be owned by the caller.
+    """
+    if total.model != part.model or total.ata.shape != part.ata.shape:
+        return total + part  # raises the FitError that explains the mismatch
+    total.ata += part.ata
+    total.aty += part.aty
+    total.yty += part.yty
+    total.count += part.count
+    total.nflagged += part.nflagged
+    total.lst_min = min(total.lst_min, part.lst_min)
+    total.lst_max = max(total.lst_max, part.lst_max)
+    total.info.update(part.info)
+    return total
 
 
 def _add_waterfall(
@@ -564,7 +581,7 @@ def _fold(
     for i, partial in enumerate(partials):
         if partial.index != i:  # pragma: no cover - executors yield in order
             raise PipelineError(f"partial {partial.index} arrived in place of {i}")
-        sums = partial.sums if sums is None else sums + partial.sums
+        sums = partial.sums if sums is None else _add_into(sums, partial.sums)
         if waterfall is None:
             waterfall = np.zeros(
                 (*partial.waterfall.shape[:2], waterfall_shape[0], *partial.waterfall.shape[3:])

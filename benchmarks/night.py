@@ -385,6 +385,54 @@ def truth_check(solution_path: Path, folder: Path) -> dict:
     }
 
 
+def profile_file(path: str) -> dict:
+    """Profile the per-block path on one file (pyinstrument): where the time goes."""
+    from pyinstrument import Profiler
+
+    from autocal.fit import FitModel
+    from autocal.io.uvh5 import scan_uvh5
+    from autocal.pipeline import FileTask, PartialSpec, compute_partial
+
+    file = scan_uvh5([path])[0]
+    tsky = np.full((len(file.pols), file.lsts.size, file.freqs.size), 300.0)  # any values
+    selection = {"antennas": None, "pols": None, "freq_range": None, "lst_range": None}
+    spec = PartialSpec(FitModel.for_lsts(file.lsts), "radiometer", selection, 2, 1)
+    profiler = Profiler(interval=0.005)
+    profiler.start()
+    partial = compute_partial(spec, FileTask(0, file, 0, file.lsts, tsky))
+    profiler.stop()
+    parts = {
+        "_read_rows": "HDF5 reads + decompression",
+        "_iter_blocks": "block reader total (incl. HDF5)",
+        "file_checksum": "SHA-256 of the file",
+        "accumulate": "autocal.fit.accumulate (normal sums)",
+        "bandwidth_time": "dnu dt N per sample",
+        "_add_waterfall": "waterfall sums (2 antennas)",
+        "_add_into": "adding block sums",
+        "__post_init__": "Observation checks",
+    }
+    found = dict.fromkeys(parts, 0.0)
+
+    def walk(frame, inside: frozenset) -> None:
+        name = frame.function
+        if name in found and name not in inside:
+            found[name] += frame.time
+            inside = inside | {name}
+        for child in frame.children:
+            walk(child, inside)
+
+    walk(profiler.last_session.root_frame(), frozenset())
+    total = partial.seconds
+    return {
+        "file": Path(path).name,
+        "seconds": round(total, 2),
+        "values": partial.stats["samples"],
+        "blocks": partial.stats["blocks"],
+        "parts_s": {parts[k]: round(v, 2) for k, v in found.items()},
+        "text": profiler.output_text(unicode=False, color=False),
+    }
+
+
 def machine() -> dict:
     cpu = "unknown"
     try:
@@ -520,34 +568,65 @@ def markdown(report: dict) -> str:
             f"{r['largest_array_mb']} | {r['msamples_per_s_fit']} | {r['disk_mb_per_s_fit']} | "
             f"{r['c8_mb_per_s_fit']} |"
         )
-    cmp_ = report["dask_vs_serial"]
-    truth = report["truth"]
+    startup = next((r["dask_startup_s"] for r in report["rows"] if r["dask_startup_s"]), None)
     lines += [
         "",
         "Columns: *values* = antennas x pols x integrations x channels per pass; *fit s* = "
-        "the streamed pass over the files (the Dask cluster is started before the scan: "
-        f"{report['rows'][-1]['dask_startup_s']} s, in wall s); throughputs are per fit "
-        "second; "
-        "*peak RSS* = the high-water mark (VmHWM) of the calibrating process, overall and "
-        "split into scan + Tsky and the streamed fit + products (for Dask: the client; "
-        "the workers' own peaks are the next column); *HDF5 read / disk* = bytes the "
-        "HDF5 library read "
-        "through the reader's counting file object over the files' size (1.0 = read "
-        "once); *SHA-256 read / disk* = the sequential provenance checksum read just "
-        "before each file's data (served again from the page cache); *disk reads / "
-        "disk* = /proc/self/io read_bytes of the process after evicting the files from "
-        "the page cache (physical reads; the Dask workers read in their own processes).",
+        "the streamed pass over the files"
+        + (
+            f" (the Dask cluster is started before the scan: {startup} s, in wall s)"
+            if startup
+            else ""
+        )
+        + "; throughputs are per fit second; *peak RSS* = the high-water mark (VmHWM) of "
+        "the calibrating process, overall and split into scan + Tsky and the streamed "
+        "fit + products (for Dask: the client; the workers' own peaks are the next "
+        "column); *HDF5 read / disk* = bytes the HDF5 library read through the reader's "
+        "counting file object over the files' size (1.0 = read once); *SHA-256 read / "
+        "disk* = the sequential provenance checksum read just before each file's data "
+        "(served again from the page cache); *disk reads / disk* = /proc/self/io "
+        "read_bytes of the process after evicting the files from the page cache "
+        "(physical reads; the Dask workers read in their own processes).",
         "",
-        f"Dask ({report['dask_night']} night, LocalCluster of {report['dask_workers']} "
-        f"worker processes, 1 thread each) vs the serial run of the same files: "
-        f"{'bit-identical' if cmp_['identical'] else 'NOT bit-identical'} "
-        f"(max relative difference {cmp_['max_rel_diff']:.3g}).",
-        "",
-        f"Full-night solution vs the simulated truth: median |G/G_true - 1| = "
-        f"{truth['median_abs_G_rel_err']:.2e}, median |Trxr - Trxr_true| = "
-        f"{truth['median_abs_Trxr_err_K']:.3f} K, rms pull of G = {truth['rms_G_pull']:.2f}, "
-        f"{truth['flagged_channels']} channels flagged.",
-        "",
+    ]
+    if not report.get("complete"):
+        lines += ["**Partial report: the benchmark has not finished (yet).**", ""]
+    cmp_ = report.get("dask_vs_serial")
+    if cmp_ is not None:
+        lines += [
+            f"Dask ({report['dask_night']} night, LocalCluster of {report['dask_workers']} "
+            "worker processes, 1 thread each) vs the serial run of the same files: "
+            f"{'bit-identical' if cmp_['identical'] else 'NOT bit-identical'} "
+            f"(max relative difference {cmp_['max_rel_diff']:.3g}).",
+            "",
+        ]
+    truth = report.get("truth")
+    if truth is not None:
+        lines += [
+            "Full-night solution vs the simulated truth: median |G/G_true - 1| = "
+            f"{truth['median_abs_G_rel_err']:.2e}, median |Trxr - Trxr_true| = "
+            f"{truth['median_abs_Trxr_err_K']:.3f} K, rms pull of G = "
+            f"{truth['rms_G_pull']:.2f}, {truth['flagged_channels']} channels flagged.",
+            "",
+        ]
+    prof = report.get("profile")
+    if prof is not None:
+        lines += [
+            "## Where the time goes (pyinstrument, one file, in the benchmark process)",
+            "",
+            f"{prof['file']}: {prof['values'] / 1e6:.0f} M values in {prof['blocks']} "
+            f"blocks, {prof['seconds']} s ({prof['values'] / prof['seconds'] / 1e6:.1f} M "
+            "values/s):",
+            "",
+            "| part | s | share |",
+            "|---|---|---|",
+            *[
+                f"| {k} | {v} | {100 * v / prof['seconds']:.0f} % |"
+                for k, v in prof["parts_s"].items()
+            ],
+            "",
+        ]
+    lines += [
         "## Pointing the calibration at a Dask cluster",
         "",
         "```bash",
@@ -574,54 +653,73 @@ def markdown(report: dict) -> str:
 
 
 def run_all(args: argparse.Namespace, night: Night) -> None:
+    """Generate if needed, measure the runs, compare, profile; save after every step."""
     t0 = time.perf_counter()
     folder = args.data
     generated = not (folder / "night.json").exists() or args.regenerate
-    info = machine()
-    manifest = load_or_generate(night, folder, args.jobs, args.regenerate)
-    generated = generated and manifest.get("generate_s") is not None
-    files = manifest["files"]
-    n = len(files)
-    parts = {"quarter": max(1, n // 4), "half": max(1, n // 2), "full": n}
-    runs = {}
-    for label in ("quarter", "half", "full"):
-        runs[label] = measure(label, files[: parts[label]], folder, None, 0)
-    dask_label = args.dask_night
-    runs["dask"] = measure(
-        f"dask-{dask_label}", files[: parts[dask_label]], folder, "local", args.dask_workers
-    )
-    comparison = compare_solutions(
-        Path(runs[dask_label]["out"]) / "solution.h5", Path(runs["dask"]["out"]) / "solution.h5"
-    )
-    truth = truth_check(Path(runs["full"]["out"]) / "solution.h5", folder)
-    rows = [_row(label, parts[label], runs[label], manifest, night) for label in parts]
-    rows.append(
-        _row(f"dask {dask_label} (2 workers)", parts[dask_label], runs["dask"], manifest, night)
-    )
-    report = {
+    report: dict = {
         "command": " ".join(["python", "benchmarks/night.py", *sys.argv[1:]]),
-        "machine": info,
+        "machine": machine(),
         "night": asdict(night),
         "channel_width_khz": night.channel_width / 1e3,
         "integration_time_s": night.integration_time,
         "hours_lst": night.ntimes * night.cadence_sidereal_s / 3600,
         "dnu_dt": night.channel_width * night.integration_time,
-        "storage": manifest,
-        "generated": generated,
-        "rows": rows,
-        "runs": runs,
-        "dask_night": dask_label,
+        "dask_night": args.dask_night,
         "dask_workers": args.dask_workers,
-        "dask_vs_serial": comparison,
-        "truth": truth,
-        "total_s": time.perf_counter() - t0,
+        "rows": [],
+        "runs": {},
+        "complete": False,
     }
     results = args.results or (RESULTS if night.is_full else folder / "results")
     results.mkdir(parents=True, exist_ok=True)
-    (results / "night.json").write_text(json.dumps(report, indent=2, default=str))
-    text = markdown(report)
-    (results / "night.md").write_text(text)
-    print(text)
+
+    def save() -> None:
+        report["total_s"] = time.perf_counter() - t0
+        (results / "night.json").write_text(json.dumps(report, indent=2, default=str))
+        (results / "night.md").write_text(markdown(report))
+
+    manifest = load_or_generate(night, folder, args.jobs, args.regenerate)
+    report["storage"] = manifest
+    report["generated"] = generated
+    files = manifest["files"]
+    n = len(files)
+    parts = {"quarter": max(1, n // 4), "half": max(1, n // 2), "full": n}
+    wanted = args.runs.split(",")
+    runs = report["runs"]
+    for label in ("quarter", "half", "full"):
+        if label in wanted:
+            runs[label] = measure(label, files[: parts[label]], folder, None, 0)
+            report["rows"].append(_row(label, parts[label], runs[label], manifest, night))
+            save()
+    dask_label = args.dask_night
+    if "dask" in wanted:
+        runs["dask"] = measure(
+            f"dask-{dask_label}", files[: parts[dask_label]], folder, "local", args.dask_workers
+        )
+        report["rows"].append(
+            _row(
+                f"dask {dask_label} ({args.dask_workers} workers)",
+                parts[dask_label],
+                runs["dask"],
+                manifest,
+                night,
+            )
+        )
+        serial = folder / "runs" / dask_label / "solution.h5"
+        if serial.exists():
+            report["dask_vs_serial"] = compare_solutions(
+                serial, Path(runs["dask"]["out"]) / "solution.h5"
+            )
+        save()
+    if "full" in runs:
+        report["truth"] = truth_check(Path(runs["full"]["out"]) / "solution.h5", folder)
+    if "profile" in wanted:
+        print("profiling one file ...", flush=True)
+        report["profile"] = profile_file(files[n // 2])
+    report["complete"] = True
+    save()
+    print(markdown(report))
     print(f"wrote {results / 'night.json'} and {results / 'night.md'}")
 
 
@@ -643,6 +741,11 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2, help="generation processes (2)")
     parser.add_argument("--regenerate", action="store_true", help="rewrite the night")
     parser.add_argument("--dask-workers", type=int, default=2)
+    parser.add_argument(
+        "--runs",
+        default="quarter,half,full,dask,profile",
+        help="comma-separated steps to run (default quarter,half,full,dask,profile)",
+    )
     parser.add_argument(
         "--dask-night",
         default="full",
