@@ -699,21 +699,19 @@ class BruteForceTsky:
             self.sum_all[sel] = vals.sum(axis=1)
             self.sum_below[sel] = vals @ (1.0 - w_above)
             self.beam_matrix[sel] = vals[:, self.above] * w_sel
-        # ring transforms of the sky components
+        # ring transforms of the sky components that move (not the constant CMB map)
         nring = 4 * nside - 1
         start, length, _, _, _ = hp.ringinfo(nside, np.arange(1, nring + 1))
-        self._npix = hp.nside2npix(nside)
+        self._maps = sky.maps
+        self._moving = np.flatnonzero(np.ptp(sky.maps, axis=1) > 0)
+        moving = sky.maps[self._moving]
         self._eq = (int(start[nside - 1]), 2 * nside + 1, 4 * nside)  # first, rings, n
         first, rings, n = self._eq
-        block = sky.maps[:, first : first + rings * n].reshape(sky.ncomp, rings, n)
-        self._eq_hat = np.fft.rfft(block, axis=-1)
+        block = moving[:, first : first + rings * n].reshape(moving.shape[0], rings, n)
+        self._eq_hat = sp_fft.rfft(block, axis=-1)
         eq_rings = range(nside - 1, 3 * nside)
         self._caps = [
-            (
-                int(start[r]),
-                int(length[r]),
-                np.fft.rfft(sky.maps[:, start[r] : start[r] + length[r]]),
-            )
+            (int(start[r]), int(length[r]), sp_fft.rfft(moving[:, start[r] : start[r] + length[r]]))
             for r in range(nring)
             if r not in eq_rings
         ]
@@ -721,15 +719,18 @@ class BruteForceTsky:
 
     def rotated_sky(self, lst_rad: float) -> np.ndarray:
         """Sky components turned by the LST: ``(Ncomp, Npix)``, value at pixel p = S(RA_p + L)."""
-        out = np.empty((self._ncomp, self._npix))
+        out = self._maps.copy()
+        if self._moving.size == 0:
+            return out
+        rot = np.empty((self._moving.size, self._maps.shape[1]))
         first, rings, n = self._eq
         phase = np.exp(1j * lst_rad * np.arange(n // 2 + 1))
-        out[:, first : first + rings * n] = np.fft.irfft(self._eq_hat * phase, n=n).reshape(
-            self._ncomp, -1
-        )
+        eq = sp_fft.irfft(self._eq_hat * phase, n=n, axis=-1)
+        rot[:, first : first + rings * n] = eq.reshape(self._moving.size, -1)
         for start, length, s_hat in self._caps:
             phase = np.exp(1j * lst_rad * np.arange(length // 2 + 1))
-            out[:, start : start + length] = np.fft.irfft(s_hat * phase, n=length)
+            rot[:, start : start + length] = sp_fft.irfft(s_hat * phase, n=length)
+        out[self._moving] = rot
         return out
 
     def __call__(
