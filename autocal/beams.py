@@ -51,6 +51,10 @@ class BeamEvaluator:
     so that evaluating many frequency chunks costs one frequency interpolation each.
     """
 
+    #: True if values can never be negative (NaN may still appear): the Tsky engine then
+    #: skips its per-value sign check and relies on the beam integrals being finite.
+    nonnegative: bool = False
+
     def __init__(self, beam: Beam, az: np.ndarray, za: np.ndarray) -> None:
         self.beam = beam
         self.az = np.asarray(az, dtype=np.float64)
@@ -421,6 +425,7 @@ class _GriddedEvaluator(BeamEvaluator):
     #: products run single-threaded in OpenBLAS, which avoids its thread hand-offs (they
     #: dominate for these thin memory-bound products, badly so on a busy machine).
     _BLOCK = 16384
+    nonnegative = True  # clipped at zero
 
     def __init__(self, beam: _GriddedFileBeam, az: np.ndarray, za: np.ndarray) -> None:
         super().__init__(beam, az, za)

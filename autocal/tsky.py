@@ -216,11 +216,14 @@ class _RingPlan:
         is 0 when no equatorial ring is transformed).
     caps
         ``(first pixel, length)`` of each transformed polar-cap ring.
+    moving
+        The components that are not constant maps (only those have ``m >= 1`` terms),
+        as a slice when they are consecutive.
     y_eq
-        ``(M, Ncomp, eq_rings)`` complex: ``conj(S_m) w_m / n`` of the sky components on
+        ``(M, Nmoving, eq_rings)`` complex: ``conj(S_m) w_m / n`` of those components on
         the equatorial rings, zero at ``m = 0`` (computed exactly in float64 instead).
     y_cap
-        ``(M, Ncomp, Ncap)`` the same for the cap rings (zero beyond each ring's ``n/2``).
+        ``(M, Nmoving, Ncap)`` the same for the cap rings (zero beyond each ring's ``n/2``).
     mean_ring
         ``(Ncomp, Npix)``: each component's ring average at every pixel (the ``m = 0``
         term of the ring correlation).
@@ -232,6 +235,7 @@ class _RingPlan:
     eq_rings: int
     eq_len: int
     caps: tuple[tuple[int, int], ...]
+    moving: slice | np.ndarray
     y_eq: np.ndarray
     y_cap: np.ndarray
     mean_ring: np.ndarray
@@ -248,9 +252,15 @@ def _ring_plan(maps: np.ndarray, w_above: np.ndarray, nside: int) -> _RingPlan:
     ring_mean = np.add.reduceat(maps, start, axis=1) / length  # (Ncomp, Nring)
     mean_ring = ring_mean[:, ring_of_pixel]
     needed = np.maximum.reduceat(w_above, start) > 0
-    if not np.any(needed):
-        empty = np.zeros((mmax + 1, ncomp, 0), dtype=ctype)
-        return _RingPlan(0, 0, 0, 0, 4 * nside, (), empty, empty, mean_ring)
+    moving_idx = np.flatnonzero(np.ptp(maps, axis=1) > 0)
+    moving: slice | np.ndarray = moving_idx
+    if moving_idx.size and np.all(np.diff(moving_idx) == 1):
+        moving = slice(int(moving_idx[0]), int(moving_idx[-1]) + 1)
+    if not np.any(needed) or moving_idx.size == 0:  # nothing turns into view
+        empty = np.zeros((mmax + 1, moving_idx.size, 0), dtype=ctype)
+        return _RingPlan(0, 0, 0, 0, 4 * nside, (), moving, empty, empty, mean_ring)
+    maps = maps[moving_idx]
+    ncomp = maps.shape[0]
     rings = np.flatnonzero(needed)
     lo, hi = int(start[rings[0]]), int(start[rings[-1]] + length[rings[-1]])
     eq = np.arange(nside - 1, 3 * nside)
@@ -274,7 +284,7 @@ def _ring_plan(maps: np.ndarray, w_above: np.ndarray, nside: int) -> _RingPlan:
         y_cap[: n // 2 + 1, :, j] = s_hat.T
     y_cap[0] = 0
     cap_rings = tuple((int(start[r]), int(length[r])) for r in caps)
-    return _RingPlan(lo, hi, eq_start, eq_rings, n_eq, cap_rings, y_eq, y_cap, mean_ring)
+    return _RingPlan(lo, hi, eq_start, eq_rings, n_eq, cap_rings, moving, y_eq, y_cap, mean_ring)
 
 
 class _Clock:
@@ -368,7 +378,7 @@ class _FftJob:
             b1 = min(b0 + step, npix)
             vals = self.evaluator.by_direction(freqs, slice(b0, b1))  # (rows, Nf) float64
             clock.lap("beam")
-            if not vals.min() >= 0:  # also catches NaN
+            if not (self.evaluator.nonnegative or vals.min() >= 0):  # also catches NaN
                 raise TskyError(f"beam {self.beam_name} gave negative or non-finite values")
             acc += self.weights[:, b0:b1] @ vals
             o0, o1 = max(b0, plan.lo), min(b1, plan.hi)
@@ -389,27 +399,29 @@ class _FftJob:
 def _overlap_chunk(
     plan: _RingPlan, b_sky: np.ndarray, out: np.ndarray, cap_buf: np.ndarray, clock: _Clock
 ) -> None:
-    """Add the ``m >= 1`` ring overlaps of one frequency chunk to ``out`` (``(M, Ncomp, Nf)``).
+    """Set the ``m >= 1`` ring overlaps of one frequency chunk in ``out`` (``(M, Ncomp, Nf)``).
 
     ``b_sky`` is the ``(hi - lo, Nf)`` horizon-weighted beam over the transformed rings,
     ``cap_buf`` a zeroed ``(M, Ncap, Nf)`` complex work array (only the entries
     ``m <= n/2`` of each cap ring are ever written, so it stays zero elsewhere).
     """
     nf = b_sky.shape[1]
+    total = np.zeros((out.shape[0], plan.y_eq.shape[1], nf), dtype=np.complex128)
     if plan.eq_rings:
         first = plan.eq_start - plan.lo
         block = b_sky[first : first + plan.eq_rings * plan.eq_len]
         x_eq = sp_fft.rfft(block.reshape(plan.eq_rings, plan.eq_len, nf), axis=1)
         clock.lap("fft")
-        out += np.matmul(plan.y_eq, x_eq.transpose(1, 0, 2))
+        total += np.matmul(plan.y_eq, x_eq.transpose(1, 0, 2))
         clock.lap("ring_sum")
     if plan.caps:
         for j, (first, n) in enumerate(plan.caps):
             ring = b_sky[first - plan.lo : first - plan.lo + n]
             cap_buf[: n // 2 + 1, j] = sp_fft.rfft(ring, axis=0)
         clock.lap("fft")
-        out += np.matmul(plan.y_cap, cap_buf)
+        total += np.matmul(plan.y_cap, cap_buf)
         clock.lap("ring_sum")
+    out[:, plan.moving] = total  # constant maps have no m >= 1 terms (out stays zero)
 
 
 def _regular_grid(lst_rad: np.ndarray, mmax: int) -> tuple[int, np.ndarray] | None:

@@ -327,3 +327,29 @@ def test_hera_beam_evaluator_matches_power(data_root):
     np.testing.assert_allclose(evaluator(freqs), expected, rtol=1e-12, atol=1e-15)
     part = evaluator.by_direction(freqs, slice(100, 300))
     np.testing.assert_allclose(part, expected[:, 100:300].T, rtol=1e-12, atol=1e-15)
+
+
+def test_constant_components_in_any_order(lst_day):
+    """Constant maps (the CMB) skip the ring transforms wherever they sit in the list."""
+    freqs = np.array([80e6, 160e6])
+    sky = _rough_sky(16, freqs)
+    order = [2, 0, 1]  # cmb first: the moving components are not a leading slice
+    mixed = SkyComponents(
+        sky.maps[order], sky.spectra[:, order], ("cmb", "a", "b"), freqs, 16, sky.epoch_jd
+    )
+    beam = GaussianDipoleBeam()
+    ref = tsky_fft(sky, beam, HERA, lst_day, keep_components=True)
+    got = tsky_fft(mixed, beam, HERA, lst_day, keep_components=True)
+    np.testing.assert_allclose(got.tsky, ref.tsky, rtol=1e-9)
+    np.testing.assert_allclose(got.components, ref.components[..., order], rtol=1e-9, atol=1e-12)
+
+
+def test_nan_in_clipped_file_beam_is_reported():
+    """Gridded beams skip the sign check (they are clipped at 0); NaN still raises."""
+    npix = hp.nside2npix(8)
+    table = np.ones((3, npix))
+    table[1, 100] = np.nan
+    beam = _TableBeam(np.array([100e6, 150e6, 200e6]), table)
+    sky = UniformSky(100.0).components(np.array([120e6, 140e6]), nside=8)
+    with pytest.raises(TskyError, match="negative or non-finite"):
+        tsky_fft(sky, beam, HERA, [0.0, 1.0])
