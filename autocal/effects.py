@@ -40,7 +40,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.polynomial import legendre
 
-from autocal.beams import Beam, get_beam
+from autocal.beams import Beam, BeamEvaluator, get_beam
 from autocal.sky import T_CMB
 from autocal.tsky import compute_tsky
 
@@ -89,6 +89,12 @@ class ScaledBeam(Beam):
             raise EffectError("ScaledBeam needs a base beam")
         za = np.clip(np.asarray(za) / self.factor, 0.0, np.pi)
         return self.base.power(freqs, az, za)
+
+    def on(self, az: np.ndarray, za: np.ndarray) -> BeamEvaluator:
+        """Bind the base beam to the scaled directions (keeps its fast evaluator)."""
+        if self.base is None:
+            raise EffectError("ScaledBeam needs a base beam")
+        return self.base.on(az, np.clip(np.asarray(za) / self.factor, 0.0, np.pi))
 
     def describe(self) -> dict[str, Any]:  # noqa: D102
         base = {} if self.base is None else self.base.describe()
