@@ -29,8 +29,15 @@ its values set to NaN, never filled.
 
 from __future__ import annotations
 
+import hashlib
+import importlib.util
 import logging
+import os
+import sys
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -283,6 +290,412 @@ def weights_for(
     return np.where(usable, w, 0.0)
 
 
+# moment-based accumulation ----------------------------------------------------------------
+#
+# With the design row a_t = (T_t b_0(t) .. T_t b_p(t), b_0(t) .. b_p(t)) (b_k = P_k(s), or 1
+# for the constant model) every normal-equation sum is a weighted time moment:
+#
+#   ata[j, k] = sum_t w T^2 b_j b_k,   ata[j, K + k] = sum_t w T b_j b_k,
+#   ata[K + j, K + k] = sum_t w b_j b_k,   aty[k] = sum_t w y T b_k,   aty[K + k] = sum_t w y b_k
+#
+# and b_j b_k = sum_r L[j, k, r] P_r (Legendre linearisation, r <= 2p). So per sample only
+# the 3 (2p + 1) moments sum_t w T^e P_r (e = 0, 1, 2), the 2 (p + 1) moments
+# sum_t w y T^e P_k (e = 0, 1), sum_t w y^2 and the count are needed, and the full design
+# (Nant, Npol, Ntime, Nfreq, 2 (p + 1)) array never exists. Two engines compute them: a
+# fused numba kernel (one pass over the data, compiled per model order and weight kind) and
+# a numpy fallback (antenna blocks, matrix products over time).
+
+#: Antenna-block engines: ``"numba"`` (fused compiled kernel), ``"numpy"`` or ``"auto"``.
+Engine = Literal["auto", "numba", "numpy"]
+#: Smallest chunk (samples) for which ``engine="auto"`` compiles a numba kernel; smaller
+#: chunks use numpy unless a matching kernel is already compiled.
+NUMBA_MIN_SAMPLES = 1 << 22
+
+
+def _time_functions(model: FitModel, lsts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return the moment functions ``(R, Ntime)`` and the linearisation ``(K, K, R)``.
+
+    ``coef[r] = P_r(s(t))`` for ``r = 0 .. 2p`` (ones for the constant model) and
+    ``basis_j basis_k = sum_r lin[j, k, r] coef[r]``; the first ``K = p + 1`` rows of
+    ``coef`` are the model's basis.
+    """
+    nb = model.nbasis
+    nr = 2 * model.order + 1
+    if model.kind == "constant":
+        coef = np.ones((1, np.size(lsts)))
+    else:
+        coef = legendre.legvander(model.s(lsts), nr - 1).T
+    lin = np.zeros((nb, nb, nr))
+    for j in range(nb):
+        for k in range(nb):
+            prod = legendre.legmul(np.eye(nb)[j], np.eye(nb)[k])
+            lin[j, k, : prod.size] = prod
+    return np.ascontiguousarray(coef), lin
+
+
+def _assemble(lin: np.ndarray, mom: np.ndarray, ymom: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Build the normal matrix and right-hand side from the moments.
+
+    Parameters
+    ----------
+    lin
+        ``(K, K, R)`` linearisation from :func:`_time_functions`.
+    mom
+        ``(..., 3, R)``: ``sum_t w T^e P_r``.
+    ymom
+        ``(..., 2, K)``: ``sum_t w y T^e P_k``.
+    """
+    nb = lin.shape[0]
+    blocks = np.einsum("jkr,...er->...ejk", lin, mom)  # (..., 3, K, K)
+    ata = np.empty((*mom.shape[:-2], 2 * nb, 2 * nb))
+    ata[..., :nb, :nb] = blocks[..., 2, :, :]
+    ata[..., :nb, nb:] = blocks[..., 1, :, :]
+    ata[..., nb:, :nb] = blocks[..., 1, :, :]
+    ata[..., nb:, nb:] = blocks[..., 0, :, :]
+    aty = np.concatenate([ymom[..., 1, :], ymom[..., 0, :]], axis=-1)
+    return ata, aty
+
+
+@dataclass
+class _Chunk:
+    """Validated inputs of :func:`accumulate` in the layout the engines read."""
+
+    data: np.ndarray  # (A, P, T, F) float64, C order
+    flags: np.ndarray  # (A, P, T, F) uint8, C order (0 = usable)
+    mode: str  # identity | radiometer | user
+    num: np.ndarray | float  # radiometer dnu dt N, or user 1/sigma^2 (array or scalar)
+    power: np.ndarray | None  # radiometer reference power (None: the data)
+    tsky: np.ndarray  # (P, T, F) float64
+    coef: np.ndarray  # (R, T)
+    lin: np.ndarray  # (K, K, R)
+
+
+def _full(values: Any, shape: tuple[int, ...]) -> np.ndarray | float:
+    """Return a scalar as a float, anything else as a C-ordered float64 array of ``shape``."""
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.size == 1:
+        return float(arr.reshape(-1)[0])
+    return np.ascontiguousarray(np.broadcast_to(arr, shape))
+
+
+def _moments_numpy(c: _Chunk, a0: int, a1: int, out: dict[str, np.ndarray]) -> int:
+    """Fill ``out[...][a0:a1]`` with numpy; return the number of invalid user weights.
+
+    One antenna at a time with preallocated ``(Npol, Ntime, Nfreq)`` buffers (no page
+    faults, cache-sized operands); the time moments are matrix products with ``coef``.
+    """
+    shape = c.data.shape[1:]
+    w, y, tmp = np.empty(shape), np.empty(shape), np.empty(shape)
+    used, mask, valid = np.empty(shape, bool), np.empty(shape, bool), np.empty(shape, bool)
+    nb = c.lin.shape[0]
+    cw, cwk, tt = c.coef, c.coef[:nb], c.tsky
+    scalar = np.ndim(c.num) == 0
+    nbad = 0
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        for a in range(a0, a1):
+            d = c.data[a]
+            num = c.num if scalar else c.num[a]  # type: ignore[index]
+            np.isfinite(d, out=used)
+            np.equal(c.flags[a], 0, out=mask)
+            used &= mask
+            if c.mode == "identity":
+                np.copyto(w, used)
+            elif c.mode == "radiometer":
+                power = d if c.power is None else c.power[a]
+                np.multiply(power, power, out=tmp)
+                np.divide(num, tmp, out=w)
+                used &= np.greater(w, 0.0, out=mask)
+                used &= np.less(w, np.inf, out=mask)
+                np.copyto(w, 0.0, where=np.logical_not(used, out=mask))
+            else:
+                np.copyto(w, num)
+                np.greater_equal(w, 0.0, out=mask)
+                mask &= np.less(w, np.inf, out=valid)
+                nbad += int(np.count_nonzero(used & ~mask))
+                np.copyto(w, 0.0, where=np.logical_not(used, out=mask))
+                np.greater(w, 0.0, out=used)
+            np.copyto(y, d)
+            np.copyto(y, 0.0, where=np.logical_not(used, out=mask))
+            mom = np.empty((*shape[::2], 3, cw.shape[0]))  # (P, F, 3, R)
+            ymom = np.empty((*shape[::2], 2, nb))
+            mom[..., 0, :] = np.swapaxes(cw @ w, -1, -2)
+            np.multiply(w, tt, out=tmp)
+            mom[..., 1, :] = np.swapaxes(cw @ tmp, -1, -2)
+            tmp *= tt
+            mom[..., 2, :] = np.swapaxes(cw @ tmp, -1, -2)
+            w *= y  # w y
+            ymom[..., 0, :] = np.swapaxes(cwk @ w, -1, -2)
+            out["yty"][a] = np.einsum("ptf,ptf->pf", w, y)
+            np.multiply(w, tt, out=tmp)
+            ymom[..., 1, :] = np.swapaxes(cwk @ tmp, -1, -2)
+            out["ata"][a], out["aty"][a] = _assemble(c.lin, mom, ymom)
+            out["count"][a] = np.count_nonzero(used, axis=1)
+    return nbad
+
+
+#: Integrations handled per pass of the compiled kernel's channel loop, and channels per
+#: block (the block's accumulators, ~(8p + 8) x _FBLOCK doubles, stay in L1/L2).
+_TUNROLL = 2
+_FBLOCK = 512
+_KERNELS: dict[tuple[Any, ...], Any] = {}
+_KERNEL_LOCK = threading.Lock()
+
+
+def _numba_available() -> bool:
+    try:
+        import numba  # noqa: F401
+    except ImportError:  # pragma: no cover - numba is optional
+        return False
+    return True
+
+
+def _kernel_key(c: _Chunk) -> tuple[Any, ...]:
+    nb, _, nr = c.lin.shape
+    return (
+        nr,
+        nb,
+        c.mode,
+        np.ndim(c.num) == 0,
+        c.power is None,
+        c.lin.tobytes(),
+        _TUNROLL,
+        _FBLOCK,
+    )
+
+
+def _kernel_source(key: tuple[Any, ...], lin: np.ndarray) -> str:
+    """Python source of the fused moment kernel for one model order and weight kind.
+
+    The channel loop is straight-line code over scalar accumulators (one per moment, kept in
+    a flat block with a constant row stride so LLVM vectorises it over channels without
+    aliasing checks between rows), unrolled over ``_TUNROLL`` integrations.
+    """
+    nr, nb, mode, scalar_num, own_power, _, tu, fb = key
+    fbp = fb + 8  # pad rows so they do not share cache sets
+    names = [f"m{e}_{r}" for e in range(3) for r in range(nr)]
+    names += [f"q{e}_{k}" for e in range(2) for k in range(nb)]
+    names += ["yy", "cn"] + (["bd"] if mode == "user" else [])
+    src = [
+        "def kernel(data, flags, num, power, tsky, coef, a_start, a_stop, ata, aty, yty, "
+        "count, bad):",
+        "    npol, ntime, nfreq = data.shape[1], data.shape[2], data.shape[3]",
+        f"    acc = np.empty({len(names) * fbp})",
+        "    for ia in range(a_start, a_stop):",
+        "        nbad = 0.0",
+        "        for p in range(npol):",
+        f"            for f0 in range(0, nfreq, {fb}):",
+        f"                nf = min({fb}, nfreq - f0)",
+        "                acc[:] = 0.0",
+        f"                for t0 in range(0, ntime, {tu}):",
+    ]
+    ind = " " * 20
+    for u in range(tu):
+        src += [
+            f"{ind}t{u} = min(t0 + {u}, ntime - 1)",
+            f"{ind}v{u} = t0 + {u} < ntime",
+            f"{ind}d{u} = data[ia, p, t{u}, f0:f0 + nf]",
+            f"{ind}g{u} = flags[ia, p, t{u}, f0:f0 + nf]",
+            f"{ind}s{u} = tsky[p, t{u}, f0:f0 + nf]",
+        ]
+        if mode != "identity" and not scalar_num:
+            src.append(f"{ind}n{u} = num[ia, p, t{u}, f0:f0 + nf]")
+        if mode == "radiometer" and not own_power:
+            src.append(f"{ind}w{u} = power[ia, p, t{u}, f0:f0 + nf]")
+        src += [f"{ind}c{u}_{r} = coef[{r}, t{u}]" for r in range(1, nr)]
+    src.append(f"{ind}for j in range(nf):")
+    ind = " " * 24
+    src += [f"{ind}{n} = acc[{i * fbp} + j]" for i, n in enumerate(names)]
+    for u in range(tu):
+        src += [f"{ind}x = d{u}[j]", f"{ind}ok = (x - x == 0.0) & (g{u}[j] == 0) & v{u}"]
+        numer = "num" if scalar_num else f"n{u}[j]"
+        if mode == "identity":
+            src.append(f"{ind}w = 1.0")
+        elif mode == "radiometer":
+            pw = "x" if own_power else f"w{u}[j]"
+            src += [
+                f"{ind}pw = {pw}",
+                f"{ind}w = {numer} / (pw * pw)",
+                f"{ind}ok = ok & (w > 0.0) & (w < np.inf)",
+            ]
+        else:
+            src += [
+                f"{ind}w = {numer}",
+                f"{ind}bd += 0.0 if (w >= 0.0) & (w < np.inf) else (1.0 if ok else 0.0)",
+                f"{ind}ok = ok & (w > 0.0)",
+            ]
+        src += [
+            f"{ind}w = w if ok else 0.0",
+            f"{ind}y = x if ok else 0.0",
+            f"{ind}cn += 1.0 if ok else 0.0",
+            f"{ind}ts = s{u}[j]",
+            f"{ind}x1 = w * ts",
+            f"{ind}x2 = x1 * ts",
+            f"{ind}x3 = w * y",
+            f"{ind}x4 = x3 * ts",
+            f"{ind}yy += x3 * y",
+        ]
+        # P_0 = 1: the r = 0 moments are plain sums (adds, off the FMA pipes)
+        feats = ("w", "x1", "x2")
+        src += [f"{ind}m{e}_0 += {feats[e]}" for e in range(3)]
+        src += [f"{ind}m{e}_{r} += c{u}_{r} * {feats[e]}" for e in range(3) for r in range(1, nr)]
+        yfeats = ("x3", "x4")
+        src += [f"{ind}q{e}_0 += {yfeats[e]}" for e in range(2)]
+        src += [f"{ind}q{e}_{k} += c{u}_{k} * {yfeats[e]}" for e in range(2) for k in range(1, nb)]
+    src += [f"{ind}acc[{i * fbp} + j] = {n}" for i, n in enumerate(names)]
+    # write the normal matrix of each channel of the block
+    ind = " " * 16
+    src.append(f"{ind}for j in range(nf):")
+    ind = " " * 20
+    src.append(f"{ind}f = f0 + j")
+    src += [f"{ind}{n} = acc[{i * fbp} + j]" for i, n in enumerate(names)]
+
+    def comb(e: int, j: int, k: int) -> str:
+        terms = [
+            f"m{e}_{r}" if lin[j, k, r] == 1.0 else f"{lin[j, k, r]!r} * m{e}_{r}"
+            for r in range(nr)
+            if lin[j, k, r] != 0.0
+        ]
+        return " + ".join(terms) if terms else "0.0"
+
+    for j in range(nb):
+        for k in range(nb):
+            src += [
+                f"{ind}ata[ia, p, f, {j}, {k}] = {comb(2, j, k)}",
+                f"{ind}ata[ia, p, f, {j}, {nb + k}] = {comb(1, j, k)}",
+                f"{ind}ata[ia, p, f, {nb + j}, {k}] = {comb(1, j, k)}",
+                f"{ind}ata[ia, p, f, {nb + j}, {nb + k}] = {comb(0, j, k)}",
+            ]
+    for k in range(nb):
+        src += [f"{ind}aty[ia, p, f, {k}] = q1_{k}", f"{ind}aty[ia, p, f, {nb + k}] = q0_{k}"]
+    src += [f"{ind}yty[ia, p, f] = yy", f"{ind}count[ia, p, f] = np.int64(cn)"]
+    if mode == "user":
+        src.append(f"{ind}nbad += bd")
+    src.append("        bad[ia] = nbad")
+    return "\n".join(src) + "\n"
+
+
+_KERNEL_HEADER = (
+    '"""Generated by autocal.fit._kernel_source; safe to delete."""\n\n'
+    "import numba\nimport numpy as np\n\n\n"
+    "@numba.njit(cache=True, nogil=True, fastmath={'contract'}, boundscheck=False, "
+    "error_model='numpy')\n"
+)
+
+
+def kernel_cache_dir() -> Path | None:
+    """Return the folder of the compiled fit kernels, or ``None`` when caching is off.
+
+    ``AUTOCAL_KERNEL_CACHE`` (``off`` disables), else ``$XDG_CACHE_HOME/autocal/fit_kernels``
+    (default ``~/.cache/autocal/fit_kernels``). Each kernel is a generated module there
+    whose machine code numba caches next to it, so a process does not recompile it.
+    """
+    env = os.environ.get("AUTOCAL_KERNEL_CACHE", "")
+    if env.strip().lower() in {"off", "none", "0", "false"}:
+        return None
+    if env:
+        return Path(env).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "autocal" / "fit_kernels"
+
+
+def _load_kernel(source: str) -> Any:
+    """Compile a kernel's source, through the on-disk cache when it is usable."""
+    import numba
+
+    text = _KERNEL_HEADER + source
+    name = "autocal_fit_kernel_" + hashlib.sha256(text.encode()).hexdigest()[:20]
+    folder = kernel_cache_dir()
+    if folder is not None:
+        path = folder / f"{name}.py"
+        try:
+            if not path.is_file() or path.read_text() != text:
+                folder.mkdir(parents=True, exist_ok=True)
+                tmp = path.with_suffix(f".{os.getpid()}.tmp")
+                tmp.write_text(text)
+                os.replace(tmp, path)
+            spec = importlib.util.spec_from_file_location(name, path)
+            if spec is not None and spec.loader is not None:
+                module = importlib.util.module_from_spec(spec)
+                sys.modules[name] = module  # numba's cache re-imports it by name
+                spec.loader.exec_module(module)
+                return module.kernel
+        except OSError as err:
+            logger.info("not caching the fit kernel in %s: %s", folder, err)
+    namespace: dict[str, Any] = {"np": np}
+    exec(compile(source, f"<{name}>", "exec"), namespace)
+    return numba.njit(nogil=True, fastmath={"contract"}, boundscheck=False, error_model="numpy")(
+        namespace["kernel"]
+    )
+
+
+def _kernel(c: _Chunk) -> Any:
+    """Return the compiled kernel for this chunk's order and weight kind (built on first use)."""
+    key = _kernel_key(c)
+    with _KERNEL_LOCK:
+        if key not in _KERNELS:
+            logger.debug("loading the fit kernel for %s", key[:5])
+            _KERNELS[key] = _load_kernel(_kernel_source(key, c.lin))
+        return _KERNELS[key]
+
+
+def _moments_numba(c: _Chunk, a0: int, a1: int, out: dict[str, np.ndarray]) -> int:
+    """Fill ``out[...][a0:a1]`` with the compiled kernel; return the invalid user weights."""
+    power = c.data if c.power is None else c.power
+    _kernel(c)(
+        c.data,
+        c.flags,
+        c.num,
+        power,
+        c.tsky,
+        c.coef,
+        a0,
+        a1,
+        out["ata"],
+        out["aty"],
+        out["yty"],
+        out["count"],
+        out["bad"],
+    )
+    return int(out["bad"][a0:a1].sum())
+
+
+def _default_threads() -> int:
+    """Return the default thread count of :func:`accumulate`.
+
+    ``AUTOCAL_FIT_THREADS``, else ``OMP_NUM_THREADS`` (Dask workers set it to 1), else the
+    usable CPUs (at most 8).
+    """
+    for var in ("AUTOCAL_FIT_THREADS", "OMP_NUM_THREADS"):
+        value = os.environ.get(var, "").strip()
+        if value.isdigit() and int(value) > 0:
+            return int(value)
+    try:
+        ncpu = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        ncpu = os.cpu_count() or 1
+    return max(1, min(ncpu, 8))
+
+
+def _choose_engine(engine: str | None, c: _Chunk) -> str:
+    engine = engine or os.environ.get("AUTOCAL_FIT_ENGINE", "auto")
+    if engine not in ("auto", "numba", "numpy"):
+        raise FitError(f"unknown fit engine {engine!r}: use 'auto', 'numba' or 'numpy'")
+    if engine == "numpy":
+        return "numpy"
+    if not _numba_available():
+        if engine == "numba":
+            raise FitError("the numba fit engine needs the numba package")
+        return "numpy"
+    if engine == "numba" or c.data.size >= NUMBA_MIN_SAMPLES or _kernel_key(c) in _KERNELS:
+        return "numba"
+    return "numpy"
+
+
+def _antenna_blocks(nant: int, size: int) -> list[tuple[int, int]]:
+    size = max(1, size)
+    return [(a, min(a + size, nant)) for a in range(0, nant, size)]
+
+
 def accumulate(
     model: FitModel,
     data: np.ndarray,
@@ -293,8 +706,13 @@ def accumulate(
     weights: str | np.ndarray = "radiometer",
     bandwidth_time: np.ndarray | float | None = None,
     reference: np.ndarray | None = None,
+    engine: Engine | None = None,
+    threads: int | None = None,
 ) -> NormalSums:
     """Accumulate the normal-equation sums of one chunk of integrations.
+
+    Only weighted time moments of the data are computed (see the comment above
+    :func:`_time_functions`), in one pass over the chunk; the design matrix is never built.
 
     Parameters
     ----------
@@ -314,51 +732,85 @@ def accumulate(
         ``dnu dt N`` for radiometer weights.
     reference
         Model power for the radiometer weights (second and later passes).
+    engine
+        ``"numba"`` (fused compiled kernel), ``"numpy"``, or ``"auto"`` (default, or the
+        ``AUTOCAL_FIT_ENGINE`` environment variable): numba when it is installed and the
+        chunk has at least :data:`NUMBA_MIN_SAMPLES` samples or a matching kernel is
+        already compiled. Both give the same sums to rounding.
+    threads
+        Threads over antenna blocks (default: ``AUTOCAL_FIT_THREADS``, else
+        ``OMP_NUM_THREADS``, else the usable CPUs, at most 8).
 
     Returns
     -------
     NormalSums
         The chunk's sums.
     """
-    data = np.asarray(data, dtype=np.float64)
+    data = np.ascontiguousarray(data, dtype=np.float64)
     if data.ndim != 4:
         raise FitError(f"data must be (Nant, Npol, Ntime, Nfreq), got shape {data.shape}")
     nant, npol, ntime, nfreq = data.shape
     lsts = np.asarray(lsts, dtype=np.float64)
     if lsts.shape != (ntime,):
         raise FitError(f"{lsts.size} LSTs for {ntime} integrations")
-    tsky = _check_tsky(tsky, npol, ntime, nfreq)
-    usable = np.isfinite(data)
-    if flags is not None:
-        usable &= ~np.broadcast_to(np.asarray(flags, bool), data.shape)
-    w = weights_for(weights, data, usable, bandwidth_time, reference)
-    used = w > 0
-    y = np.where(used, data, 0.0)
-
-    a = design(model, tsky, lsts)  # (P, F, T, M)
+    tsky = np.ascontiguousarray(_check_tsky(tsky, npol, ntime, nfreq))
+    if flags is None:
+        flag_bytes = np.zeros(data.shape, np.uint8)
+    else:
+        flag_bytes = np.ascontiguousarray(
+            np.broadcast_to(np.asarray(flags, dtype=bool), data.shape)
+        ).view(np.uint8)
+    power = None
+    num: np.ndarray | float = 0.0
+    if isinstance(weights, str):
+        if weights == "radiometer":
+            if bandwidth_time is None:
+                raise FitError("radiometer weights need the channel width and integration time")
+            num = _full(bandwidth_time, data.shape)
+            if reference is not None:
+                power = np.ascontiguousarray(
+                    np.broadcast_to(np.asarray(reference, dtype=np.float64), data.shape)
+                )
+        elif weights != "identity":
+            raise FitError(
+                f"unknown weights {weights!r}: use 'radiometer', 'identity' or an array of "
+                "1/sigma^2"
+            )
+        mode = weights
+    else:
+        mode = "user"
+        num = _full(weights, data.shape)
+    coef, lin = _time_functions(model, lsts)
+    chunk = _Chunk(data, flag_bytes, mode, num, power, tsky, coef, lin)
     m = model.nparam
-    wt = np.swapaxes(w, 2, 3)  # (A, P, F, T)
-    wy = wt * np.swapaxes(y, 2, 3)
-    aty = (wy[..., None, :] @ a)[..., 0, :]  # (A, P, F, M)
-    iu, ju = np.triu_indices(m)
-    pairs = a[..., iu] * a[..., ju]  # (P, F, T, Q)
-    upper = (wt[..., None, :] @ pairs)[..., 0, :]  # (A, P, F, Q)
-    ata = np.empty((nant, npol, nfreq, m, m))
-    ata[..., iu, ju] = upper
-    ata[..., ju, iu] = upper
-    yty = np.einsum("apft,apft->apf", wy, np.swapaxes(y, 2, 3))
-    count = np.swapaxes(used, 2, 3).sum(axis=-1)
-    nflagged = ntime - count
-    un = lsts
+    lead = (nant, npol, nfreq)
+    out = {
+        "ata": np.empty((*lead, m, m)),
+        "aty": np.empty((*lead, m)),
+        "yty": np.empty(lead),
+        "count": np.empty(lead, np.int64),
+        "bad": np.zeros(nant),
+    }
+    nthreads = _default_threads() if threads is None else max(1, int(threads))
+    moments = _moments_numba if _choose_engine(engine, chunk) == "numba" else _moments_numpy
+    blocks = _antenna_blocks(nant, nant if nthreads == 1 else -(-nant // (4 * nthreads)))
+    if nthreads == 1 or len(blocks) == 1:
+        nbad = sum(moments(chunk, a0, a1, out) for a0, a1 in blocks)
+    else:
+        with ThreadPoolExecutor(min(nthreads, len(blocks))) as pool:
+            nbad = sum(pool.map(lambda ab: moments(chunk, *ab, out), blocks))
+    if nbad:
+        raise FitError("user weights (1/sigma^2) must be finite and >= 0")
+    count = out["count"]
     return NormalSums(
         model,
-        ata,
-        aty,
-        yty,
-        count.astype(np.int64),
-        nflagged.astype(np.int64),
-        float(un.min()),
-        float(un.max()),
+        out["ata"],
+        out["aty"],
+        out["yty"],
+        count,
+        ntime - count,
+        float(lsts.min()),
+        float(lsts.max()),
     )
 
 
@@ -401,13 +853,17 @@ def solve_sums(
     reason = np.zeros(sums.count.shape, np.int8)
     reason[sums.count < min_samples] = 1
     diag = np.diagonal(ata, axis1=-2, axis2=-1)
-    ok = (reason == 0) & np.all(diag > 0, axis=-1)
-    reason[(reason == 0) & ~ok] = 2
     d = np.where(diag > 0, np.sqrt(np.where(diag > 0, diag, 1.0)), 1.0)
     scaled = ata / (d[..., :, None] * d[..., None, :])
+    ok = (reason == 0) & np.all(diag > 0, axis=-1) & np.all(np.isfinite(scaled), axis=(-2, -1))
+    reason[(reason == 0) & ~ok] = 2
     eye = np.eye(m)
     scaled = np.where(ok[..., None, None], scaled, eye)
-    cond = np.linalg.cond(scaled)
+    # 2-norm condition number of the symmetric matrix from its eigenvalues (as
+    # np.linalg.cond, but eigvalsh is several times faster than an SVD per channel)
+    ev = np.abs(np.linalg.eigvalsh(scaled))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cond = ev.max(axis=-1) / ev.min(axis=-1)
     singular = ok & ~(np.isfinite(cond) & (cond < max_condition))
     reason[singular] = 2
     ok &= ~singular

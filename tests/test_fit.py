@@ -10,6 +10,9 @@ from autocal.fit import (
     FitModel,
     NormalSums,
     Solution,
+    _default_threads,
+    _numba_available,
+    _time_functions,
     accumulate,
     design,
     fit,
@@ -258,3 +261,201 @@ def test_inflate_scales_errors_only_upwards() -> None:
         ratio = inflated["cov"][..., 0, 0] / plain["cov"][..., 0, 0]
         assert np.all(ratio >= 1.0)
         assert np.median(ratio) == pytest.approx(expected, rel=0.2)
+
+
+# moment-based accumulation against the normal equations written out --------------------
+
+
+def reference_sums(
+    model: FitModel,
+    data: np.ndarray,
+    tsky: np.ndarray,
+    lsts: np.ndarray,
+    flags: np.ndarray,
+    weights: str | np.ndarray = "radiometer",
+    bandwidth_time: np.ndarray | float | None = None,
+    reference: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``A^T W A``, ``A^T W y``, ``y^T W y`` and the count, straight from the design."""
+    usable = np.isfinite(data) & ~flags
+    if isinstance(weights, str) and weights == "identity":
+        w = usable.astype(float)
+    elif isinstance(weights, str):
+        power = data if reference is None else reference
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w = np.broadcast_to(bandwidth_time, data.shape) / power**2
+        w = np.where(usable & np.isfinite(w) & (w > 0), w, 0.0)
+    else:
+        w = np.where(usable, np.broadcast_to(weights, data.shape), 0.0)
+    used = w > 0
+    y = np.where(used, data, 0.0)
+    a = design(model, tsky, lsts)  # (P, F, T, M)
+    ata = np.einsum("aptf,pftm,pftn->apfmn", w, a, a)
+    aty = np.einsum("aptf,aptf,pftm->apfm", w, y, a)
+    yty = np.einsum("aptf,aptf,aptf->apf", w, y, y)
+    return ata, aty, yty, used.sum(axis=2)
+
+
+def random_chunk(
+    seed: int, nant: int = 3, ntime: int = 37, nfreq: int = 11
+) -> dict[str, np.ndarray]:
+    """Random data with flags, NaN, inf, zeros, and weights that are sometimes unusable."""
+    rng = np.random.default_rng(seed)
+    shape = (nant, 2, ntime, nfreq)
+    data = rng.uniform(50.0, 6000.0, shape)
+    data[rng.random(shape) < 0.03] = np.nan
+    data[rng.random(shape) < 0.01] = np.inf
+    data[rng.random(shape) < 0.01] = 0.0
+    flags = rng.random(shape) < 0.1
+    flags[0, 0, :, 1] = True  # a fully flagged channel
+    bt = rng.uniform(1e3, 1e4, shape)
+    bt[rng.random(shape) < 0.05] = 0.0
+    reference = data * rng.uniform(0.9, 1.1, shape)
+    reference[rng.random(shape) < 0.05] = -1.0
+    user = rng.uniform(0.0, 3.0, shape)
+    user[rng.random(shape) < 0.05] = 0.0
+    user[~(np.isfinite(data) & ~flags) & (rng.random(shape) < 0.5)] = np.nan  # unusable anyway
+    return {
+        "data": data,
+        "flags": flags,
+        "tsky": rng.uniform(100.0, 5000.0, (2, ntime, nfreq)),
+        "lsts": np.sort(rng.uniform(0.0, 24.0, ntime)),
+        "bt": bt,
+        "reference": reference,
+        "user": user,
+    }
+
+
+WEIGHT_CASES = {
+    "identity": lambda c: {"weights": "identity"},
+    "radiometer": lambda c: {"bandwidth_time": c["bt"]},
+    "radiometer-scalar": lambda c: {"bandwidth_time": 5e3},
+    "radiometer-per-channel": lambda c: {"bandwidth_time": c["bt"][0, 0, 0]},
+    "radiometer-reference": lambda c: {"bandwidth_time": c["bt"], "reference": c["reference"]},
+    "user": lambda c: {"weights": c["user"]},
+    "user-scalar": lambda c: {"weights": 2.5},
+}
+MODELS = [("constant", 0), ("legendre", 0), ("legendre", 1), ("legendre", 2), ("legendre", 4)]
+NO_NUMBA = pytest.mark.skipif(not _numba_available(), reason="numba is not installed")
+ENGINES = ["numpy", pytest.param("numba", marks=NO_NUMBA)]
+
+
+def assert_sums_match(sums: NormalSums, ref: tuple[np.ndarray, ...], ntime: int) -> None:
+    ata, aty, yty, count = ref
+    np.testing.assert_array_equal(sums.count, count)
+    np.testing.assert_array_equal(sums.nflagged, ntime - count)
+    for got, want in ((sums.ata, ata), (sums.aty, aty)):
+        # relative to each channel's largest entry (off-diagonal Legendre moments cancel)
+        scale = np.abs(want).max(axis=tuple(range(3, want.ndim)), keepdims=True)
+        rel = np.abs(got - want) / np.where(scale > 0, scale, 1.0)
+        assert rel.max() < 1e-13, f"max relative difference {rel.max():.2e}"
+    np.testing.assert_allclose(sums.yty, yty, rtol=1e-13, atol=0)
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+@pytest.mark.parametrize("kind,order", MODELS)
+@pytest.mark.parametrize("case", sorted(WEIGHT_CASES))
+def test_moment_sums_equal_the_normal_equations(
+    engine: str, kind: str, order: int, case: str
+) -> None:
+    if engine == "numba" and (
+        ((kind, order) == ("legendre", 4) and case != "radiometer")
+        or ((kind, order) == ("legendre", 1) and case not in ("identity", "radiometer"))
+    ):
+        pytest.skip("every weight kind is compiled for orders 0 and 2 (compile time)")
+    c = random_chunk(13)
+    model = FitModel.for_lsts(c["lsts"], kind, order)
+    kw = WEIGHT_CASES[case](c)
+    ref = reference_sums(model, c["data"], c["tsky"], c["lsts"], c["flags"], **kw)
+    for threads in (1, 2):
+        sums = accumulate(
+            model,
+            c["data"],
+            c["tsky"],
+            c["lsts"],
+            flags=c["flags"],
+            engine=engine,
+            threads=threads,
+            **kw,
+        )
+        assert_sums_match(sums, ref, c["data"].shape[2])
+        assert sums.model == model and sums.lst_min == c["lsts"].min()
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_engines_accept_broadcast_and_float32_inputs(engine: str) -> None:
+    c = random_chunk(5, nant=2, ntime=16, nfreq=9)
+    data = np.abs(np.nan_to_num(c["data"], posinf=1.0)).astype(np.float32)
+    flags = c["flags"][:1, :1]  # broadcast over antennas and pols
+    tsky2d = c["tsky"][0]  # one Tsky for both pols
+    model = FitModel.for_lsts(c["lsts"], "legendre", 1)
+    bt = c["bt"][0, 0, :, :1]  # per integration
+    full_flags = np.broadcast_to(flags, data.shape)
+    tsky = np.broadcast_to(tsky2d, (2, *tsky2d.shape))
+    ref = reference_sums(model, data.astype(float), tsky, c["lsts"], full_flags, "radiometer", bt)
+    sums = accumulate(model, data, tsky2d, c["lsts"], flags=flags, bandwidth_time=bt, engine=engine)
+    assert_sums_match(sums, ref, 16)
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_invalid_user_weights_are_refused(engine: str) -> None:
+    c = random_chunk(8, nant=1, ntime=8, nfreq=5)
+    model = FitModel()
+    usable = np.isfinite(c["data"]) & ~c["flags"]
+    first = tuple(np.argwhere(usable)[0])
+    for bad in (-1.0, np.nan, np.inf):
+        w = np.ones(c["data"].shape)
+        w[first] = bad
+        with pytest.raises(FitError, match="finite and >= 0"):
+            accumulate(
+                model, c["data"], c["tsky"], c["lsts"], flags=c["flags"], weights=w, engine=engine
+            )
+    # bad values where the sample is flagged or non-finite are ignored
+    w = np.where(usable, 1.0, -1.0)
+    accumulate(model, c["data"], c["tsky"], c["lsts"], flags=c["flags"], weights=w, engine=engine)
+
+
+def test_engine_choice(monkeypatch: pytest.MonkeyPatch) -> None:
+    c = random_chunk(2, nant=1, ntime=6, nfreq=4)
+    args = (FitModel(), c["data"], c["tsky"], c["lsts"])
+    with pytest.raises(FitError, match="unknown fit engine"):
+        accumulate(*args, weights="identity", engine="fortran")  # type: ignore[arg-type]
+    monkeypatch.setenv("AUTOCAL_FIT_ENGINE", "bogus")
+    with pytest.raises(FitError, match="unknown fit engine"):
+        accumulate(*args, weights="identity")
+    monkeypatch.setenv("AUTOCAL_FIT_ENGINE", "numpy")
+    numpy_sums = accumulate(*args, weights="identity")
+    monkeypatch.delenv("AUTOCAL_FIT_ENGINE")
+    auto = accumulate(*args, weights="identity")  # small chunk: numpy unless compiled
+    np.testing.assert_allclose(auto.ata, numpy_sums.ata, rtol=1e-14)
+    monkeypatch.setenv("AUTOCAL_FIT_THREADS", "3")
+    assert _default_threads() == 3
+    monkeypatch.setenv("AUTOCAL_FIT_THREADS", "")
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert _default_threads() == 1
+
+
+def test_time_functions_linearise_the_basis_products() -> None:
+    lsts = np.linspace(1.0, 5.0, 50)
+    for kind, order in MODELS:
+        model = FitModel.for_lsts(lsts, kind, order)
+        coef, lin = _time_functions(model, lsts)
+        basis = model.basis(lsts)
+        np.testing.assert_array_equal(coef[0], 1.0)  # the kernel relies on P_0 = 1
+        np.testing.assert_allclose(coef[: model.nbasis], basis, atol=1e-15)
+        products = basis[:, None, :] * basis[None, :, :]
+        np.testing.assert_allclose(np.einsum("jkr,rt->jkt", lin, coef), products, atol=1e-14)
+
+
+def test_solve_flags_non_finite_normal_matrices() -> None:
+    sums = NormalSums.zeros(FitModel(), 1, 1, 2)
+    sums.ata[...] = np.array([[4.0, 1.0], [1.0, 2.0]])
+    sums.aty[...] = 1.0
+    sums.count[...] = 10
+    sums.ata[0, 0, 1, 0, 1] = sums.ata[0, 0, 1, 1, 0] = np.inf
+    out = solve_sums(sums)
+    assert out["flag_reason"][0, 0, 1] == 2 and np.isnan(out["coeffs"][0, 0, 1]).all()
+    assert out["flag_reason"][0, 0, 0] == 0
+    np.testing.assert_allclose(
+        out["coeffs"][0, 0, 0], np.linalg.solve(sums.ata[0, 0, 0], sums.aty[0, 0, 0])
+    )
