@@ -3,6 +3,13 @@
 Requests (``*Create``) forbid unknown fields, so a misspelt option is a 422 naming it
 rather than a silently ignored setting. Responses carry JSON-safe values only: NaN and
 infinities from the solutions become ``null`` (:func:`json_safe`).
+
+Two job kinds share ``POST /jobs`` (:class:`JobCreate`): ``calibrate`` (the default;
+options of :class:`~autocal.pipeline.CalibrationConfig`) and ``diagnose`` (options of
+:class:`~autocal.diagnose_run.DiagnoseConfig`). The body is one flat object; the options
+that only one kind accepts (:data:`CALIBRATE_ONLY`, :data:`DIAGNOSE_ONLY`) are refused
+with a 422 naming them when sent with the other kind. ``GET /jobs/{id}/results`` answers
+:class:`JobResults` for a calibration and :class:`DiagnosisResults` for a diagnosis.
 """
 
 from __future__ import annotations
@@ -16,8 +23,8 @@ from pydantic import BaseModel, ConfigDict, Field, StringConstraints, field_vali
 
 PathText = Annotated[str, StringConstraints(min_length=1, max_length=4096)]
 
-#: The job kinds the API accepts (``diagnose`` arrives with the diagnosis workflow).
-JobKind = Literal["calibrate"]
+#: The job kinds the API accepts.
+JobKind = Literal["calibrate", "diagnose"]
 JobStateName = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 
 
@@ -142,8 +149,49 @@ class CalibrationOptions(BaseModel):
         return {k: v for k, v in self.model_dump().items() if k in names and v is not None}
 
 
-class JobCreate(CalibrationOptions):
-    """``POST /jobs``: calibrate one observation."""
+class DiagnoseOptions(BaseModel):
+    """Settings only the ``diagnose`` kind accepts (defaults: :class:`DiagnoseConfig`)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    trxr_prior_k: float | None = Field(
+        None,
+        gt=0.0,
+        le=100_000.0,
+        description="diagnose: known receiver temperature K; makes effects constant in time "
+        "(sky_offset, ground_temperature, missing_cmb) and sky scalings identifiable",
+    )
+    trxr_prior_sigma_k: float | None = Field(
+        None, gt=0.0, le=100_000.0, description="diagnose: 1-sigma of the receiver prior K (1)"
+    )
+    bic_threshold: float | None = Field(
+        None, ge=0.0, le=1e12, description="diagnose: Delta BIC an effect must exceed (10)"
+    )
+    alpha: float | None = Field(
+        None,
+        gt=0.0,
+        le=1.0,
+        description="diagnose: largest chi^2 probability of an accepted effect (1e-4)",
+    )
+    max_steps: int | None = Field(None, ge=0, le=50, description="diagnose: most effects (5)")
+
+
+#: Options of the request body that only ``kind: "calibrate"`` accepts.
+CALIBRATE_ONLY = frozenset(
+    {"model", "order", "weights", "products", "reference", "input_format", "inflate_errors"}
+)
+#: Options of the request body that only ``kind: "diagnose"`` accepts.
+DIAGNOSE_ONLY = frozenset(DiagnoseOptions.model_fields)
+
+
+class JobCreate(DiagnoseOptions, CalibrationOptions):
+    """``POST /jobs``: calibrate or diagnose one observation.
+
+    ``kind: "calibrate"`` (default) takes the calibration options; ``kind: "diagnose"``
+    takes ``sky``, ``beam``, ``tgnd_k``, ``nside``, ``antennas``, ``pols``,
+    ``freq_range_mhz``, ``lst_range_h`` and the ``diagnose:`` options. An option of the
+    other kind is a 422 naming it.
+    """
 
     model_config = ConfigDict(
         json_schema_extra={
@@ -156,19 +204,41 @@ class JobCreate(CalibrationOptions):
                     "beam": "hera",
                     "antennas": [23],
                     "freq_range_mhz": [110, 190],
-                }
+                },
+                {
+                    "kind": "diagnose",
+                    "inputs": ["hera/autos/zen.2458116.30448.HH.uvh5"],
+                    "beam": "hera",
+                    "antennas": [23],
+                    "freq_range_mhz": [110, 190],
+                    "trxr_prior_k": 150,
+                    "trxr_prior_sigma_k": 10,
+                },
             ]
         }
     )
 
-    kind: JobKind = "calibrate"
+    kind: JobKind = Field(
+        "calibrate", description="calibrate (solve G, Trxr) or diagnose (name missing effects)"
+    )
     inputs: list[PathText] = Field(
         ...,
         min_length=1,
         max_length=10_000,
-        description="UVH5 files / Miriad folders under the data roots, or upload ids",
+        description="under the data roots, or upload ids: UVH5 files / Miriad folders "
+        "(calibrate), UVH5 files (diagnose)",
     )
     force: bool = Field(False, description="submit even if an identical job exists")
+
+    def given(self) -> dict[str, Any]:
+        """Return every option that was given (``None`` = default), of either kind."""
+        names = set(CalibrationOptions.model_fields) | DIAGNOSE_ONLY
+        return {k: v for k, v in self.model_dump().items() if k in names and v is not None}
+
+    def misplaced(self) -> list[str]:
+        """Return the given options that the job's kind does not accept."""
+        other = DIAGNOSE_ONLY if self.kind == "calibrate" else CALIBRATE_ONLY
+        return sorted(set(self.given()) & other)
 
 
 class NightlyCreate(CalibrationOptions):
@@ -270,9 +340,10 @@ class AntennaPolResult(BaseModel):
 
 
 class JobResults(BaseModel):
-    """``GET /jobs/{id}/results``."""
+    """``GET /jobs/{id}/results`` of a calibration."""
 
     job_id: str
+    kind: Literal["calibrate"] = "calibrate"
     freqs_mhz: list[float]
     antennas: list[int]
     pols: list[str]
@@ -281,6 +352,52 @@ class JobResults(BaseModel):
     solutions: list[AntennaPolResult]
     summary: dict[str, Any] | None
     comparison: dict[str, Any] | None
+
+
+class DiagnosisParameter(BaseModel):
+    """A fitted parameter of an accepted effect (null where undefined)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    value: float | None
+    sigma: float | None = Field(..., description="1-sigma uncertainty (0 for fixed values)")
+
+
+class DiagnosisStep(BaseModel):
+    """One accepted effect of a diagnosis."""
+
+    step: int = Field(..., ge=1, description="1 for the first effect accepted")
+    name: str = Field(..., description="the effect, e.g. gain_drift, cable_reflection")
+    parameters: dict[str, DiagnosisParameter]
+    statistic: float | None = Field(..., description="Delta BIC of the effect")
+    delta: float | None = Field(..., description="Delta chi^2 (drop of the fit's chi^2)")
+    p_value: float | None = Field(None, description="chi^2 survival probability of delta")
+    gap_before: dict[str, Any] = Field(..., description="gap metrics before the step")
+    gap_after: dict[str, Any] = Field(..., description="gap metrics after the step")
+    candidates: dict[str, float | None] = Field(
+        default_factory=dict, description="Delta BIC of every candidate at this step"
+    )
+    details: dict[str, Any] = Field(
+        default_factory=dict, description="the rest: k, overdispersion, per-feed values..."
+    )
+
+
+class DiagnosisResults(BaseModel):
+    """``GET /jobs/{id}/results`` of a diagnosis (from its ``diagnosis.json``)."""
+
+    job_id: str
+    kind: Literal["diagnose"] = "diagnose"
+    effects: list[str] = Field(..., description="the accepted effects, in order")
+    steps: list[DiagnosisStep]
+    initial_gap: dict[str, Any] = Field(..., description="chi2/dof, rms residual... at start")
+    final_gap: dict[str, Any] = Field(..., description="the same for the final model")
+    identifiability: dict[str, float | None] = Field(
+        ..., description="per effect: Fisher fraction left after the (G, n) projection"
+    )
+    config: dict[str, Any] = Field(..., description="statistic, thresholds, prior, candidates")
+    summary: dict[str, Any] | None = Field(
+        None, description="the job's summary: observation, config, timings"
+    )
 
 
 class UploadCreated(BaseModel):

@@ -9,12 +9,15 @@ or many, sharing a PostgreSQL store) for parallelism. A job's life in the worker
    the latest progress. When the store answers ``False`` (cancellation requested, or the
    job was re-queued because this worker was presumed dead) the job's ``should_stop``
    flag is raised and the pipeline stops at its next checkpoint.
-3. :func:`autocal.pipeline.run_calibration` writes the products into
-   ``settings.products_dir / job_id / "attempt-N"``; progress lines and warnings go to
-   the job's log.
+3. The job's kind (:data:`KNOWN_KINDS`) picks what runs: ``calibrate`` ->
+   :func:`autocal.pipeline.run_calibration`, ``diagnose`` ->
+   :func:`autocal.diagnose_run.run_diagnosis`. It writes the products into
+   ``settings.products_dir / job_id / "attempt-N"`` (all or nothing); progress lines and
+   warnings go to the job's log.
 4. The job is closed by :meth:`JobStore.finish` (accepted only from its owner): succeeded
-   with the summary, product paths and provenance; cancelled; or failed with a one-line
-   reason (``"ExceptionType: message"``; the traceback goes to the worker's own log).
+   with the summary (the run's ``summary.json``), product paths and provenance;
+   cancelled; or failed with a one-line reason (``"ExceptionType: message"``; the
+   traceback goes to the worker's own log).
 
 A worker asked to shut down (:meth:`Worker.request_stop`, e.g. on SIGTERM) stops claiming,
 aborts the current job at its next checkpoint without closing it and stops its heartbeat;
@@ -43,7 +46,7 @@ from autocal.service.store import JobState, JobStore
 logger = logging.getLogger(__name__)
 
 #: Job kinds this worker knows how to run.
-KNOWN_KINDS = ("calibrate",)
+KNOWN_KINDS = ("calibrate", "diagnose")
 
 
 def default_worker_id() -> str:
@@ -363,9 +366,27 @@ class Worker:
             return None
         return state.value
 
-    def _execute(self, run: _Run, job: dict[str, Any]) -> str | None:
+    @staticmethod
+    def _run_kind(
+        kind: str, config: dict[str, Any], out: Path, run: _Run
+    ) -> tuple[dict[str, Any], dict[str, str]]:
+        """Run a job of ``kind`` into ``out``; return its summary and product paths."""
+        if kind == "diagnose":
+            from autocal.diagnose_run import DiagnoseConfig, read_summary, run_diagnosis
+
+            folder = run_diagnosis(
+                DiagnoseConfig(**config), out, progress=run.progress, should_stop=run.should_stop
+            )
+            summary = read_summary(folder)
+            return summary, dict(summary.get("products") or {})
         from autocal.pipeline import CalibrationConfig, run_calibration
 
+        result = run_calibration(
+            CalibrationConfig(**config), out, progress=run.progress, should_stop=run.should_stop
+        )
+        return result.summary, result.products
+
+    def _execute(self, run: _Run, job: dict[str, Any]) -> str | None:
         if job["kind"] not in KNOWN_KINDS:
             return self._finish(
                 run,
@@ -375,10 +396,7 @@ class Worker:
             )
         out = self.settings.products_dir / run.job_id / f"attempt-{run.attempt}"
         try:
-            config = CalibrationConfig(**(job["config"] or {}))
-            result = run_calibration(
-                config, out, progress=run.progress, should_stop=run.should_stop
-            )
+            run_summary, products = self._run_kind(job["kind"], job["config"] or {}, out, run)
         except Exception as err:
             if run.should_stop():
                 return self._stopped(run, err)
@@ -386,7 +404,7 @@ class Worker:
                 "job %s attempt %d failed", run.job_id, run.attempt, exc_info=True
             )  # the traceback stays in the worker's log
             return self._finish(run, JobState.failed, error=describe_error(err))
-        provenance = dict(result.summary.get("provenance") or {})
+        provenance = dict(run_summary.get("provenance") or {})
         provenance["service"] = {
             "job_id": run.job_id,
             "attempt": run.attempt,
@@ -394,17 +412,17 @@ class Worker:
             "products_dir": str(out),
         }
         if self.settings.dask_scheduler:
-            # Recorded only: the calibration ran in this worker process; Dask scale-out
-            # of the computation is not implemented yet.
+            # Recorded only: the job ran in this worker process; Dask scale-out of the
+            # computation is not implemented yet.
             provenance["dask_scheduler"] = self.settings.dask_scheduler
             provenance["service"]["executor"] = "worker process (dask scheduler not used yet)"
-        summary = dict(result.summary)
+        summary = dict(run_summary)
         summary["provenance"] = provenance
         return self._finish(
             run,
             JobState.succeeded,
             result=jsonable(summary),
-            products=jsonable(result.products),
+            products=jsonable(products),
             provenance=jsonable(provenance),
         )
 

@@ -318,10 +318,10 @@ def test_worker_in_process_run_once_and_unknown_kind(tmp_path: Path, tiny_uvh5) 
     store = JobStore(settings.resolved_database_url())
     worker = Worker(store, settings, worker_id="inproc")
     assert worker.run_once() is False  # empty queue
-    odd, _ = store.submit({}, kind="diagnose")
+    odd, _ = store.submit({}, kind="teleport")
     ok, _ = store.submit(calibrate_config(tiny_uvh5, products=["hdf5"]))
     assert worker.run_once() and worker.run_once() and not worker.run_once()
-    assert store.get(odd["id"])["error"].startswith("unknown job kind 'diagnose'")
+    assert store.get(odd["id"])["error"].startswith("unknown job kind 'teleport'")
     assert store.get(ok["id"])["state"] == "succeeded"
     assert "dask_scheduler" not in store.get(ok["id"])["provenance"]
 

@@ -4,8 +4,15 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
-from autocal.commands import parse_int_list, parse_pair, parse_str_list
+from autocal.commands import (
+    CliError,
+    parse_int_list,
+    parse_pair,
+    parse_str_list,
+    validation_message,
+)
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -18,7 +25,8 @@ def add(sub: argparse._SubParsersAction) -> None:
         "effect of the catalogue (gain_drift, noise_drift, sky_scale, sky_offset, "
         "sky_spectral_index, ground_temperature, beam_width, missing_cmb, "
         "cable_reflection), accept the best by BIC while significant, and repeat. Writes "
-        "diagnosis.json, summary.txt and residual plots to --out.",
+        "diagnosis.json, summary.txt, summary.json and residual plots to --out (all or "
+        "nothing). The service runs the same as a job of kind 'diagnose'.",
     )
     p.add_argument("inputs", nargs="+", type=Path, help="UVH5 files of one observation")
     p.add_argument("--sky", default="gsm2008", help="model sky (default gsm2008)")
@@ -28,6 +36,7 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--antennas", help="comma-separated antenna numbers (default all)")
     p.add_argument("--pols", help="comma-separated polarisations (default all)")
     p.add_argument("--freq-range", help="LOW:HIGH in MHz")
+    p.add_argument("--lst-range", help="START:STOP in hours (START > STOP wraps)")
     p.add_argument(
         "--trxr-prior",
         type=float,
@@ -35,39 +44,58 @@ def add(sub: argparse._SubParsersAction) -> None:
         "(sky_offset, ground_temperature, missing_cmb) and sky scalings identifiable",
     )
     p.add_argument("--trxr-prior-sigma", type=float, default=1.0, help="its 1-sigma, K (1)")
+    p.add_argument(
+        "--bic-threshold",
+        type=float,
+        help="Delta BIC an effect must exceed to be accepted (default 10)",
+    )
+    p.add_argument(
+        "--alpha",
+        type=float,
+        help="largest chi^2 probability of an accepted effect's Delta chi^2 (default 1e-4)",
+    )
+    p.add_argument("--max-steps", type=int, help="most effects added (default 5)")
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
-    from autocal.diagnose import diagnose, summary_text, write_diagnosis
-    from autocal.effects import sky_templates
-    from autocal.io.uvh5 import read_uvh5
+    from pydantic import ValidationError
+    from tqdm import tqdm
 
-    mhz = parse_pair(args.freq_range, "freq-range", "MHz")
-    freq_range = None if mhz is None else (mhz[0] * 1e6, mhz[1] * 1e6)
-    obs = read_uvh5(
-        args.inputs,
-        antennas=parse_int_list(args.antennas, "antennas") if args.antennas else None,
-        pols=parse_str_list(args.pols, "pols") if args.pols else None,
-        freq_range=freq_range,
-    )
-    templates = sky_templates(
-        args.sky,
-        args.beam,
-        obs.site,
-        obs.freqs,
-        obs.lsts,
-        pols=tuple("ee" if p == "xx" else "nn" if p == "yy" else p for p in obs.pols),
-        tgnd=args.tgnd,
-        nside=args.nside,
-        epoch=float(obs.jds.mean()),
-    )
-    result = diagnose(
-        obs, templates, trxr_prior=args.trxr_prior, trxr_prior_sigma=args.trxr_prior_sigma
-    )
-    path = write_diagnosis(result, args.out, obs)
-    print(summary_text(result))
-    print(f"wrote {path}")
+    from autocal.diagnose_run import DiagnoseConfig, run_diagnosis
+
+    optional: dict[str, Any] = {
+        "bic_threshold": args.bic_threshold,
+        "alpha": args.alpha,
+        "max_steps": args.max_steps,
+    }
+    try:
+        config = DiagnoseConfig(
+            inputs=[str(p) for p in args.inputs],
+            sky=args.sky,
+            beam=args.beam,
+            tgnd_k=args.tgnd,
+            nside=args.nside,
+            antennas=parse_int_list(args.antennas, "antennas") if args.antennas else None,
+            pols=parse_str_list(args.pols, "pols") if args.pols else None,
+            freq_range_mhz=parse_pair(args.freq_range, "freq-range", "MHz"),
+            lst_range_h=parse_pair(args.lst_range, "lst-range", "hours"),
+            trxr_prior_k=args.trxr_prior,
+            trxr_prior_sigma_k=args.trxr_prior_sigma,
+            **{k: v for k, v in optional.items() if v is not None},
+        )
+    except ValidationError as err:
+        raise CliError(validation_message(err)) from None
+    with tqdm(total=100, desc="diagnose", unit="%", disable=None) as bar:
+
+        def progress(fraction: float, message: str) -> None:
+            bar.n = round(100 * min(fraction, 1.0))
+            bar.set_postfix_str(message[-60:])
+            bar.refresh()
+
+        out = run_diagnosis(config, args.out, progress=progress)
+    print((out / "summary.txt").read_text())
+    print(f"wrote {out}")
     return 0

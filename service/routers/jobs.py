@@ -1,18 +1,27 @@
 """Jobs: submit, list, inspect, cancel, results and product downloads.
 
 ========================================  ==================================================
-``POST /jobs``                            queue a calibration (token; 202, idempotent)
+``POST /jobs``                            queue a calibration or a diagnosis (token; 202,
+                                          idempotent)
 ``GET /jobs``                             list, filtered by state, night, antenna, kind
 ``GET /jobs/{id}``                        state, progress, timings, log tail, config...
 ``POST /jobs/{id}/cancel``                cancel (token; 202; 409 when already final)
-``GET /jobs/{id}/results``                G, |g|, Trxr... per antenna and pol (succeeded)
+``GET /jobs/{id}/results``                calibrate: G, |g|, Trxr... per antenna and pol;
+                                          diagnose: accepted effects, steps, gaps
 ``GET /jobs/{id}/products/{name}``        download one product file
 ========================================  ==================================================
+
+Job kinds: ``calibrate`` (default; :func:`autocal.pipeline.run_calibration`) and
+``diagnose`` (:func:`autocal.diagnose_run.run_diagnosis`). Both are validated before they
+are queued (options against the kind's configuration, paths under the allowed roots) and
+deduplicated on kind, resolved inputs and options.
 """
 
 from __future__ import annotations
 
+import json
 import logging
+from collections.abc import Mapping, Sequence
 from datetime import datetime
 from pathlib import Path
 from typing import Annotated, Any
@@ -23,14 +32,32 @@ from fastapi import Path as PathParam
 from fastapi.responses import FileResponse
 from pydantic import ValidationError
 
+from autocal.diagnose import DiagnoseError
+from autocal.diagnose_run import DiagnoseConfig
 from autocal.pipeline import PipelineError
 from autocal.service.auth import app_settings, require_token
-from autocal.service.nightly import NightlyError, submit_calibration
-from autocal.service.paths import InputPathError, job_products_dir
-from autocal.service.routers import app_store, as_api_error
+from autocal.service.nightly import (
+    NAMED_BEAMS,
+    NightlyError,
+    job_key,
+    night_of,
+    submit_calibration,
+)
+from autocal.service.paths import InputPathError, job_products_dir, resolve_input
+from autocal.service.routers import (
+    MAX_ERRORS,
+    app_store,
+    as_api_error,
+    describe_problem,
+    problems_message,
+)
 from autocal.service.schemas import (
+    CALIBRATE_ONLY,
+    DIAGNOSE_ONLY,
     AntennaPolResult,
     ApiError,
+    DiagnosisResults,
+    DiagnosisStep,
     ErrorBody,
     JobAccepted,
     JobCreate,
@@ -72,6 +99,7 @@ MEDIA_TYPES = {
     ".calh5": "application/x-hdf5",
     ".calfits": "application/fits",
     ".fits": "application/fits",
+    ".txt": "text/plain; charset=utf-8",
 }
 UNITS = {
     "freqs_mhz": "MHz",
@@ -182,6 +210,188 @@ def _values(arr: np.ndarray) -> list[float | None]:
     return [float(v) if np.isfinite(v) else None for v in values]
 
 
+# diagnose jobs --------------------------------------------------------------------------
+
+
+def _misplaced_error(body: JobCreate) -> ApiError:
+    """422 naming the options the body's kind does not accept."""
+    problems = []
+    for name in body.misplaced():
+        owner = "diagnose" if name in DIAGNOSE_ONLY else "calibrate"
+        problems.append(
+            {
+                "field": f"body.{name}",
+                "message": f"{name!r} is an option of kind {owner!r}, not of kind "
+                f"{body.kind!r}: remove it or set kind to {owner!r}",
+                "type": "kind_mismatch",
+            }
+        )
+    return ApiError(
+        422, problems_message(f"invalid {body.kind} settings", problems), errors=problems
+    )
+
+
+def _diagnose_api_error(err: Exception) -> ApiError:
+    """Translate a submission error of a diagnose job into an HTTP error."""
+    if not isinstance(err, ValidationError):
+        return as_api_error(err)
+    problems = []
+    for error in err.errors()[:MAX_ERRORS]:
+        problem = describe_problem(error, ("body",))
+        loc = error.get("loc") or ()
+        if error.get("type") == "extra_forbidden" and loc and str(loc[-1]) in CALIBRATE_ONLY:
+            problem["message"] = (
+                f"{loc[-1]!r} is an option of kind 'calibrate', not of kind 'diagnose'"
+            )
+        if not loc:  # a model-level check: name the field it talks about
+            named = [f for f in DiagnoseConfig.model_fields if f in problem["message"]]
+            problem["field"] = f"body.{named[0]}" if named else "body"
+        problems.append(problem)
+    return ApiError(422, problems_message("invalid diagnose settings", problems), errors=problems)
+
+
+def build_diagnose_config(
+    settings: Settings, inputs: Sequence[str], options: Mapping[str, Any] | None = None
+) -> DiagnoseConfig:
+    """Validate diagnose options and resolve every path they name.
+
+    Parameters
+    ----------
+    settings
+        The service settings (allowed roots).
+    inputs
+        UVH5 files (absolute, relative to a data root) or upload ids.
+    options
+        Further :class:`DiagnoseConfig` fields (``sky``, ``beam``, ``trxr_prior_k``...).
+
+    Returns
+    -------
+    DiagnoseConfig
+        With resolved absolute inputs and beam file.
+
+    Raises
+    ------
+    pydantic.ValidationError
+        For invalid or unknown options.
+    InputPathError
+        For paths outside the allowed roots (403) or missing (400).
+    autocal.diagnose.DiagnoseError
+        For an input that is a folder rather than a UVH5 file.
+    autocal.sky.SkyModelError
+        For an unknown sky model.
+    """
+    from autocal.sky import get_sky
+
+    opts = dict(options or {})
+    if "inputs" in opts:
+        raise NightlyError("give the inputs separately from the options")
+    DiagnoseConfig(inputs=list(inputs), **opts)  # field errors first, before any file I/O
+    if opts.get("sky") is not None:
+        get_sky(str(opts["sky"]))
+    beam = opts.get("beam")
+    if beam is not None and str(beam).strip().lower() not in NAMED_BEAMS:
+        opts["beam"] = str(resolve_input(str(beam), settings, what="beam"))
+    resolved = [resolve_input(str(p), settings) for p in inputs]
+    folders = [str(p) for p in resolved if p.is_dir()]
+    if folders:
+        raise DiagnoseError(
+            f"diagnose reads UVH5 files, not folders ({', '.join(folders)}); "
+            "convert Miriad data to UVH5 first"
+        )
+    return DiagnoseConfig(inputs=[str(p) for p in resolved], **opts)
+
+
+def submit_diagnosis(
+    store: JobStore,
+    settings: Settings,
+    inputs: Sequence[str],
+    options: Mapping[str, Any] | None = None,
+    *,
+    force: bool = False,
+) -> tuple[dict[str, Any], bool]:
+    """Queue a diagnosis of one observation, idempotently.
+
+    The deduplication key is that of a calibration (:func:`job_key`): kind ``diagnose``,
+    the sorted resolved inputs and the rest of the configuration.
+
+    Parameters
+    ----------
+    store
+        The job store.
+    settings
+        The service settings.
+    inputs
+        UVH5 files or upload ids.
+    options
+        Further :class:`DiagnoseConfig` fields.
+    force
+        Queue a new job even if an identical one is queued, running or succeeded.
+
+    Returns
+    -------
+    (dict, bool)
+        The job record and whether it was created (``False``: an identical job exists).
+    """
+    config = build_diagnose_config(settings, inputs, options)
+    job, created = store.submit(
+        config.model_dump(mode="json"),
+        kind="diagnose",
+        night=night_of(config.inputs),
+        antennas=config.antennas,
+        dedupe_key=job_key("diagnose", config),  # type: ignore[arg-type]  # any config model
+        force=force,
+        max_attempts=settings.max_attempts,
+    )
+    logger.info(
+        "%s diagnose job %s (%d input(s))",
+        "queued" if created else "existing",
+        job["id"],
+        len(config.inputs),
+    )
+    return job, created
+
+
+def _diagnosis_results(settings: Settings, job: dict[str, Any]) -> DiagnosisResults:
+    """Build the results of a succeeded diagnose job from its ``diagnosis.json``."""
+    path = _product_path(settings, job, "diagnosis")
+    try:
+        doc = json_safe(json.loads(path.read_text()))  # NaN -> null
+        steps = []
+        for index, step in enumerate(doc.get("steps") or [], 1):
+            known = {"name", "parameters", "statistic", "delta", "p_value"}
+            known |= {"gap_before", "gap_after", "candidates"}
+            steps.append(
+                DiagnosisStep(
+                    step=index,
+                    name=step["name"],
+                    parameters=step.get("parameters") or {},
+                    statistic=step.get("statistic"),
+                    delta=step.get("delta"),
+                    p_value=step.get("p_value"),
+                    gap_before=step.get("gap_before") or {},
+                    gap_after=step.get("gap_after") or {},
+                    candidates=step.get("candidates") or {},
+                    details={k: v for k, v in step.items() if k not in known},
+                )
+            )
+        return DiagnosisResults(
+            job_id=job["id"],
+            effects=list(doc.get("effects") or []),
+            steps=steps,
+            initial_gap=doc.get("initial_gap") or {},
+            final_gap=doc.get("final_gap") or {},
+            identifiability=doc.get("identifiability") or {},
+            config=doc.get("config") or {},
+            summary=json_safe(job.get("result")),
+        )
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        # ValueError covers malformed JSON and pydantic's ValidationError
+        logger.exception("job %s: unreadable diagnosis product %s", job["id"], path)
+        raise ApiError(
+            500, "the job's diagnosis product is unreadable; see the server log"
+        ) from None
+
+
 # endpoints ------------------------------------------------------------------------------
 
 
@@ -195,18 +405,42 @@ def _values(arr: np.ndarray) -> list[float | None]:
 def create_job(
     body: JobCreate, response: Response, store: StoreDep, settings: SettingsDep
 ) -> JobAccepted:
-    """Queue a calibration of one observation.
+    """Queue a calibration (``kind: "calibrate"``, the default) or a diagnosis of one observation.
 
     Inputs are paths under the data roots (absolute, or relative to a data root) or upload
-    ids. An identical job (same kind, inputs and settings) that is queued, running or
-    succeeded is returned instead of a new one (``created: false``) unless ``force``.
+    ids; a diagnosis reads UVH5 files. Options are validated against the kind's
+    configuration: an option of the other kind, an unknown field or a bad value is a 422
+    naming the field; a path outside the data roots is a 403. An identical job (same kind,
+    inputs and settings) that is queued, running or succeeded is returned instead of a
+    new one (``created: false``) unless ``force``.
+
+    A diagnosis fits the current model to the autos, measures the gap, tests the
+    catalogue of candidate effects (gain_drift, noise_drift, sky_scale, sky_offset,
+    sky_spectral_index, ground_temperature, beam_width, missing_cmb, cable_reflection),
+    accepts the best by Delta BIC while significant and repeats; its results name the
+    accepted effects with their parameters.
     """
+    if body.misplaced():
+        raise _misplaced_error(body)
+    errors = (
+        ValidationError,
+        InputPathError,
+        NightlyError,
+        SkyModelError,
+        PipelineError,
+        DiagnoseError,
+    )
     try:
-        job, created = submit_calibration(
-            store, settings, body.inputs, body.options(), kind=body.kind, force=body.force
-        )
-    except (ValidationError, InputPathError, NightlyError, SkyModelError, PipelineError) as err:
-        raise as_api_error(err) from None
+        if body.kind == "diagnose":
+            job, created = submit_diagnosis(
+                store, settings, body.inputs, body.given(), force=body.force
+            )
+        else:
+            job, created = submit_calibration(
+                store, settings, body.inputs, body.options(), kind=body.kind, force=body.force
+            )
+    except errors as err:
+        raise (_diagnose_api_error(err) if body.kind == "diagnose" else as_api_error(err)) from None
     response.headers["Location"] = f"/jobs/{job['id']}"
     return JobAccepted(id=job["id"], state=job["state"], created=created, links=_links(job["id"]))
 
@@ -217,7 +451,9 @@ def list_jobs(
     state: Annotated[JobStateName | None, Query(description="only jobs in this state")] = None,
     night: Annotated[int | None, Query(ge=0, le=10**8, description="integer JD")] = None,
     antenna: Annotated[int | None, Query(ge=0, le=10**6)] = None,
-    kind: Annotated[str | None, Query(max_length=32)] = None,
+    kind: Annotated[
+        str | None, Query(max_length=32, description="only jobs of this kind: calibrate, diagnose")
+    ] = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0, le=10**7)] = 0,
 ) -> JobList:
@@ -259,15 +495,30 @@ def cancel_job(job_id: JobId, store: StoreDep) -> JobDetail:
     return job_detail(job)
 
 
-@router.get("/{job_id}/results", response_model=JobResults, responses=_errors(404, 409, 422))
+@router.get(
+    "/{job_id}/results",
+    response_model=JobResults | DiagnosisResults,
+    responses=_errors(404, 409, 422),
+)
 def job_results(
     job_id: JobId,
     store: StoreDep,
     settings: SettingsDep,
-    antenna: Annotated[int | None, Query(ge=0, le=10**6, description="only this antenna")] = None,
-    pol: Annotated[str | None, Query(max_length=4, description="only this polarisation")] = None,
-) -> JobResults:
-    """Return the solution per antenna and polarisation (NaN as null) and the comparison."""
+    antenna: Annotated[
+        int | None, Query(ge=0, le=10**6, description="only this antenna (calibrate)")
+    ] = None,
+    pol: Annotated[
+        str | None, Query(max_length=4, description="only this polarisation (calibrate)")
+    ] = None,
+) -> JobResults | DiagnosisResults:
+    """Return the results of a succeeded job (NaN as null).
+
+    ``calibrate``: the solution per antenna and polarisation and the comparison.
+    ``diagnose``: the accepted ``effects`` in order and one entry per step: the effect
+    ``name``, its ``parameters`` (``value``, ``sigma``), the ``statistic`` (Delta BIC) and
+    ``delta`` (Delta chi^2), ``gap_before`` and ``gap_after`` (chi2/dof, rms normalised
+    residual...); the initial and final gap and the identifiability of each effect.
+    """
     from autocal.io.products import ProductFormatError, read_solution
 
     job = _job_or_404(store, job_id)
@@ -275,6 +526,14 @@ def job_results(
         raise ApiError(
             409, f"job {job_id} is {job['state']}; results exist only once it has succeeded"
         )
+    if job["kind"] == "diagnose":
+        if antenna is not None or pol is not None:
+            raise ApiError(
+                422,
+                "the antenna and pol filters apply to calibrate jobs; a diagnosis covers the "
+                "whole selection (per-feed values are in each step's details)",
+            )
+        return _diagnosis_results(settings, job)
     path = _product_path(settings, job, "hdf5")
     try:
         sol = read_solution(path)
@@ -339,7 +598,13 @@ def job_product(
     store: StoreDep,
     settings: SettingsDep,
 ) -> FileResponse:
-    """Download a product by name: calh5, calfits, hdf5, png, residuals_png, summary..."""
+    """Download a product by name (``GET /jobs/{id}`` lists a job's products).
+
+    ``calibrate``: calh5, calfits, hdf5, png, residuals_png, summary, compare_json...
+    ``diagnose``: diagnosis (diagnosis.json), summary_txt (summary.txt), summary
+    (summary.json), residuals_step1_png... (before/after each accepted step) or
+    residuals_png (nothing accepted).
+    """
     path = _product_path(settings, _job_or_404(store, job_id), name)
     media = MEDIA_TYPES.get(path.suffix.lower(), "application/octet-stream")
     return FileResponse(path, media_type=media, filename=path.name)
