@@ -22,7 +22,7 @@ def add(sub: argparse._SubParsersAction) -> None:
         help="name the physical effects missing from the model (gain drift, reflections, ...)",
         description="Fit the current model (sky x beam + CMB + ground, constant gain per "
         "channel) to the autos of one observation, measure the gap, fit each candidate "
-        "effect of the catalogue (gain_drift, noise_drift, sky_scale, sky_offset, "
+        "effect of the catalogue (gain_drift, gain_jitter, noise_drift, sky_scale, sky_offset, "
         "sky_spectral_index, ground_temperature, beam_width, missing_cmb, "
         "cable_reflection), accept the best by BIC while significant, and repeat. Writes "
         "diagnosis.json, summary.txt, summary.json and residual plots to --out (all or "
