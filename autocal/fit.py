@@ -435,7 +435,7 @@ def _moments_numpy(c: _Chunk, a0: int, a1: int, out: dict[str, np.ndarray]) -> i
 
 #: Integrations handled per pass of the compiled kernel's channel loop, and channels per
 #: block (the block's accumulators, ~(8p + 8) x _FBLOCK doubles, stay in L1/L2).
-_TUNROLL = 2
+_TUNROLL = 4
 _FBLOCK = 512
 _KERNELS: dict[tuple[Any, ...], Any] = {}
 _KERNEL_LOCK = threading.Lock()

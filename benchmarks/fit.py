@@ -1,0 +1,447 @@
+"""Benchmark: normal-equation accumulation vs numpy's own streaming reductions, side by side.
+
+One chunk as the pipeline sees it per HERA file (default 350 antennas x 2 pols x 96
+integrations x 1536 channels, float64 data as :class:`autocal.observation.Observation`
+holds it, boolean flags, a full ``dnu dt N`` array from ``Observation.bandwidth_time()``)
+is reduced, in the same process and interleaved round-robin over the repeats, by
+
+- ``data.sum()`` (numpy's flat pairwise sum, single-threaded) and
+  ``np.add.reduce(data, axis=2)`` (the same time-axis reduction shape as the fit);
+- :func:`autocal.fit.accumulate` for the constant and Legendre order-1/2 models with
+  radiometer and identity weights, with 1 thread and with all threads, per engine;
+- the previous design-matrix implementation on a few antennas (the "before" rate);
+
+and :func:`autocal.fit.solve_sums` is timed separately. Rates are samples (data elements)
+per second from the best-of-N wall time; the ratios to the plain sum and to the time-axis
+reduction are the targets (>= 0.5). Usage (one command; writes JSON and markdown)::
+
+    python benchmarks/fit.py [--nant 350] [--ntime 96] [--nfreq 1536] [--repeats 7]
+                             [--threads 1 2] [--engines numba numpy] [--out benchmarks/results]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import autocal
+from autocal.fit import (
+    FitModel,
+    NormalSums,
+    _check_tsky,
+    accumulate,
+    design,
+    solve_sums,
+    weights_for,
+)
+
+MODELS = (("constant", 0), ("legendre", 1), ("legendre", 2))
+WEIGHTS = ("radiometer", "identity")
+
+
+# inputs -----------------------------------------------------------------------------------
+
+
+def make_chunk(nant: int, npol: int, ntime: int, nfreq: int, seed: int = 0) -> dict[str, Any]:
+    """A realistic chunk: G (Tsky + Trxr) with radiometer noise, ~2 % flags, RFI channels."""
+    rng = np.random.default_rng(seed)
+    freqs = np.linspace(100e6, 200e6, nfreq)
+    lsts = 3.0 + np.arange(ntime) * 10.7 / 3600.0  # HERA 10.7 s integrations
+    shape_t = 1.0 + 0.3 * np.sin(2 * np.pi * (lsts - 3.0) / 24.0)
+    tsky = 300.0 * (freqs / 150e6)[None, None, :] ** -2.5 * shape_t[None, :, None]
+    tsky = np.ascontiguousarray(np.broadcast_to(tsky, (npol, ntime, nfreq)))
+    gain = rng.uniform(0.5, 2.0, (nant, npol, 1, nfreq))
+    trxr = rng.uniform(80.0, 200.0, (nant, npol, 1, nfreq))
+    channel_width = np.full(nfreq, freqs[1] - freqs[0])
+    integration_time = np.full(ntime, 10.7)
+    bt = channel_width[None, None, None, :] * integration_time[None, None, :, None]
+    data = np.empty((nant, npol, ntime, nfreq))
+    for a in range(nant):  # antenna by antenna to bound temporaries
+        clean = gain[a] * (tsky + trxr[a])
+        data[a] = clean * (1.0 + rng.standard_normal(clean.shape) / np.sqrt(bt[0]))
+    flags = rng.random(data.shape) < 0.02
+    flags[..., rng.choice(nfreq, nfreq // 20, replace=False)] = True  # RFI channels
+    nsamples = np.ones(data.shape)
+    bandwidth_time = bt * nsamples  # what Observation.bandwidth_time() returns
+    return {
+        "data": data,
+        "flags": flags,
+        "bandwidth_time": bandwidth_time,
+        "tsky": tsky,
+        "lsts": lsts,
+    }
+
+
+def reference_accumulate(
+    model: FitModel,
+    data: np.ndarray,
+    tsky: np.ndarray,
+    lsts: np.ndarray,
+    *,
+    flags: np.ndarray,
+    weights: str,
+    bandwidth_time: np.ndarray | None,
+) -> NormalSums:
+    """The previous implementation (full design matrix, batched tiny matmuls), for 'before'."""
+    nant, npol, ntime, nfreq = data.shape
+    tsky = _check_tsky(tsky, npol, ntime, nfreq)
+    usable = np.isfinite(data) & ~flags
+    w = weights_for(weights, data, usable, bandwidth_time)
+    used = w > 0
+    y = np.where(used, data, 0.0)
+    a = design(model, tsky, lsts)
+    m = model.nparam
+    wt = np.swapaxes(w, 2, 3)
+    wy = wt * np.swapaxes(y, 2, 3)
+    aty = (wy[..., None, :] @ a)[..., 0, :]
+    iu, ju = np.triu_indices(m)
+    upper = (wt[..., None, :] @ (a[..., iu] * a[..., ju]))[..., 0, :]
+    ata = np.empty((nant, npol, nfreq, m, m))
+    ata[..., iu, ju] = upper
+    ata[..., ju, iu] = upper
+    yty = np.einsum("apft,apft->apf", wy, np.swapaxes(y, 2, 3))
+    count = np.swapaxes(used, 2, 3).sum(axis=-1)
+    return NormalSums(model, ata, aty, yty, count, ntime - count)
+
+
+# timing -----------------------------------------------------------------------------------
+
+
+def run_round_robin(
+    cases: dict[str, Callable[[], Any]], repeats: int
+) -> dict[str, dict[str, float]]:
+    """Time every case ``repeats`` times, interleaved, so machine noise hits all alike."""
+    walls: dict[str, list[float]] = {k: [] for k in cases}
+    cpus: dict[str, list[float]] = {k: [] for k in cases}
+    for _ in range(repeats):
+        for name, fn in cases.items():
+            c0, t0 = time.process_time(), time.perf_counter()
+            fn()
+            walls[name].append(time.perf_counter() - t0)
+            cpus[name].append(time.process_time() - c0)
+    return {
+        k: {
+            "best_s": min(walls[k]),
+            "median_s": statistics.median(walls[k]),
+            "cpu_best_s": min(cpus[k]),
+        }
+        for k in cases
+    }
+
+
+def machine_info() -> dict[str, Any]:
+    """CPU model, cores, RAM, numpy/BLAS/numba versions, load average."""
+    info: dict[str, Any] = {
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "autocal": autocal.__version__,
+        "cpus": os.cpu_count(),
+        "usable_cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+    }
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+        info["cpu"] = next(
+            line.split(":", 1)[1].strip() for line in text.splitlines() if "model name" in line
+        )
+        flags = next(line for line in text.splitlines() if line.startswith("flags"))
+        info["simd"] = " ".join(f for f in ("avx2", "fma", "avx512f") if f" {f}" in flags)
+    except (OSError, StopIteration):
+        info["cpu"] = platform.processor() or platform.machine()
+    try:
+        kb = next(
+            int(line.split()[1])
+            for line in Path("/proc/meminfo").read_text().splitlines()
+            if line.startswith("MemTotal")
+        )
+        info["ram_gb"] = round(kb / 2**20, 1)
+    except (OSError, StopIteration):
+        info["ram_gb"] = None
+    try:
+        blas = np.show_config(mode="dicts")["Build Dependencies"]["blas"]
+        info["blas"] = f"{blas.get('name')} {blas.get('version')}"
+    except Exception:  # informational only
+        info["blas"] = "unknown"
+    try:
+        import numba
+
+        info["numba"] = numba.__version__
+    except ImportError:
+        info["numba"] = None
+    return info
+
+
+# main -------------------------------------------------------------------------------------
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--nant", type=int, default=350)
+    parser.add_argument("--npol", type=int, default=2)
+    parser.add_argument("--ntime", type=int, default=96)
+    parser.add_argument("--nfreq", type=int, default=1536)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument(
+        "--threads", type=int, nargs="+", default=sorted({1, len(os.sched_getaffinity(0))})
+    )
+    parser.add_argument("--engines", nargs="+", default=["numba", "numpy"])
+    parser.add_argument("--before-antennas", type=int, default=16)
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    args = parser.parse_args()
+
+    info = machine_info()
+    info["load_average_start"] = [round(x, 2) for x in os.getloadavg()]
+    chunk = make_chunk(args.nant, args.npol, args.ntime, args.nfreq)
+    data, flags, bt = chunk["data"], chunk["flags"], chunk["bandwidth_time"]
+    tsky, lsts = chunk["tsky"], chunk["lsts"]
+    nsamp = data.size
+    print(
+        f"chunk {data.shape} float64: data {data.nbytes / 2**20:.0f} MiB, "
+        f"dnu dt N {bt.nbytes / 2**20:.0f} MiB, flags {flags.nbytes / 2**20:.0f} MiB",
+        flush=True,
+    )
+
+    def acc_case(model: FitModel, weights: str, engine: str, threads: int) -> Callable[[], Any]:
+        kw = {"bandwidth_time": bt} if weights == "radiometer" else {}
+        return lambda: accumulate(
+            model,
+            data,
+            tsky,
+            lsts,
+            flags=flags,
+            weights=weights,
+            engine=engine,  # type: ignore[arg-type]
+            threads=threads,
+            **kw,
+        )
+
+    cases: dict[str, Callable[[], Any]] = {
+        "sum": lambda: data.sum(),
+        "reduce_time": lambda: np.add.reduce(data, axis=2),
+    }
+    labels: dict[str, dict[str, Any]] = {}
+    compile_s: dict[str, float] = {}
+    for kind, order in MODELS:
+        model = FitModel.for_lsts(lsts, kind, order)
+        for weights in WEIGHTS:
+            for engine in args.engines:
+                for threads in args.threads if engine == "numba" else [1]:
+                    key = f"{kind}{order}-{weights}-{engine}-{threads}t"
+                    fn = acc_case(model, weights, engine, threads)
+                    t0 = time.perf_counter()
+                    fn()  # compile (numba) / warm up
+                    compile_s[key] = time.perf_counter() - t0
+                    cases[key] = fn
+                    labels[key] = {
+                        "model": "constant" if kind == "constant" else f"Legendre {order}",
+                        "weights": weights,
+                        "engine": engine,
+                        "threads": threads,
+                    }
+    print(f"timing {len(cases)} cases x {args.repeats} repeats, round robin", flush=True)
+    timings = run_round_robin(cases, args.repeats)
+
+    # correctness against the previous implementation, and its speed, on a few antennas
+    nb = min(args.before_antennas, args.nant)
+    before: dict[str, Any] = {}
+    for kind, order in MODELS:
+        model = FitModel.for_lsts(lsts, kind, order)
+        for weights in WEIGHTS:
+            kw = {"bandwidth_time": bt[:nb]} if weights == "radiometer" else {}
+            t0 = time.perf_counter()
+            old = reference_accumulate(
+                model,
+                data[:nb],
+                tsky,
+                lsts,
+                flags=flags[:nb],
+                weights=weights,
+                bandwidth_time=kw.get("bandwidth_time"),
+            )
+            t_old = time.perf_counter() - t0
+            new = accumulate(model, data[:nb], tsky, lsts, flags=flags[:nb], weights=weights, **kw)
+            scale = np.abs(old.ata).max(axis=(-2, -1), keepdims=True)
+            rel = float(np.max(np.abs(new.ata - old.ata) / np.where(scale > 0, scale, 1.0)))
+            key = f"{kind}{order}-{weights}"
+            before[key] = {
+                "rate": nb * data[0].size / t_old,
+                "max_rel_diff_ata": rel,
+                "counts_equal": bool(np.array_equal(new.count, old.count)),
+            }
+
+    # solve_sums separately
+    solve: dict[str, float] = {}
+    for kind, order in MODELS:
+        model = FitModel.for_lsts(lsts, kind, order)
+        sums = accumulate(model, data, tsky, lsts, flags=flags, bandwidth_time=bt)
+        best = np.inf
+        for _ in range(max(1, args.repeats // 2)):
+            t0 = time.perf_counter()
+            solve_sums(sums)
+            best = min(best, time.perf_counter() - t0)
+        solve[f"{kind}{order}"] = best
+    info["load_average_end"] = [round(x, 2) for x in os.getloadavg()]
+
+    t_sum, t_red = timings["sum"]["best_s"], timings["reduce_time"]["best_s"]
+    rows = []
+    for key, lab in labels.items():
+        t = timings[key]
+        kind_order = key.split("-")[0]
+        rows.append(
+            {
+                **lab,
+                "best_s": round(t["best_s"], 4),
+                "median_s": round(t["median_s"], 4),
+                "cpu_best_s": round(t["cpu_best_s"], 4),
+                "rate_samples_per_s": nsamp / t["best_s"],
+                "ratio_to_sum": t_sum / t["best_s"],
+                "ratio_to_reduce_time": t_red / t["best_s"],
+                "ratio_to_sum_median": timings["sum"]["median_s"] / t["median_s"],
+                # per-core efficiency (CPU time; robust to a shared machine, 1 thread only)
+                "ratio_to_sum_cpu": (
+                    timings["sum"]["cpu_best_s"] / t["cpu_best_s"] if lab["threads"] == 1 else None
+                ),
+                "first_call_s": round(compile_s[key], 3),
+                "before_rate_samples_per_s": before[f"{kind_order}-{lab['weights']}"]["rate"],
+            }
+        )
+    result = {
+        "machine": info,
+        "shape": list(data.shape),
+        "samples": nsamp,
+        "repeats": args.repeats,
+        "baselines": {
+            "sum": {**timings["sum"], "rate_samples_per_s": nsamp / t_sum},
+            "reduce_time": {**timings["reduce_time"], "rate_samples_per_s": nsamp / t_red},
+        },
+        "accumulate": rows,
+        "before": {"antennas": nb, **before},
+        "solve_sums_s": solve,
+    }
+    md = render_markdown(result)
+    print(md)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "fit.json").write_text(json.dumps(result, indent=2) + "\n")
+    (args.out / "fit.md").write_text(md)
+
+
+def render_markdown(r: dict[str, Any]) -> str:
+    """The result as a markdown report."""
+    m = r["machine"]
+    gs = 1e9
+    base = r["baselines"]
+    rows = r["accumulate"]
+    lines = [
+        "# Fit accumulation vs numpy streaming reductions",
+        "",
+        f"Machine: {m.get('cpu')} ({m.get('simd')}), {m.get('usable_cpus')} usable cores, "
+        f"{m.get('ram_gb')} GB RAM; python {m['python']}, numpy {m['numpy']} "
+        f"(BLAS {m['blas']}), numba {m['numba']}, autocal {m['autocal']}. Load average "
+        f"{m['load_average_start']} at the start, {m['load_average_end']} at the end; on a "
+        "shared machine compare the ratios (measured side by side, interleaved) rather than "
+        "the absolute rates.",
+        "",
+        f"Chunk {tuple(r['shape'])} (antennas, pols, integrations, channels), float64 data "
+        f"(what `Observation` holds), bool flags and a full `dnu dt N` array = "
+        f"{r['samples'] / 1e6:.1f} M samples; best of {r['repeats']} wall times.",
+        "",
+        "| baseline (numpy, 1 thread) | best [s] | median [s] | rate [G samples/s] | [GB/s] |",
+        "|---|---|---|---|---|",
+    ]
+    for name, label in (
+        ("sum", "`data.sum()` (flat pairwise sum)"),
+        ("reduce_time", "`np.add.reduce(data, axis=2)` (over time, as the fit)"),
+    ):
+        b = base[name]
+        rate = b["rate_samples_per_s"]
+        lines.append(
+            f"| {label} | {b['best_s']:.4f} | {b['median_s']:.4f} | {rate / gs:.3f} | "
+            f"{rate * 8 / gs:.1f} |"
+        )
+    # headline: best numba rate per model and weights, 1 thread and all threads
+    lines += [
+        "",
+        "Headline (numba engine; target: ratio to the plain sum >= 0.5):",
+        "",
+        "| model | weights | 1 thread: ratio to sum (wall / CPU) | ratio to reduce-over-time | "
+        "N threads: ratio to sum | ratio to reduce-over-time | speed-up vs before (1 thread) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for model in dict.fromkeys(row["model"] for row in rows):
+        for weights in dict.fromkeys(row["weights"] for row in rows):
+            sel = [
+                x
+                for x in rows
+                if x["model"] == model and x["weights"] == weights and x["engine"] == "numba"
+            ]
+            one = [x for x in sel if x["threads"] == 1]
+            many = [x for x in sel if x["threads"] > 1]
+            if not one:
+                continue
+            o = one[0]
+            cells = [
+                f"{o['ratio_to_sum']:.2f} / {o['ratio_to_sum_cpu']:.2f}",
+                f"{o['ratio_to_reduce_time']:.2f}",
+            ]
+            if many:
+                t = max(many, key=lambda x: x["threads"])
+                cells += [
+                    f"{t['ratio_to_sum']:.2f} ({t['threads']} threads)",
+                    f"{t['ratio_to_reduce_time']:.2f}",
+                ]
+            else:
+                cells += ["-", "-"]
+            cells.append(f"{o['rate_samples_per_s'] / o['before_rate_samples_per_s']:.0f}x")
+            lines.append(f"| {model} | {weights} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "All cases:",
+        "",
+        "| model | weights | engine | threads | best [s] | median [s] | rate [G samples/s] | "
+        "ratio to sum | ratio to sum, CPU time | ratio to reduce-over-time | "
+        "before [G samples/s] | first call [s] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        cpu = row["ratio_to_sum_cpu"]
+        lines.append(
+            f"| {row['model']} | {row['weights']} | {row['engine']} | {row['threads']} | "
+            f"{row['best_s']:.4f} | {row['median_s']:.4f} | "
+            f"{row['rate_samples_per_s'] / gs:.3f} | {row['ratio_to_sum']:.2f} | "
+            f"{'-' if cpu is None else f'{cpu:.2f}'} | {row['ratio_to_reduce_time']:.2f} | "
+            f"{row['before_rate_samples_per_s'] / gs:.4f} | {row['first_call_s']:.2f} |"
+        )
+    before = r["before"]
+    diffs = {k: v for k, v in before.items() if isinstance(v, dict)}
+    lines += [
+        "",
+        "'ratio to sum, CPU time' = CPU time of `data.sum()` / CPU time of the case (1 thread "
+        "only; less sensitive to other processes). 'first call' = first call in the process "
+        "(numba: kernel compilation, or loading it from the on-disk cache).",
+        "",
+        f"'before' = the previous design-matrix implementation, timed on {before['antennas']} "
+        "antennas (its rate per sample does not depend on the antenna count). Agreement with "
+        "it there: max |diff| / max |ata| per channel = "
+        + ", ".join(f"{k} {v['max_rel_diff_ata']:.1e}" for k, v in diffs.items())
+        + "; counts equal: "
+        + str(all(v["counts_equal"] for v in diffs.values()))
+        + ".",
+        "",
+        "`solve_sums` (all channels of the chunk, radiometer sums), best wall time: "
+        + ", ".join(f"{k} {v:.3f} s" for k, v in r["solve_sums_s"].items())
+        + ".",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()
