@@ -17,7 +17,9 @@ variable                         meaning (default)
 ``AUTOCAL_STALE_AFTER_S``        a running job without heartbeat for this long is
                                  re-queued or failed (60)
 ``AUTOCAL_MAX_ATTEMPTS``         attempts before a crashed job is failed (3)
-``AUTOCAL_DASK_SCHEDULER``       dask.distributed scheduler address ("" = local)
+``AUTOCAL_DASK_SCHEDULER``       calibrations map their per-file sums over Dask: a
+                                 scheduler address (tcp://host:8786), "local" for a
+                                 LocalCluster, "" (default) to run in the worker
 ===============================  ==========================================================
 """
 

@@ -366,9 +366,8 @@ class Worker:
             return None
         return state.value
 
-    @staticmethod
     def _run_kind(
-        kind: str, config: dict[str, Any], out: Path, run: _Run
+        self, kind: str, config: dict[str, Any], out: Path, run: _Run
     ) -> tuple[dict[str, Any], dict[str, str]]:
         """Run a job of ``kind`` into ``out``; return its summary and product paths."""
         if kind == "diagnose":
@@ -382,7 +381,11 @@ class Worker:
         from autocal.pipeline import CalibrationConfig, run_calibration
 
         result = run_calibration(
-            CalibrationConfig(**config), out, progress=run.progress, should_stop=run.should_stop
+            CalibrationConfig(**config),
+            out,
+            progress=run.progress,
+            should_stop=run.should_stop,
+            dask_scheduler=self.settings.dask_scheduler or None,
         )
         return result.summary, result.products
 
@@ -411,11 +414,9 @@ class Worker:
             "worker": self.worker_id,
             "products_dir": str(out),
         }
-        if self.settings.dask_scheduler:
-            # Recorded only: the job ran in this worker process; Dask scale-out of the
-            # computation is not implemented yet.
+        if self.settings.dask_scheduler and job["kind"] == "calibrate":
+            # the per-file normal sums ran on the Dask cluster (autocal.scaleout)
             provenance["dask_scheduler"] = self.settings.dask_scheduler
-            provenance["service"]["executor"] = "worker process (dask scheduler not used yet)"
         summary = dict(run_summary)
         summary["provenance"] = provenance
         return self._finish(
