@@ -378,6 +378,19 @@ def _full(values: Any, shape: tuple[int, ...]) -> np.ndarray | float:
     return np.ascontiguousarray(np.broadcast_to(arr, shape))
 
 
+def _offset_copy(arr: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """Copy ``arr`` (C order, float64) to an address 2 kB away from ``other``'s modulo 4 kB.
+
+    Rows of the two arrays at equal indices then fall in different L1 cache sets.
+    """
+    buf = np.empty(arr.size + 512)
+    target = (other.ctypes.data + 2048) % 4096
+    start = ((target - buf.ctypes.data) % 4096) // 8
+    out = buf[start : start + arr.size].reshape(arr.shape)
+    out[...] = arr
+    return out
+
+
 def _moments_numpy(c: _Chunk, a0: int, a1: int, out: dict[str, np.ndarray]) -> int:
     """Fill ``out[...][a0:a1]`` with numpy; return the number of invalid user weights.
 
@@ -433,9 +446,13 @@ def _moments_numpy(c: _Chunk, a0: int, a1: int, out: dict[str, np.ndarray]) -> i
     return nbad
 
 
-#: Integrations handled per pass of the compiled kernel's channel loop, and channels per
-#: block (the block's accumulators, ~(8p + 8) x _FBLOCK doubles, stay in L1/L2).
-_TUNROLL = 4
+#: Integrations handled per pass of the compiled kernel's channel loop, by the number of
+#: chunk-sized arrays it reads per sample (data, dnu dt N or user weights, reference power):
+#: with Nfreq a multiple of 512 (HERA: 1536) every row of these starts at the same offset
+#: modulo 4 kB, so the rows read together compete for one 8-way L1 set; at most ~8 of them
+#: may be in flight. Tsky is copied to another offset (:func:`_offset_copy`).
+_TUNROLL = {1: 4, 2: 2, 3: 2}
+#: Channels per block (the block's accumulators, ~(8p + 8) x _FBLOCK doubles, stay in L1/L2).
 _FBLOCK = 512
 _KERNELS: dict[tuple[Any, ...], Any] = {}
 _KERNEL_LOCK = threading.Lock()
@@ -451,16 +468,9 @@ def _numba_available() -> bool:
 
 def _kernel_key(c: _Chunk) -> tuple[Any, ...]:
     nb, _, nr = c.lin.shape
-    return (
-        nr,
-        nb,
-        c.mode,
-        np.ndim(c.num) == 0,
-        c.power is None,
-        c.lin.tobytes(),
-        _TUNROLL,
-        _FBLOCK,
-    )
+    scalar_num = np.ndim(c.num) == 0
+    nbig = 1 + (not scalar_num) + (c.power is not None)
+    return (nr, nb, c.mode, scalar_num, c.power is None, c.lin.tobytes(), _TUNROLL[nbig], _FBLOCK)
 
 
 def _kernel_source(key: tuple[Any, ...], lin: np.ndarray) -> str:
@@ -753,7 +763,7 @@ def accumulate(
     lsts = np.asarray(lsts, dtype=np.float64)
     if lsts.shape != (ntime,):
         raise FitError(f"{lsts.size} LSTs for {ntime} integrations")
-    tsky = np.ascontiguousarray(_check_tsky(tsky, npol, ntime, nfreq))
+    tsky = _offset_copy(_check_tsky(tsky, npol, ntime, nfreq), data)
     if flags is None:
         flag_bytes = np.zeros(data.shape, np.uint8)
     else:

@@ -12,6 +12,7 @@ from autocal.fit import (
     Solution,
     _default_threads,
     _numba_available,
+    _offset_copy,
     _time_functions,
     accumulate,
     design,
@@ -459,3 +460,13 @@ def test_solve_flags_non_finite_normal_matrices() -> None:
     np.testing.assert_allclose(
         out["coeffs"][0, 0, 0], np.linalg.solve(sums.ata[0, 0, 0], sums.aty[0, 0, 0])
     )
+
+
+def test_offset_copy_moves_rows_to_other_cache_sets() -> None:
+    other = np.zeros((3, 512))
+    arr = np.arange(6 * 512, dtype=float).reshape(2, 3, 512)
+    for src in (arr, np.broadcast_to(arr[0], (2, 3, 512))):
+        out = _offset_copy(src, other)
+        np.testing.assert_array_equal(out, src)
+        assert out.flags.c_contiguous
+        assert (out.ctypes.data - other.ctypes.data) % 4096 == 2048
