@@ -451,7 +451,7 @@ def _moments_numpy(c: _Chunk, a0: int, a1: int, out: dict[str, np.ndarray]) -> i
 #: with Nfreq a multiple of 512 (HERA: 1536) every row of these starts at the same offset
 #: modulo 4 kB, so the rows read together compete for one 8-way L1 set; at most ~8 of them
 #: may be in flight. Tsky is copied to another offset (:func:`_offset_copy`).
-_TUNROLL = {1: 4, 2: 2, 3: 2}
+_TUNROLL = {1: 4, 2: 4, 3: 2}
 #: Channels per block (the block's accumulators, ~(8p + 8) x _FBLOCK doubles, stay in L1/L2).
 _FBLOCK = 512
 _KERNELS: dict[tuple[Any, ...], Any] = {}
