@@ -449,8 +449,9 @@ def _moments_numpy(c: _Chunk, a0: int, a1: int, out: dict[str, np.ndarray]) -> i
 #: Integrations handled per pass of the compiled kernel's channel loop, by the number of
 #: chunk-sized arrays it reads per sample (data, dnu dt N or user weights, reference power):
 #: with Nfreq a multiple of 512 (HERA: 1536) every row of these starts at the same offset
-#: modulo 4 kB, so the rows read together compete for one 8-way L1 set; at most ~8 of them
-#: may be in flight. Tsky is copied to another offset (:func:`_offset_copy`).
+#: modulo 4 kB (large arrays are page-aligned alike), so the rows read together compete for
+#: one 8-way L1 set; at most 8 of them may be in flight. Tsky is copied to another offset
+#: (:func:`_offset_copy`) and the kernel places its accumulators off that set too.
 _TUNROLL = {1: 4, 2: 4, 3: 2}
 #: Channels per block (the block's accumulators, ~(8p + 8) x _FBLOCK doubles, stay in L1/L2).
 _FBLOCK = 512
@@ -489,7 +490,11 @@ def _kernel_source(key: tuple[Any, ...], lin: np.ndarray) -> str:
         "def kernel(data, flags, num, power, tsky, coef, a_start, a_stop, ata, aty, yty, "
         "count, bad):",
         "    npol, ntime, nfreq = data.shape[1], data.shape[2], data.shape[3]",
-        f"    acc = np.empty({len(names) * fbp})",
+        # the accumulator rows start one cache line after the data rows modulo 4 kB, so
+        # they never share an L1 set with the data (see _TUNROLL)
+        f"    buf = np.empty({len(names) * fbp + 512})",
+        "    off = ((np.int64(data.ctypes.data) + 64 - np.int64(buf.ctypes.data)) % 4096) // 8",
+        f"    acc = buf[off : off + {len(names) * fbp}]",
         "    for ia in range(a_start, a_stop):",
         "        nbad = 0.0",
         "        for p in range(npol):",

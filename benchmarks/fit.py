@@ -31,10 +31,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+# '1 thread' means one core: keep BLAS (the numpy engine's matrix products) single-threaded
+for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-import autocal
-from autocal.fit import (
+import numpy as np  # noqa: E402
+
+import autocal  # noqa: E402
+from autocal.fit import (  # noqa: E402
     FitModel,
     NormalSums,
     _check_tsky,
@@ -138,6 +142,30 @@ def run_round_robin(
     }
 
 
+def fma_peak() -> float:
+    """Single-core multiply-add peak (FMA lanes per second) from a BLAS dgemm."""
+    n = 1024
+    a, b = np.random.default_rng(1).random((2, n, n))
+    best = np.inf
+    for _ in range(5):
+        t0 = time.perf_counter()
+        a @ b
+        best = min(best, time.perf_counter() - t0)
+    return n**3 / best
+
+
+def ceilings(order: int, weights: str, sum_rate: float, fma_rate: float) -> dict[str, float]:
+    """Upper bounds of the ratio to the plain sum from bytes and multiply-adds per sample.
+
+    Memory: the sum reads 8 B per sample; accumulate reads data (8 B), flags (1 B) and, for
+    radiometer weights, dnu dt N (8 B). Compute: 8p + 6 multiply-adds per sample (the
+    3 (2p + 1) weighted moments of Tsky^e P_r, 2 (p + 1) of the data, y^2) and 4 multiplies.
+    """
+    nbytes = 8 + 1 + (8 if weights == "radiometer" else 0)
+    flops = 8 * order + 6 + 4
+    return {"memory": 8.0 / nbytes, "compute": fma_rate / flops / sum_rate}
+
+
 def machine_info() -> dict[str, Any]:
     """CPU model, cores, RAM, numpy/BLAS/numba versions, load average."""
     info: dict[str, Any] = {
@@ -199,6 +227,7 @@ def main() -> None:
 
     info = machine_info()
     info["load_average_start"] = [round(x, 2) for x in os.getloadavg()]
+    info["fma_peak_per_s"] = fma_peak()
     chunk = make_chunk(args.nant, args.npol, args.ntime, args.nfreq)
     data, flags, bt = chunk["data"], chunk["flags"], chunk["bandwidth_time"]
     tsky, lsts = chunk["tsky"], chunk["lsts"]
@@ -311,6 +340,9 @@ def main() -> None:
                 ),
                 "first_call_s": round(compile_s[key], 3),
                 "before_rate_samples_per_s": before[f"{kind_order}-{lab['weights']}"]["rate"],
+                "ceiling_ratio_to_sum": ceilings(
+                    int(kind_order[-1]), lab["weights"], nsamp / t_sum, info["fma_peak_per_s"]
+                ),
             }
         )
     result = {
@@ -372,8 +404,9 @@ def render_markdown(r: dict[str, Any]) -> str:
         "Headline (numba engine; target: ratio to the plain sum >= 0.5):",
         "",
         "| model | weights | 1 thread: ratio to sum (wall / CPU) | ratio to reduce-over-time | "
-        "N threads: ratio to sum | ratio to reduce-over-time | speed-up vs before (1 thread) |",
-        "|---|---|---|---|---|---|---|",
+        "N threads: ratio to sum | ratio to reduce-over-time | speed-up vs before (1 thread) | "
+        "1-core ceiling of the ratio to sum (memory / compute) |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for model in dict.fromkeys(row["model"] for row in rows):
         for weights in dict.fromkeys(row["weights"] for row in rows):
@@ -400,6 +433,8 @@ def render_markdown(r: dict[str, Any]) -> str:
             else:
                 cells += ["-", "-"]
             cells.append(f"{o['rate_samples_per_s'] / o['before_rate_samples_per_s']:.0f}x")
+            ceil = o["ceiling_ratio_to_sum"]
+            cells.append(f"{ceil['memory']:.2f} / {ceil['compute']:.2f}")
             lines.append(f"| {model} | {weights} | " + " | ".join(cells) + " |")
     lines += [
         "",
@@ -426,6 +461,13 @@ def render_markdown(r: dict[str, Any]) -> str:
         "'ratio to sum, CPU time' = CPU time of `data.sum()` / CPU time of the case (1 thread "
         "only; less sensitive to other processes). 'first call' = first call in the process "
         "(numba: kernel compilation, or loading it from the on-disk cache).",
+        "",
+        "Ceilings (one core): memory = 8 B per sample for the sum / bytes read per sample by "
+        "accumulate (data 8 + flags 1 + dnu dt N 8 for radiometer weights); compute = "
+        f"single-core multiply-add peak ({m['fma_peak_per_s'] / gs:.1f} G/s, 1024^3 dgemm) "
+        "/ (8p + 10) multiply-adds per sample (3 (2p + 1) weighted moments of Tsky^e P_r, "
+        "2 (p + 1) of the data, y^2, 4 feature products) / the sum's rate. The plain sum does "
+        "one add per sample.",
         "",
         f"'before' = the previous design-matrix implementation, timed on {before['antennas']} "
         "antennas (its rate per sample does not depend on the antenna count). Agreement with "
