@@ -8,7 +8,7 @@ export AUTOCAL_DATA_DIR
 DEMO_OUT ?= demo-output
 PYTEST_ARGS ?=
 
-.PHONY: install demo test lint format bench clean
+.PHONY: install demo test lint format bench bench-night clean
 
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -36,8 +36,13 @@ lint:
 format:
 	$(VENV)/bin/ruff check --fix . && $(VENV)/bin/ruff format .
 
+# Speed targets (benchmarks/README.md); the HERA-size night needs ~25 GB in /tmp and ~1.5 h.
 bench: install
 	$(PY) benchmarks/tsky.py
+	$(PY) benchmarks/fit.py
+
+bench-night: install
+	$(PY) benchmarks/night.py
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache .ruff_cache *.egg-info
