@@ -52,6 +52,8 @@ R = TypeVar("R")
 BIC_THRESHOLD = 10.0
 #: Default significance (chi^2_k survival of Delta chi^2) an effect must reach.
 ALPHA = 1e-4
+#: Most outlier-flagging rounds, each followed by a new search (see :func:`diagnose`).
+_OUTLIER_ROUNDS = 3
 #: Fraction of a template's Fisher information that must survive the (G, n) projection.
 MIN_IDENTIFIABLE = 1e-6
 
@@ -812,6 +814,7 @@ def diagnose(
     smooth_order: int | None = None,
     flag_rfi: bool = True,
     outlier_threshold: float = 6.0,
+    progress: Callable[[float, str], None] | None = None,
 ) -> Diagnosis:
     """Find, one by one, the effects missing from the forward model.
 
@@ -843,12 +846,23 @@ def diagnose(
         ``config["outlier_flagging"]``).
     outlier_threshold
         Robust sigmas beyond which a sample is an outlier.
+    progress
+        Called with ``(fraction, message)`` before every model fit (fraction in [0, 1],
+        non-decreasing). It may raise to abandon the search (the service's cancellation);
+        the exception propagates and nothing is returned.
 
     Returns
     -------
     Diagnosis
         Steps, accepted effects and gaps.
     """
+    searches = 1 + (_OUTLIER_ROUNDS if flag_rfi else 0)
+    search = 0
+
+    def report(fraction: float, message: str) -> None:
+        if progress is not None:
+            progress(min(1.0, (search + fraction) / searches), f"search {search + 1}: {message}")
+
     kwargs: dict[str, Any] = {
         "candidates": candidates,
         "trxr_prior": trxr_prior,
@@ -857,13 +871,15 @@ def diagnose(
         "alpha": alpha,
         "max_steps": max_steps,
         "smooth_order": smooth_order,
+        "progress": report,
     }
     nflag0 = int(obs.flags.sum())
     diag = _diagnose_once(obs, tpl, **kwargs)
     rounds = 0
     # outliers are judged on the residuals of the *final* model, so that structure an
     # effect explains is never mistaken for RFI; then the search is repeated without them
-    while flag_rfi and rounds < 3 and diag.final_fit is not None:
+    while flag_rfi and rounds < _OUTLIER_ROUNDS and diag.final_fit is not None:
+        search += 1
         flags = flag_outliers(obs, diag.final_fit, threshold=outlier_threshold)
         if int(flags.sum()) == int(obs.flags.sum()):
             break
@@ -897,6 +913,7 @@ def _diagnose_once(
     alpha: float = ALPHA,
     max_steps: int = 5,
     smooth_order: int | None = None,
+    progress: Callable[[float, str], None] = lambda fraction, message: None,
 ) -> Diagnosis:
     """One search for effects (:func:`diagnose` without the outlier flagging)."""
     if not np.all(obs.bandwidth_time()[~obs.flags] > 0):
@@ -928,6 +945,7 @@ def _diagnose_once(
         }
     )
     # weights from the model: two passes of the baseline, then outliers (RFI) flagged
+    progress(0.0, "fitting the starting model")
     w = radiometer_weights(obs, obs.data)
     current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
     w = radiometer_weights(obs, current.model)
@@ -938,9 +956,13 @@ def _diagnose_once(
     )
     diag.initial_gap = gap_metrics(current, obs, tpl, bp_null)
     diag.residual_snapshots.append(("initial model", current.residuals[0, 0]))
-    for _step in range(max_steps):
+    for step in range(max_steps):
         results = []
-        for eff in cands:
+        for icand, eff in enumerate(cands):
+            progress(
+                (step + icand / len(cands)) / max_steps,
+                f"step {step + 1}: trying {eff.name} ({eff.basis}, order {eff.order})",
+            )
             if any(a.name == eff.name for a in active) or (
                 eff.kind == "bandpass" and cable is not None
             ):
@@ -1008,7 +1030,7 @@ def _diagnose_once(
         candidates_report = {}
         for r in results:
             candidates_report.setdefault(r[3].name, float(r[0]))
-        logger.info("step %d: best %s (Delta BIC %.1f, p %.2g)", _step + 1, eff.name, stat, pval)
+        logger.info("step %d: best %s (Delta BIC %.1f, p %.2g)", step + 1, eff.name, stat, pval)
         if not (stat > bic_threshold and pval < alpha):
             diag.config["last_rejected"] = {"name": eff.name, "statistic": stat, "p_value": pval}
             break

@@ -193,9 +193,9 @@ def run_diagnosis(
     progress
         Called with (fraction done, message) at each stage.
     should_stop
-        Polled between stages; returning ``True`` aborts with
-        :class:`autocal.pipeline.PipelineError` ``"cancelled"`` (the service's
-        cancellation) and publishes nothing.
+        Polled between stages and before every model fit of the search; returning
+        ``True`` aborts with :class:`autocal.pipeline.PipelineError` ``"cancelled"`` (the
+        service's cancellation) and publishes nothing.
 
     Returns
     -------
@@ -275,6 +275,7 @@ def run_diagnosis(
         bic_threshold=config.bic_threshold,
         alpha=config.alpha,
         max_steps=config.max_steps,
+        progress=lambda fraction, message: report(0.5 + 0.4 * fraction, message),
     )
     timings["diagnose_s"] = time.perf_counter() - t2
     logger.info("accepted effects: %s", ", ".join(diag.effects) or "none")

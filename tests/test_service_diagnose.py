@@ -332,7 +332,19 @@ def test_run_diagnosis_publishes_all_or_nothing(
         run_diagnosis(config, out, should_stop=lambda: bool(calls))
     assert calls and sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
+    # cancelled in the middle of the search (between two candidate fits)
     monkeypatch.setattr(autocal.diagnose, "write_diagnosis", real)
+    messages: list[str] = []
+    with pytest.raises(PipelineError, match="cancelled"):
+        run_diagnosis(
+            config.model_copy(update={"max_steps": 2}),
+            out,
+            progress=lambda f, m: messages.append(m),
+            should_stop=lambda: any("step 1: trying" in m for m in messages),
+        )
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+    assert not any("writing" in m for m in messages)
+
     seen: list[tuple[float, str]] = []
     config = config.model_copy(update={"max_steps": 1})
     assert run_diagnosis(config, out, progress=lambda f, m: seen.append((f, m))) == out
@@ -344,6 +356,7 @@ def test_run_diagnosis_publishes_all_or_nothing(
     assert {product_name(p.name): str(p) for p in published} == summary["products"]
     fractions = [f for f, _ in seen]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    assert any("step 1: trying gain_drift" in m for _, m in seen)  # progress inside the search
 
 
 def test_diagnose_config_and_command(data: Path, tmp_path: Path, capsys) -> None:
