@@ -424,6 +424,7 @@ def compute_partial(
     bin0 = task.offset // spec.bin_size
     nbins = (task.offset + ntot - 1) // spec.bin_size - bin0 + 1
     sums: NormalSums | None = None
+    scratch: NormalSums | None = None  # the second and later blocks' sums, reused
     waterfall: np.ndarray | None = None
     checksums: dict[str, str] = {}
     antennas: np.ndarray | None = None
@@ -446,7 +447,7 @@ def compute_partial(
         weights: str | np.ndarray = spec.weights
         bt = None
         if spec.weights == "radiometer":  # dnu dt N (Observation.bandwidth_time, one pass)
-            bt = chunk.nsamples * (chunk.integration_time[:, None] * chunk.channel_width)
+            bt = _bandwidth_time(chunk)
         if task.weights is not None and spec.weights == "radiometer":
             weights, bt = task.weights[:, :, window], None
         if bt is not None:
@@ -455,7 +456,8 @@ def compute_partial(
                     f"{chunk.meta.get('files')}: radiometer weights need positive channel "
                     "width, integration time and nsamples; use weights='identity'"
                 )
-            bt_min = min(bt_min, float(np.min(bt, where=~chunk.flags, initial=np.inf)))
+            full_bt = np.broadcast_to(bt, chunk.flags.shape)
+            bt_min = min(bt_min, float(np.min(full_bt, where=~chunk.flags, initial=np.inf)))
         reference = None
         if spec.coeffs is not None:
             pred = np.einsum("pftm,apfm->aptf", design(spec.model, tsky, chunk.lsts), spec.coeffs)
@@ -470,8 +472,12 @@ def compute_partial(
             weights=weights,
             bandwidth_time=bt,
             reference=reference,
+            out=scratch,
         )
-        sums = part if sums is None else _add_into(sums, part)
+        if sums is None:
+            sums = part
+        else:
+            sums, scratch = _add_into(sums, part), part
         assert waterfall is not None
         _add_waterfall(
             waterfall,
@@ -504,6 +510,18 @@ def compute_partial(
         stats.as_dict(),
         time.perf_counter() - start,
     )
+
+
+def _bandwidth_time(chunk: Observation) -> np.ndarray:
+    """Return ``dnu dt N``: ``(Ntime, Nfreq)`` when ``nsamples`` is uniform, else per sample.
+
+    The shared form spares a chunk-sized array and a third of the fit kernel's reads.
+    """
+    tf = chunk.integration_time[:, None] * chunk.channel_width
+    ns = chunk.nsamples
+    if ns.size and not np.any(ns != ns.flat[0]):
+        return tf * float(ns.flat[0])
+    return ns * tf
 
 
 def _add_into(total: NormalSums, part: NormalSums) -> NormalSums:
@@ -549,7 +567,7 @@ def _add_waterfall(
             weights,
             data,
             usable,
-            None if bt is None else bt[:ns],
+            None if bt is None else bt[:ns] if bt.ndim == 4 else bt,
             None if reference is None else reference[:ns],
         )
     a = design(spec.model, tsky, chunk.lsts)  # (P, F, T, M)

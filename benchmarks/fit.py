@@ -2,13 +2,17 @@
 
 One chunk as the pipeline sees it per HERA file (default 350 antennas x 2 pols x 96
 integrations x 1536 channels, float64 data as :class:`autocal.observation.Observation`
-holds it, boolean flags, a full ``dnu dt N`` array from ``Observation.bandwidth_time()``)
-is reduced, in the same process and interleaved round-robin over the repeats, by
+holds it, boolean flags, ``dnu dt N``) is reduced, in the same process and interleaved
+round-robin over the repeats, by
 
 - ``data.sum()`` (numpy's flat pairwise sum, single-threaded) and
   ``np.add.reduce(data, axis=2)`` (the same time-axis reduction shape as the fit);
 - :func:`autocal.fit.accumulate` for the constant and Legendre order-1/2 models with
-  radiometer and identity weights, with 1 thread and with all threads, per engine;
+  radiometer weights (``dnu dt N`` as the pipeline passes it for uniform ``nsamples``: one
+  ``(Ntime, Nfreq)`` array; and ``radiometer-nsamples``: a full per-sample array, as for
+  LST-binned data) and identity weights, with 1 thread and with all threads, per engine,
+  writing into one reused set of output sums (``out=``, as the pipeline's blocks do); and
+  with fresh output arrays (1 thread, the first block of every file);
 - the previous design-matrix implementation on a few antennas (the "before" rate);
 
 and :func:`autocal.fit.solve_sums` is timed separately. Rates are samples (data elements)
@@ -49,7 +53,7 @@ from autocal.fit import (  # noqa: E402
 )
 
 MODELS = (("constant", 0), ("legendre", 1), ("legendre", 2))
-WEIGHTS = ("radiometer", "identity")
+WEIGHTS = ("radiometer", "radiometer-nsamples", "identity")
 
 
 # inputs -----------------------------------------------------------------------------------
@@ -117,6 +121,15 @@ def reference_accumulate(
     return NormalSums(model, ata, aty, yty, count, ntime - count)
 
 
+def weight_kwargs(weights: str, bt: np.ndarray) -> dict[str, Any]:
+    """``accumulate`` keywords of a weight case (``bt``: the full per-sample dnu dt N)."""
+    if weights == "identity":
+        return {"weights": "identity", "bandwidth_time": None}
+    if weights == "radiometer":  # uniform nsamples: what the pipeline passes
+        return {"weights": "radiometer", "bandwidth_time": bt[0, 0]}
+    return {"weights": "radiometer", "bandwidth_time": bt}
+
+
 # timing -----------------------------------------------------------------------------------
 
 
@@ -158,10 +171,11 @@ def ceilings(order: int, weights: str, sum_rate: float, fma_rate: float) -> dict
     """Upper bounds of the ratio to the plain sum from bytes and multiply-adds per sample.
 
     Memory: the sum reads 8 B per sample; accumulate reads data (8 B), flags (1 B) and, for
-    radiometer weights, dnu dt N (8 B). Compute: 8p + 6 multiply-adds per sample (the
-    3 (2p + 1) weighted moments of Tsky^e P_r, 2 (p + 1) of the data, y^2) and 4 multiplies.
+    per-sample radiometer weights, dnu dt N (8 B). Compute: 8p + 6 multiply-adds per sample
+    (the 3 (2p + 1) weighted moments of Tsky^e P_r, 2 (p + 1) of the data, y^2) and 4
+    multiplies.
     """
-    nbytes = 8 + 1 + (8 if weights == "radiometer" else 0)
+    nbytes = 8 + 1 + (8 if weights == "radiometer-nsamples" else 0)
     flops = 8 * order + 6 + 4
     return {"memory": 8.0 / nbytes, "compute": fma_rate / flops / sum_rate}
 
@@ -238,19 +252,29 @@ def main() -> None:
         flush=True,
     )
 
-    def acc_case(model: FitModel, weights: str, engine: str, threads: int) -> Callable[[], Any]:
-        kw = {"bandwidth_time": bt} if weights == "radiometer" else {}
-        return lambda: accumulate(
-            model,
-            data,
-            tsky,
-            lsts,
-            flags=flags,
-            weights=weights,
-            engine=engine,  # type: ignore[arg-type]
-            threads=threads,
-            **kw,
-        )
+    def acc_case(
+        model: FitModel, weights: str, engine: str, threads: int, reuse: bool = True
+    ) -> Callable[[], Any]:
+        kw = weight_kwargs(weights, bt)
+        out: list[NormalSums] = []
+
+        def run() -> NormalSums:
+            sums = accumulate(
+                model,
+                data,
+                tsky,
+                lsts,
+                flags=flags,
+                engine=engine,  # type: ignore[arg-type]
+                threads=threads,
+                out=out[0] if out else None,
+                **kw,
+            )
+            if reuse and not out:
+                out.append(sums)
+            return sums
+
+        return run
 
     cases: dict[str, Callable[[], Any]] = {
         "sum": lambda: data.sum(),
@@ -262,11 +286,15 @@ def main() -> None:
         model = FitModel.for_lsts(lsts, kind, order)
         for weights in WEIGHTS:
             for engine in args.engines:
-                for threads in args.threads if engine == "numba" else [1]:
+                variants = [(t, True) for t in (args.threads if engine == "numba" else [1])]
+                if engine == "numba":
+                    variants.append((1, False))
+                for threads, reuse in variants:
                     key = f"{kind}{order}-{weights}-{engine}-{threads}t"
-                    fn = acc_case(model, weights, engine, threads)
+                    key += "" if reuse else "-fresh"
+                    fn = acc_case(model, weights, engine, threads, reuse)
                     t0 = time.perf_counter()
-                    fn()  # compile (numba) / warm up
+                    fn()  # compile (numba) / warm up / allocate the reused output
                     compile_s[key] = time.perf_counter() - t0
                     cases[key] = fn
                     labels[key] = {
@@ -274,6 +302,7 @@ def main() -> None:
                         "weights": weights,
                         "engine": engine,
                         "threads": threads,
+                        "output": "reused" if reuse else "fresh",
                     }
     print(f"timing {len(cases)} cases x {args.repeats} repeats, round robin", flush=True)
     timings = run_round_robin(cases, args.repeats)
@@ -284,7 +313,7 @@ def main() -> None:
     for kind, order in MODELS:
         model = FitModel.for_lsts(lsts, kind, order)
         for weights in WEIGHTS:
-            kw = {"bandwidth_time": bt[:nb]} if weights == "radiometer" else {}
+            kw = weight_kwargs(weights, bt[:nb])
             t0 = time.perf_counter()
             old = reference_accumulate(
                 model,
@@ -292,11 +321,11 @@ def main() -> None:
                 tsky,
                 lsts,
                 flags=flags[:nb],
-                weights=weights,
-                bandwidth_time=kw.get("bandwidth_time"),
+                weights=kw["weights"],
+                bandwidth_time=kw["bandwidth_time"],
             )
             t_old = time.perf_counter() - t0
-            new = accumulate(model, data[:nb], tsky, lsts, flags=flags[:nb], weights=weights, **kw)
+            new = accumulate(model, data[:nb], tsky, lsts, flags=flags[:nb], **kw)
             scale = np.abs(old.ata).max(axis=(-2, -1), keepdims=True)
             rel = float(np.max(np.abs(new.ata - old.ata) / np.where(scale > 0, scale, 1.0)))
             key = f"{kind}{order}-{weights}"
@@ -382,8 +411,13 @@ def render_markdown(r: dict[str, Any]) -> str:
         "the absolute rates.",
         "",
         f"Chunk {tuple(r['shape'])} (antennas, pols, integrations, channels), float64 data "
-        f"(what `Observation` holds), bool flags and a full `dnu dt N` array = "
-        f"{r['samples'] / 1e6:.1f} M samples; best of {r['repeats']} wall times.",
+        f"(what `Observation` holds), bool flags, `dnu dt N` as one (Ntime, Nfreq) array "
+        "('radiometer', uniform nsamples, what the pipeline passes for raw files) or per "
+        "sample ('radiometer-nsamples') = "
+        f"{r['samples'] / 1e6:.1f} M samples; best of {r['repeats']} wall times. The "
+        "output sums are written into one reused set of arrays, as the pipeline does for "
+        "the blocks of a file ('fresh' = new arrays on every call, the first block of a "
+        "file).",
         "",
         "| baseline (numpy, 1 thread) | best [s] | median [s] | rate [G samples/s] | [GB/s] |",
         "|---|---|---|---|---|",
@@ -405,8 +439,9 @@ def render_markdown(r: dict[str, Any]) -> str:
         "",
         "| model | weights | 1 thread: ratio to sum (wall / CPU) | ratio to reduce-over-time | "
         "N threads: ratio to sum | ratio to reduce-over-time | speed-up vs before (1 thread) | "
+        "1 thread, fresh output: ratio to sum | "
         "1-core ceiling of the ratio to sum (memory / compute) |",
-        "|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for model in dict.fromkeys(row["model"] for row in rows):
         for weights in dict.fromkeys(row["weights"] for row in rows):
@@ -415,6 +450,8 @@ def render_markdown(r: dict[str, Any]) -> str:
                 for x in rows
                 if x["model"] == model and x["weights"] == weights and x["engine"] == "numba"
             ]
+            fresh = [x for x in sel if x["output"] == "fresh"]
+            sel = [x for x in sel if x["output"] == "reused"]
             one = [x for x in sel if x["threads"] == 1]
             many = [x for x in sel if x["threads"] > 1]
             if not one:
@@ -433,6 +470,7 @@ def render_markdown(r: dict[str, Any]) -> str:
             else:
                 cells += ["-", "-"]
             cells.append(f"{o['rate_samples_per_s'] / o['before_rate_samples_per_s']:.0f}x")
+            cells.append(f"{fresh[0]['ratio_to_sum']:.2f}" if fresh else "-")
             ceil = o["ceiling_ratio_to_sum"]
             cells.append(f"{ceil['memory']:.2f} / {ceil['compute']:.2f}")
             lines.append(f"| {model} | {weights} | " + " | ".join(cells) + " |")
@@ -440,16 +478,16 @@ def render_markdown(r: dict[str, Any]) -> str:
         "",
         "All cases:",
         "",
-        "| model | weights | engine | threads | best [s] | median [s] | rate [G samples/s] | "
-        "ratio to sum | ratio to sum, CPU time | ratio to reduce-over-time | "
-        "before [G samples/s] | first call [s] |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| model | weights | engine | threads | output | best [s] | median [s] | "
+        "rate [G samples/s] | ratio to sum | ratio to sum, CPU time | "
+        "ratio to reduce-over-time | before [G samples/s] | first call [s] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
         cpu = row["ratio_to_sum_cpu"]
         lines.append(
             f"| {row['model']} | {row['weights']} | {row['engine']} | {row['threads']} | "
-            f"{row['best_s']:.4f} | {row['median_s']:.4f} | "
+            f"{row['output']} | {row['best_s']:.4f} | {row['median_s']:.4f} | "
             f"{row['rate_samples_per_s'] / gs:.3f} | {row['ratio_to_sum']:.2f} | "
             f"{'-' if cpu is None else f'{cpu:.2f}'} | {row['ratio_to_reduce_time']:.2f} | "
             f"{row['before_rate_samples_per_s'] / gs:.4f} | {row['first_call_s']:.2f} |"
@@ -463,7 +501,8 @@ def render_markdown(r: dict[str, Any]) -> str:
         "(numba: kernel compilation, or loading it from the on-disk cache).",
         "",
         "Ceilings (one core): memory = 8 B per sample for the sum / bytes read per sample by "
-        "accumulate (data 8 + flags 1 + dnu dt N 8 for radiometer weights); compute = "
+        "accumulate (data 8 + flags 1 + dnu dt N 8 for per-sample radiometer weights); "
+        "compute = "
         f"single-core multiply-add peak ({m['fma_peak_per_s'] / gs:.1f} G/s, 1024^3 dgemm) "
         "/ (8p + 10) multiply-adds per sample (3 (2p + 1) weighted moments of Tsky^e P_r, "
         "2 (p + 1) of the data, y^2, 4 feature products) / the sum's rate. The plain sum does "

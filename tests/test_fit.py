@@ -399,6 +399,69 @@ def test_engines_accept_broadcast_and_float32_inputs(engine: str) -> None:
 
 
 @pytest.mark.parametrize("engine", ENGINES)
+def test_shared_weights_give_the_per_sample_sums(engine: str) -> None:
+    """dnu dt N or user weights varying only in (time, frequency) are read as one array."""
+    c = random_chunk(21, nant=3, ntime=13, nfreq=16)
+    model = FitModel.for_lsts(c["lsts"], "legendre", 2)
+    shared = c["bt"][0, 0]
+    args = (model, c["data"], c["tsky"], c["lsts"])
+    for weights, key in (("radiometer", "bandwidth_time"), (None, "weights")):
+        kw = {"weights": weights} if weights else {}
+        full = accumulate(
+            *args,
+            flags=c["flags"],
+            engine=engine,
+            **kw,
+            **{key: np.broadcast_to(shared, c["data"].shape).copy()},
+        )
+        for form in (shared, shared[None, None], shared[None]):
+            sums = accumulate(*args, flags=c["flags"], engine=engine, **kw, **{key: form})
+            for name in ("ata", "aty", "yty", "count"):
+                np.testing.assert_array_equal(getattr(sums, name), getattr(full, name))
+    with pytest.raises(FitError, match="do not broadcast"):
+        accumulate(*args, bandwidth_time=np.ones((2, 5)), engine=engine)
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_out_buffers_are_overwritten_and_checked(engine: str) -> None:
+    c = random_chunk(22, nant=2, ntime=9, nfreq=8)
+    model = FitModel.for_lsts(c["lsts"], "legendre", 1)
+    kw = {"flags": c["flags"], "bandwidth_time": c["bt"], "engine": engine}
+    first = accumulate(model, c["data"], c["tsky"], c["lsts"], **kw)
+    half = c["lsts"][:5]
+    fresh = accumulate(
+        model,
+        c["data"][:, :, :5],
+        c["tsky"][:, :5],
+        half,
+        **{**kw, "flags": c["flags"][:, :, :5], "bandwidth_time": c["bt"][:, :, :5]},
+    )
+    again = accumulate(
+        model,
+        c["data"][:, :, :5],
+        c["tsky"][:, :5],
+        half,
+        out=first,
+        **{**kw, "flags": c["flags"][:, :, :5], "bandwidth_time": c["bt"][:, :, :5]},
+    )
+    assert again is first
+    for name in ("ata", "aty", "yty", "count", "nflagged"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(fresh, name))
+    assert (again.lst_min, again.lst_max) == (fresh.lst_min, fresh.lst_max)
+    with pytest.raises(FitError, match="another model"):
+        accumulate(FitModel(), c["data"], c["tsky"], c["lsts"], out=first, **kw)
+    with pytest.raises(FitError, match=r"out\.ata must be"):
+        accumulate(
+            model,
+            c["data"][:1],
+            c["tsky"],
+            c["lsts"],
+            out=first,
+            **{**kw, "flags": c["flags"][:1], "bandwidth_time": c["bt"][:1]},
+        )
+
+
+@pytest.mark.parametrize("engine", ENGINES)
 def test_invalid_user_weights_are_refused(engine: str) -> None:
     c = random_chunk(8, nant=1, ntime=8, nfreq=5)
     model = FitModel()

@@ -188,3 +188,19 @@ def test_edges_raw_files_calibrate_to_the_receiver_solution(data_root, tmp_path)
     for pull in (pull_g, pull_t):
         assert abs(np.mean(pull)) < 0.3
         assert 0.75 < np.std(pull) < 1.25
+
+
+def test_radiometer_bandwidth_time_is_shared_when_nsamples_are_uniform() -> None:
+    import dataclasses
+
+    from autocal.pipeline import _bandwidth_time
+
+    obs, _ = simulate(SIM)
+    full = obs.bandwidth_time()
+    bt = _bandwidth_time(obs)
+    assert bt.shape == (obs.ntime, obs.nfreq)
+    np.testing.assert_array_equal(np.broadcast_to(bt, full.shape), full)
+    nsamples = np.array(obs.nsamples)
+    nsamples[0, 0, 2, 3] *= 0.5  # one sample with half the integration
+    varied = dataclasses.replace(obs, nsamples=nsamples)
+    np.testing.assert_array_equal(_bandwidth_time(varied), varied.bandwidth_time())
