@@ -424,7 +424,6 @@ def compute_partial(
     bin0 = task.offset // spec.bin_size
     nbins = (task.offset + ntot - 1) // spec.bin_size - bin0 + 1
     sums: NormalSums | None = None
-    scratch: NormalSums | None = None  # the second and later blocks' sums, reused
     waterfall: np.ndarray | None = None
     checksums: dict[str, str] = {}
     antennas: np.ndarray | None = None
@@ -463,7 +462,7 @@ def compute_partial(
             pred = np.einsum("pftm,apfm->aptf", design(spec.model, tsky, chunk.lsts), spec.coeffs)
             reference = np.where(np.isfinite(pred) & (pred > 0), pred, chunk.data)
             del pred
-        part = accumulate(
+        sums = accumulate(  # added into the file's running sums, in place
             spec.model,
             chunk.data,
             tsky,
@@ -472,12 +471,8 @@ def compute_partial(
             weights=weights,
             bandwidth_time=bt,
             reference=reference,
-            out=scratch,
+            into=sums,
         )
-        if sums is None:
-            sums = part
-        else:
-            sums, scratch = _add_into(sums, part), part
         assert waterfall is not None
         _add_waterfall(
             waterfall,
@@ -490,7 +485,7 @@ def compute_partial(
             task.offset + offset - bin0 * spec.bin_size,
         )
         offset += nt
-        del chunk, part, bt, reference
+        del chunk, bt, reference
         if tick is not None:
             tick(nt)
     if sums is None or antennas is None or waterfall is None:
@@ -527,7 +522,7 @@ def _bandwidth_time(chunk: Observation) -> np.ndarray:
 def _add_into(total: NormalSums, part: NormalSums) -> NormalSums:
     """Add ``part`` into ``total`` in place (the same values as ``total + part``).
 
-    Saves a new set of arrays per block; ``total`` must be owned by the caller.
+    Saves a new set of arrays per file; ``total`` must be owned by the caller.
     """
     if total.model != part.model or total.ata.shape != part.ata.shape:
         return total + part  # raises the FitError that explains the mismatch

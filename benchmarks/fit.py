@@ -11,8 +11,8 @@ round-robin over the repeats, by
   radiometer weights (``dnu dt N`` as the pipeline passes it for uniform ``nsamples``: one
   ``(Ntime, Nfreq)`` array; and ``radiometer-nsamples``: a full per-sample array, as for
   LST-binned data) and identity weights, with 1 thread and with all threads, per engine,
-  writing into one reused set of output sums (``out=``, as the pipeline's blocks do); and
-  with fresh output arrays (1 thread, the first block of every file);
+  adding into one running set of sums (``into=``, as the pipeline's blocks do); and with
+  fresh output arrays (1 thread, the first block of every file);
 - the previous design-matrix implementation on a few antennas (the "before" rate);
 
 and :func:`autocal.fit.solve_sums` is timed separately. Rates are samples (data elements)
@@ -256,7 +256,7 @@ def main() -> None:
         model: FitModel, weights: str, engine: str, threads: int, reuse: bool = True
     ) -> Callable[[], Any]:
         kw = weight_kwargs(weights, bt)
-        out: list[NormalSums] = []
+        running: list[NormalSums] = []
 
         def run() -> NormalSums:
             sums = accumulate(
@@ -267,11 +267,11 @@ def main() -> None:
                 flags=flags,
                 engine=engine,  # type: ignore[arg-type]
                 threads=threads,
-                out=out[0] if out else None,
+                into=running[0] if running else None,
                 **kw,
             )
-            if reuse and not out:
-                out.append(sums)
+            if reuse and not running:
+                running.append(sums)
             return sums
 
         return run
@@ -415,9 +415,9 @@ def render_markdown(r: dict[str, Any]) -> str:
         "('radiometer', uniform nsamples, what the pipeline passes for raw files) or per "
         "sample ('radiometer-nsamples') = "
         f"{r['samples'] / 1e6:.1f} M samples; best of {r['repeats']} wall times. The "
-        "output sums are written into one reused set of arrays, as the pipeline does for "
-        "the blocks of a file ('fresh' = new arrays on every call, the first block of a "
-        "file).",
+        "chunk's sums are added into one running set of sums (`into=`), as the pipeline "
+        "does for the blocks of a file ('fresh' = new arrays on every call, the first "
+        "block of a file).",
         "",
         "| baseline (numpy, 1 thread) | best [s] | median [s] | rate [G samples/s] | [GB/s] |",
         "|---|---|---|---|---|",

@@ -423,42 +423,33 @@ def test_shared_weights_give_the_per_sample_sums(engine: str) -> None:
 
 
 @pytest.mark.parametrize("engine", ENGINES)
-def test_out_buffers_are_overwritten_and_checked(engine: str) -> None:
+def test_into_adds_a_chunk_to_running_sums(engine: str) -> None:
     c = random_chunk(22, nant=2, ntime=9, nfreq=8)
     model = FitModel.for_lsts(c["lsts"], "legendre", 1)
-    kw = {"flags": c["flags"], "bandwidth_time": c["bt"], "engine": engine}
-    first = accumulate(model, c["data"], c["tsky"], c["lsts"], **kw)
-    half = c["lsts"][:5]
-    fresh = accumulate(
-        model,
-        c["data"][:, :, :5],
-        c["tsky"][:, :5],
-        half,
-        **{**kw, "flags": c["flags"][:, :, :5], "bandwidth_time": c["bt"][:, :, :5]},
-    )
-    again = accumulate(
-        model,
-        c["data"][:, :, :5],
-        c["tsky"][:, :5],
-        half,
-        out=first,
-        **{**kw, "flags": c["flags"][:, :, :5], "bandwidth_time": c["bt"][:, :, :5]},
-    )
-    assert again is first
-    for name in ("ata", "aty", "yty", "count", "nflagged"):
-        np.testing.assert_array_equal(getattr(again, name), getattr(fresh, name))
-    assert (again.lst_min, again.lst_max) == (fresh.lst_min, fresh.lst_max)
-    with pytest.raises(FitError, match="another model"):
-        accumulate(FitModel(), c["data"], c["tsky"], c["lsts"], out=first, **kw)
-    with pytest.raises(FitError, match=r"out\.ata must be"):
-        accumulate(
+
+    def chunk(t: slice, **kw: object) -> NormalSums:
+        return accumulate(
             model,
-            c["data"][:1],
-            c["tsky"],
-            c["lsts"],
-            out=first,
-            **{**kw, "flags": c["flags"][:1], "bandwidth_time": c["bt"][:1]},
+            c["data"][:, :, t],
+            c["tsky"][:, t],
+            c["lsts"][t],
+            flags=c["flags"][:, :, t],
+            bandwidth_time=c["bt"][:, :, t],
+            engine=engine,
+            **kw,  # type: ignore[arg-type]
         )
+
+    first, second = chunk(slice(0, 5)), chunk(slice(5, 9))
+    want = first + second
+    running = chunk(slice(0, 5))
+    assert chunk(slice(5, 9), into=running) is running
+    for name in ("ata", "aty", "yty", "count", "nflagged"):
+        np.testing.assert_array_equal(getattr(running, name), getattr(want, name))
+    assert (running.lst_min, running.lst_max) == (want.lst_min, want.lst_max)
+    with pytest.raises(FitError, match="another model"):
+        accumulate(FitModel(), c["data"], c["tsky"], c["lsts"], weights="identity", into=running)
+    with pytest.raises(FitError, match=r"into\.ata must be"):
+        accumulate(model, c["data"][:1], c["tsky"], c["lsts"], weights="identity", into=running)
 
 
 @pytest.mark.parametrize("engine", ENGINES)
