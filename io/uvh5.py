@@ -29,6 +29,7 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -644,7 +645,7 @@ class _FileMeta:
     """What read_uvh5 needs to know about one file before reading its data."""
 
     path: Path
-    uv: Any  # metadata-only UVData
+    uv: Any  # the header fields read later: telescope, vis_units, history, extra_keywords
     freqs: np.ndarray  # (Nfreq,) file order
     channel_width: np.ndarray
     pol_codes: list[int]
@@ -714,9 +715,18 @@ def _read_meta(path: Path) -> _FileMeta:
     x_orientation = feed_orientation(uv.telescope)
     times, first = np.unique(uv.time_array[is_auto], return_index=True)
     lsts = _lst_hours(uv.lst_array[is_auto][first])
+    # keep the header, not the UVData: its per baseline-time arrays (uvw, times, LSTs,
+    # antenna pairs, ~100 bytes per row) would grow with the night when every file of a
+    # long observation is scanned before its data are read
+    header = SimpleNamespace(
+        telescope=uv.telescope,
+        vis_units=uv.vis_units,
+        history=uv.history,
+        extra_keywords=dict(uv.extra_keywords),
+    )
     return _FileMeta(
         path=path,
-        uv=uv,
+        uv=header,
         freqs=freqs,
         channel_width=np.array(width),
         pol_codes=codes,

@@ -114,6 +114,18 @@ def test_round_trip_hera(tmp_path, capsys):
     assert capsys.readouterr().out == ""
 
 
+def test_scanned_header_keeps_no_per_row_arrays(tmp_path):
+    """A scanned file's metadata must not grow with its rows (a night scans every file)."""
+    from autocal.io.uvh5 import _read_meta
+
+    path = write_uvh5(_observation(), tmp_path / "rows.uvh5", extra_keywords={"k": 3})
+    meta = _read_meta(path)
+    assert meta.uv.extra_keywords["k"] == 3 and meta.uv.telescope.name
+    for name in ("time_array", "lst_array", "uvw_array", "ant_1_array", "baseline_array"):
+        assert not hasattr(meta.uv, name)
+    assert meta.times.size == _observation().ntime
+
+
 def test_written_file_is_genuine_uvh5(tmp_path):
     from pyuvdata import UVData
 
