@@ -38,7 +38,7 @@ from pydantic import (
 )
 
 from autocal.diagnose import ALPHA, BIC_THRESHOLD, DiagnoseError
-from autocal.pipeline import PipelineError
+from autocal.pipeline import PipelineError, check_ranges
 
 logger = logging.getLogger(__name__)
 
@@ -110,14 +110,7 @@ class DiagnoseConfig(BaseModel):
 
     @model_validator(mode="after")
     def _check(self) -> DiagnoseConfig:
-        if self.freq_range_mhz is not None:
-            lo, hi = self.freq_range_mhz
-            if not 0 < lo < hi:
-                raise ValueError("freq_range_mhz must be (low, high) MHz with 0 < low < high")
-            if hi > 1e5:
-                raise ValueError("freq_range_mhz is in MHz, not Hz")
-        if self.lst_range_h is not None and not all(0 <= v <= 24 for v in self.lst_range_h):
-            raise ValueError("lst_range_h values must be hours within [0, 24]")
+        check_ranges(self.freq_range_mhz, self.lst_range_h)
         return self
 
 

@@ -108,15 +108,22 @@ class CalibrationConfig(BaseModel):
 
     @model_validator(mode="after")
     def _check(self) -> CalibrationConfig:
-        if self.freq_range_mhz is not None:
-            lo, hi = self.freq_range_mhz
-            if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo < hi):
-                raise ValueError("freq_range_mhz must be (low, high) MHz with 0 < low < high")
-            if hi > 1e5:
-                raise ValueError("freq_range_mhz is in MHz, not Hz")
-        if self.lst_range_h is not None and not all(0 <= v <= 24 for v in self.lst_range_h):
-            raise ValueError("lst_range_h values must be hours within [0, 24]")
+        check_ranges(self.freq_range_mhz, self.lst_range_h)
         return self
+
+
+def check_ranges(
+    freq_range_mhz: tuple[float, float] | None, lst_range_h: tuple[float, float] | None
+) -> None:
+    """Raise ``ValueError`` unless the frequency (MHz) and LST (h) selections make sense."""
+    if freq_range_mhz is not None:
+        lo, hi = freq_range_mhz
+        if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo < hi):
+            raise ValueError("freq_range_mhz must be (low, high) MHz with 0 < low < high")
+        if hi > 1e5:
+            raise ValueError("freq_range_mhz is in MHz, not Hz")
+    if lst_range_h is not None and not all(0 <= v <= 24 for v in lst_range_h):
+        raise ValueError("lst_range_h values must be hours within [0, 24]")
 
 
 @dataclass

@@ -67,6 +67,31 @@ class NightlyError(ValueError):
 # one observation ------------------------------------------------------------------------
 
 
+def checked_options(
+    config_type: type[Any],
+    settings: Settings,
+    inputs: Sequence[str],
+    options: Mapping[str, Any] | None,
+) -> dict[str, Any]:
+    """Validate job options against ``config_type`` and resolve the sky and beam they name.
+
+    Field errors come first, before any file I/O; then the sky model is looked up and a
+    beam file resolved inside the allowed roots. The inputs are left to the caller.
+    """
+    from autocal.sky import get_sky
+
+    opts = dict(options or {})
+    if "inputs" in opts:
+        raise NightlyError("give the inputs separately from the options")
+    config_type(inputs=list(inputs), **opts)
+    if opts.get("sky") is not None:
+        get_sky(str(opts["sky"]))
+    beam = opts.get("beam")
+    if beam is not None and str(beam).strip().lower() not in NAMED_BEAMS:
+        opts["beam"] = str(resolve_input(str(beam), settings, what="beam"))
+    return opts
+
+
 def build_config(
     settings: Settings, inputs: Sequence[str], options: Mapping[str, Any] | None = None
 ) -> CalibrationConfig:
@@ -96,17 +121,7 @@ def build_config(
     autocal.sky.SkyModelError
         For an unknown sky model.
     """
-    from autocal.sky import get_sky
-
-    opts = dict(options or {})
-    if "inputs" in opts:
-        raise NightlyError("give the inputs separately from the options")
-    CalibrationConfig(inputs=list(inputs), **opts)  # field errors first, before any file I/O
-    if opts.get("sky") is not None:
-        get_sky(str(opts["sky"]))
-    beam = opts.get("beam")
-    if beam is not None and str(beam).strip().lower() not in NAMED_BEAMS:
-        opts["beam"] = str(resolve_input(str(beam), settings, what="beam"))
+    opts = checked_options(CalibrationConfig, settings, inputs, options)
     if opts.get("reference"):
         opts["reference"] = [
             str(resolve_input(str(r), settings, what="reference")) for r in opts["reference"]

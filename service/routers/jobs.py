@@ -37,8 +37,8 @@ from autocal.diagnose_run import DiagnoseConfig
 from autocal.pipeline import PipelineError
 from autocal.service.auth import app_settings, require_token
 from autocal.service.nightly import (
-    NAMED_BEAMS,
     NightlyError,
+    checked_options,
     job_key,
     night_of,
     submit_calibration,
@@ -280,17 +280,7 @@ def build_diagnose_config(
     autocal.sky.SkyModelError
         For an unknown sky model.
     """
-    from autocal.sky import get_sky
-
-    opts = dict(options or {})
-    if "inputs" in opts:
-        raise NightlyError("give the inputs separately from the options")
-    DiagnoseConfig(inputs=list(inputs), **opts)  # field errors first, before any file I/O
-    if opts.get("sky") is not None:
-        get_sky(str(opts["sky"]))
-    beam = opts.get("beam")
-    if beam is not None and str(beam).strip().lower() not in NAMED_BEAMS:
-        opts["beam"] = str(resolve_input(str(beam), settings, what="beam"))
+    opts = checked_options(DiagnoseConfig, settings, inputs, options)
     resolved = [resolve_input(str(p), settings) for p in inputs]
     folders = [str(p) for p in resolved if p.is_dir()]
     if folders:
