@@ -426,7 +426,9 @@ def compute_partial(
             obs = obs.select(antennas=sel["antennas"])
         chunks: Iterator[Observation] = iter([obs])
     else:
-        chunks = iter_uvh5_blocks(task.file, **sel, block_size=spec.block_size, stats=stats)
+        chunks = iter_uvh5_blocks(  # each block is used up before the next is asked for
+            task.file, **sel, block_size=spec.block_size, stats=stats, reuse_buffers=True
+        )
     ntot = task.lsts.size
     bin0 = task.offset // spec.bin_size
     nbins = (task.offset + ntot - 1) // spec.bin_size - bin0 + 1

@@ -453,3 +453,101 @@ def test_block_reader_matches_pyuvdata_on_real_files(data_root):
     blocks = list(iter_uvh5_blocks(path, block_size=4, **sel))
     np.testing.assert_array_equal(np.concatenate([b.data for b in blocks], axis=2), expected.data)
     assert blocks[0].antennas.tolist() == sel["antennas"]
+
+
+def _block_copies(path: Path, **kwargs) -> tuple[list[dict], dict]:
+    """Copies of every block's arrays and meta (taken before the next block is asked for)."""
+    stats = ReadStats()
+    out = []
+    for b in iter_uvh5_blocks(path, stats=stats, **kwargs):
+        out.append(
+            {
+                "data": b.data.copy(),
+                "flags": b.flags.copy(),
+                "nsamples": np.array(b.nsamples),
+                "integration_time": b.integration_time.copy(),
+                "meta": dict(b.meta),
+            }
+        )
+    return out, stats.as_dict()
+
+
+def _reader_threads() -> list:
+    import threading
+
+    return [t for t in threading.enumerate() if t.name.startswith("autocal-uvh5")]
+
+
+@pytest.mark.parametrize(
+    "name, selection",
+    [
+        ("zen.2458098.43124.subband.uvh5", {}),
+        ("zen.2458098.43124.subband.uvh5", {"pols": ["nn"], "freq_range": (120e6, 130e6)}),
+        ("zen.2458042.60288.HH.uvRXLS.uvh5_downselected", {}),  # crosses: point selection
+        ("zen.2458116.30448.HH.uvh5", {}),  # imaginary autos
+    ],
+)
+def test_prefetch_and_reused_buffers_give_the_same_blocks(data_root, name, selection):
+    path = data_root / AUTOS / name
+    kw = {"block_size": 3, **selection}
+    expected, expected_stats = _block_copies(path, prefetch=False, **kw)
+    assert len(expected) > 2 and "sha256" in expected[0]["meta"]
+    for prefetch, reuse in ((True, False), (False, True), (True, True)):
+        got, stats = _block_copies(path, prefetch=prefetch, reuse_buffers=reuse, **kw)
+        assert stats == expected_stats
+        assert len(got) == len(expected)
+        for g, e in zip(got, expected, strict=True):
+            assert g["meta"] == e["meta"]
+            for key in ("data", "flags", "nsamples", "integration_time"):
+                np.testing.assert_array_equal(g[key], e[key])
+    assert not _reader_threads()
+
+
+def test_reused_buffers_alternate_between_two_sets(tmp_path):
+    obs = _observation(ntime=7)
+    path = tmp_path / "obs.uvh5"
+    write_uvh5(obs, path)
+    fresh = list(iter_uvh5_blocks(path, block_size=2))
+    assert not np.shares_memory(fresh[0].data, fresh[2].data)
+    seen = []
+    for block in iter_uvh5_blocks(path, block_size=2, reuse_buffers=True):
+        seen.append(block.data)
+    assert np.shares_memory(seen[0], seen[2]) and np.shares_memory(seen[1], seen[3])
+    assert not np.shares_memory(seen[0], seen[1])
+
+
+def test_block_reader_early_close_and_errors_leave_no_thread_or_open_file(tmp_path, monkeypatch):
+    import autocal.io.uvh5 as uvh5
+
+    obs = _observation(ntime=9)
+    path = tmp_path / "obs.uvh5"
+    write_uvh5(obs, path)
+    opened: list = []
+
+    class Tracked(uvh5._CountingFile):
+        def __init__(self, p):
+            super().__init__(p)
+            opened.append(self)
+
+    monkeypatch.setattr(uvh5, "_CountingFile", Tracked)
+    blocks = iter_uvh5_blocks(path, block_size=2)
+    first = next(blocks)  # the second block is being read meanwhile
+    blocks.close()
+    assert first.ntime == 2 and opened[-1].closed and not _reader_threads()
+
+    real_read = uvh5._read_rows
+    calls = []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) > 6:  # 3 data sets per block: the third block fails
+            raise OSError("simulated read error")
+        return real_read(*args, **kwargs)
+
+    monkeypatch.setattr(uvh5, "_read_rows", failing)
+    got = []
+    with pytest.raises(OSError, match="simulated read error"):
+        for block in iter_uvh5_blocks(path, block_size=2):
+            got.append(block.meta["block"])
+    assert got == [0, 1]  # the error surfaces at the block it belongs to
+    assert opened[-1].closed and not _reader_threads()
