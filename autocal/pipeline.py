@@ -3,7 +3,7 @@
 ``files -> scan -> Tsky(nu, LST) -> normal sums, block by block -> Solution -> products``
 
 The data are streamed: each UVH5 file is read in blocks of integrations
-(:func:`autocal.io.uvh5.iter_uvh5_blocks`), each block is turned into normal-equation
+(:func:`autocal.io.uvh5_blocks.iter_uvh5_blocks`), each block is turned into normal-equation
 sums (:func:`autocal.fit.accumulate`) and dropped, so memory is bounded by the block,
 whatever the length of the night or the size of a file. A file's blocks add up to the
 file's partial sums (:func:`compute_partial`), and the files' partials are added in file
@@ -369,7 +369,7 @@ class FilePartial:
     bt_min
         Smallest positive ``dnu dt N`` of the usable samples (``inf`` when none).
     stats
-        :class:`autocal.io.uvh5.ReadStats` counters.
+        :class:`autocal.io.uvh5_blocks.ReadStats` counters.
     seconds
         Wall time spent on the file.
     """
@@ -415,7 +415,7 @@ def compute_partial(
         If the file's LSTs changed since the scan, it yields a different number of
         integrations, or radiometer weights lack channel widths / times / nsamples.
     """
-    from autocal.io.uvh5 import ReadStats, iter_uvh5_blocks
+    from autocal.io.uvh5_blocks import ReadStats, iter_uvh5_blocks
 
     start = time.perf_counter()
     stats = ReadStats()

@@ -16,13 +16,8 @@ import autocal.pipeline
 import autocal.scaleout
 from autocal.cli import main
 from autocal.fit import fit
-from autocal.io.uvh5 import (
-    ReadStats,
-    UVH5AutosWriter,
-    iter_uvh5_blocks,
-    read_uvh5,
-    scan_uvh5,
-)
+from autocal.io.uvh5 import UVH5AutosWriter, read_uvh5, scan_uvh5
+from autocal.io.uvh5_blocks import ReadStats, iter_uvh5_blocks
 from autocal.pipeline import CalibrationConfig, PipelineError, run_calibration
 from autocal.simulate import SimulationConfig, simulate
 from autocal.tsky import compute_tsky

@@ -10,14 +10,8 @@ import numpy as np
 import pytest
 from astropy.time import Time
 
-from autocal.io.uvh5 import (
-    ReadStats,
-    UVH5AutosWriter,
-    UVH5FormatError,
-    iter_uvh5_blocks,
-    read_uvh5,
-    write_uvh5,
-)
+from autocal.io.uvh5 import UVH5AutosWriter, UVH5FormatError, read_uvh5, write_uvh5
+from autocal.io.uvh5_blocks import ReadStats, iter_uvh5_blocks
 from autocal.observation import Observation, ObservationError
 from autocal.sites import EDGES, HERA
 
@@ -517,7 +511,7 @@ def test_reused_buffers_alternate_between_two_sets(tmp_path):
 
 
 def test_block_reader_early_close_and_errors_leave_no_thread_or_open_file(tmp_path, monkeypatch):
-    import autocal.io.uvh5 as uvh5
+    import autocal.io.uvh5_blocks as uvh5
 
     obs = _observation(ntime=9)
     path = tmp_path / "obs.uvh5"
