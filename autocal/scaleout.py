@@ -47,6 +47,13 @@ WORKER_TIMEOUT_S = 30.0
 FILES_PER_WORKER = 2
 #: Local clusters run their workers in processes (``False``: threads of this process).
 LOCAL_PROCESSES = True
+#: Environment variable Dask's nanny sets to 65536 in every worker it starts
+#: (``distributed.nanny.pre-spawn-environ``). Setting it fixes glibc's mmap threshold at
+#: 128 kB, so every array above that is mapped afresh and its pages faulted in again on
+#: each allocation: a HERA-size night file took ~12 s instead of ~8.5 s per worker here
+#: (two processes side by side). Local clusters are started without it; workers of a
+#: remote cluster that have it are reported with the fix.
+MALLOC_TRIM_ENV = "MALLOC_TRIM_THRESHOLD_"
 
 
 def peak_rss_bytes() -> int:
@@ -172,6 +179,33 @@ class DaskExecutor:
             return {}
 
 
+def _worker_malloc_env() -> str | None:
+    """``MALLOC_TRIM_THRESHOLD_`` of the calling process (run on every worker)."""
+    return os.environ.get(MALLOC_TRIM_ENV)
+
+
+def _check_worker_malloc(client: Any, description: dict[str, Any]) -> None:
+    """Record the workers' ``MALLOC_TRIM_THRESHOLD_`` and warn, with the fix, if set."""
+    try:
+        values = client.run(_worker_malloc_env)
+    except Exception as err:  # pragma: no cover - diagnostics only
+        logger.debug("could not ask the workers for their environment: %s", err)
+        return
+    if found := sorted({v for v in values.values() if v is not None}):
+        description["worker_malloc_trim_threshold"] = found
+        logger.warning(
+            "%d of %d Dask workers run with %s=%s (the nanny's default), which makes "
+            "glibc map and fault in every large array afresh (~1.4x slower calibration); "
+            "start them without it: `MALLOC_TRIM_THRESHOLD_: null` under "
+            "distributed.nanny.pre-spawn-environ in the workers' Dask config (e.g. "
+            "~/.config/dask/autocal.yaml), or `dask worker --no-nanny`",
+            sum(v is not None for v in values.values()),
+            len(values),
+            MALLOC_TRIM_ENV,
+            ",".join(found),
+        )
+
+
 @contextmanager
 def dask_client(
     scheduler: str,
@@ -226,14 +260,18 @@ def dask_client(
         nworkers = int(workers or os.cpu_count() or 1)
         processes = LOCAL_PROCESSES if processes is None else processes
         logger.info("starting a local Dask cluster of %d worker(s)", nworkers)
-        cluster = LocalCluster(
-            n_workers=nworkers,
-            threads_per_worker=1,
-            processes=processes,
-            dashboard_address=None,
-            silence_logs=logging.WARNING,
-            **({"host": "127.0.0.1"} if processes else {}),
-        )
+        import dask
+
+        # None unsets the nanny's MALLOC_TRIM_THRESHOLD_ (see MALLOC_TRIM_ENV)
+        with dask.config.set({f"distributed.nanny.pre-spawn-environ.{MALLOC_TRIM_ENV}": None}):
+            cluster = LocalCluster(
+                n_workers=nworkers,
+                threads_per_worker=1,
+                processes=processes,
+                dashboard_address=None,
+                silence_logs=logging.WARNING,
+                **({"host": "127.0.0.1"} if processes else {}),
+            )
         description: dict[str, Any] = {
             "scheduler": LOCAL,
             "address": cluster.scheduler_address,
@@ -268,6 +306,7 @@ def dask_client(
                 "`dask worker ADDRESS`"
             ) from None
         description["startup_s"] = round(time.perf_counter() - started, 3)
+        _check_worker_malloc(client, description)
         yield DaskExecutor(client, description)
     finally:
         client.close()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import time
 from collections.abc import Iterator
@@ -266,3 +267,24 @@ def test_cli_dask_options(night, tmp_path, capsys, monkeypatch) -> None:
     assert main([*base, "--block-size", "7"]) == 0
     summary = json.loads((tmp_path / "cli" / "summary.json").read_text())
     assert summary["execution"]["block_size"] == 7 and summary["execution"]["io"]["blocks"] == 6
+
+
+def test_local_workers_start_without_the_nannys_malloc_trim_setting(monkeypatch, caplog) -> None:
+    """MALLOC_TRIM_THRESHOLD_ (Dask nanny default) makes every large array fault in afresh."""
+    from distributed import LocalCluster
+
+    from autocal.scaleout import MALLOC_TRIM_ENV, _worker_malloc_env, dask_client
+
+    # the nanny also sets it in the process that starts it: restore this one afterwards
+    monkeypatch.setenv(MALLOC_TRIM_ENV, "0")
+    monkeypatch.delenv(MALLOC_TRIM_ENV)
+    with dask_client("local", 1) as executor:  # worker processes, as in production
+        assert list(executor.client.run(_worker_malloc_env).values()) == [None]
+        assert "worker_malloc_trim_threshold" not in executor.describe()
+    with (
+        LocalCluster(n_workers=1, processes=True, host="127.0.0.1", dashboard_address=None) as c,
+        caplog.at_level(logging.WARNING, logger="autocal.scaleout"),
+        dask_client(c.scheduler_address) as executor,
+    ):  # a cluster started with Dask's defaults, as `dask worker` does
+        assert executor.describe()["worker_malloc_trim_threshold"] == ["65536"]
+    assert "MALLOC_TRIM_THRESHOLD_=65536" in caplog.text and "--no-nanny" in caplog.text
