@@ -14,6 +14,8 @@ round-robin over the repeats, by
   adding into one running set of sums (``into=``, as the pipeline's blocks do); and with
   fresh output arrays (1 thread, the first block of every file);
 - the previous design-matrix implementation on a few antennas (the "before" rate);
+- a floor (:func:`floor_kernel`): a compiled loop computing only the data moments, the
+  per-sample work left even if every weight moment were shared between antennas;
 
 and :func:`autocal.fit.solve_sums` is timed separately. Rates are samples (data elements)
 per second from the best-of-N wall time; the ratios to the plain sum and to the time-axis
@@ -128,6 +130,100 @@ def weight_kwargs(weights: str, bt: np.ndarray) -> dict[str, Any]:
     if weights == "radiometer":  # uniform nsamples: what the pipeline passes
         return {"weights": "radiometer", "bandwidth_time": bt[0, 0]}
     return {"weights": "radiometer", "bandwidth_time": bt}
+
+
+# the floor: data moments only ----------------------------------------------------------------
+
+
+def floor_kernel(order: int, flagged: bool = False) -> Callable[..., None]:
+    """Compile a loop doing only the per-sample work no moment-based fit can avoid.
+
+    For every (antenna, pol, channel): ``sum_t y P_k`` and ``sum_t y T P_k`` (``k <= p``)
+    and ``sum_t y^2``, the data moments, with unit weights and no flag or finiteness
+    checks. The weight moments (``sum_t w T^e P_r``) are left out: with unit weights and
+    flags shared by all antennas they could be computed once per polarisation, so this
+    is what even that design would still do per sample. Same loop structure as the fit
+    kernel (channels vectorised, 4 integrations per pass, 512-channel blocks; a trailing
+    ``Ntime mod 4`` integrations are skipped, which only makes it faster). ``flagged``: also
+    read the flags and zero flagged samples (one more byte per sample and a select).
+    """
+    import numba
+
+    nb, tu, fb = order + 1, 4, 512
+    names = ["yy"] + [f"q{e}_{k}" for e in range(2) for k in range(nb)]
+    src = [
+        "def kernel(data, flags, tsky, coef, a0, a1, out):",
+        "    npol, ntime, nfreq = data.shape[1], data.shape[2], data.shape[3]",
+        f"    acc = np.empty({len(names)} * {fb + 8})",
+        "    for a in range(a0, a1):",
+        "        for p in range(npol):",
+        f"            for f0 in range(0, nfreq, {fb}):",
+        f"                nf = min({fb}, nfreq - f0)",
+        "                acc[:] = 0.0",
+        f"                for t0 in range(0, ntime - {tu} + 1, {tu}):",
+    ]
+    ind = " " * 20
+    for u in range(tu):
+        src += [
+            f"{ind}d{u} = data[a, p, t0 + {u}, f0:f0 + nf]",
+            f"{ind}s{u} = tsky[p, t0 + {u}, f0:f0 + nf]",
+            f"{ind}g{u} = flags[a, p, t0 + {u}, f0:f0 + nf]",
+        ]
+        src += [f"{ind}c{u}_{k} = coef[{k}, t0 + {u}]" for k in range(1, nb)]
+    src.append(f"{ind}for j in range(nf):")
+    ind = " " * 24
+    src += [f"{ind}{n} = acc[{i * (fb + 8)} + j]" for i, n in enumerate(names)]
+    for u in range(tu):
+        src.append(f"{ind}y = d{u}[j] if g{u}[j] == 0 else 0.0" if flagged else f"{ind}y = d{u}[j]")
+        src += [f"{ind}x = y * s{u}[j]", f"{ind}yy += y * y"]
+        src += [f"{ind}q0_0 += y", f"{ind}q1_0 += x"]
+        src += [f"{ind}q0_{k} += c{u}_{k} * y" for k in range(1, nb)]
+        src += [f"{ind}q1_{k} += c{u}_{k} * x" for k in range(1, nb)]
+    src += [f"{ind}acc[{i * (fb + 8)} + j] = {n}" for i, n in enumerate(names)]
+    src += [
+        f"                for i in range({len(names)}):",
+        f"                    out[a, p, i, f0:f0 + nf] += acc[i * {fb + 8}:i * {fb + 8} + nf]",
+    ]
+    namespace: dict[str, Any] = {"np": np}
+    exec("\n".join(src) + "\n", namespace)
+    return numba.njit(nogil=True, fastmath={"contract"}, boundscheck=False, error_model="numpy")(
+        namespace["kernel"]
+    )
+
+
+def floor_case(
+    order: int,
+    data: np.ndarray,
+    tsky: np.ndarray,
+    lsts: np.ndarray,
+    threads: int,
+    flags: np.ndarray | None = None,
+) -> Callable[[], Any]:
+    """Time-able call of :func:`floor_kernel` over antenna blocks, like ``accumulate``."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from autocal.fit import _antenna_blocks, _offset_copy, _time_functions
+
+    kernel = floor_kernel(order, flagged=flags is not None)
+    flag_bytes = (
+        np.zeros((1, 1, 1, 1), np.uint8)
+        if flags is None
+        else np.ascontiguousarray(flags, dtype=bool).view(np.uint8)
+    )
+    coef, _ = _time_functions(FitModel.for_lsts(lsts, "legendre", max(order, 1)), lsts)
+    tsky = _offset_copy(np.ascontiguousarray(tsky), data)
+    nant = data.shape[0]
+    out = np.zeros((nant, data.shape[1], 2 * order + 3, data.shape[3]))
+    blocks = _antenna_blocks(nant, nant if threads == 1 else -(-nant // (4 * threads)))
+
+    def run() -> None:
+        if threads == 1:
+            kernel(data, flag_bytes, tsky, coef, 0, nant, out)
+            return
+        with ThreadPoolExecutor(threads) as pool:
+            list(pool.map(lambda ab: kernel(data, flag_bytes, tsky, coef, *ab, out), blocks))
+
+    return run
 
 
 # timing -----------------------------------------------------------------------------------
@@ -304,6 +400,12 @@ def main() -> None:
                         "threads": threads,
                         "output": "reused" if reuse else "fresh",
                     }
+    for order in (0, 2):
+        for threads in args.threads:
+            for with_flags in (False, True):
+                fn = floor_case(order, data, tsky, lsts, threads, flags if with_flags else None)
+                fn()  # compile
+                cases[f"floor{order}-{threads}t" + ("-flags" if with_flags else "")] = fn
     print(f"timing {len(cases)} cases x {args.repeats} repeats, round robin", flush=True)
     timings = run_round_robin(cases, args.repeats)
 
@@ -386,6 +488,18 @@ def main() -> None:
         "accumulate": rows,
         "before": {"antennas": nb, **before},
         "solve_sums_s": solve,
+        "floor": {
+            key: {
+                "order": int(key[5]),
+                "threads": int(key.split("-")[1][:-1]),
+                "flags": key.endswith("-flags"),
+                "best_s": round(t["best_s"], 4),
+                "ratio_to_sum": t_sum / t["best_s"],
+                "ratio_to_reduce_time": t_red / t["best_s"],
+            }
+            for key, t in timings.items()
+            if key.startswith("floor")
+        },
     }
     md = render_markdown(result)
     print(md)
@@ -474,6 +588,26 @@ def render_markdown(r: dict[str, Any]) -> str:
             ceil = o["ceiling_ratio_to_sum"]
             cells.append(f"{ceil['memory']:.2f} / {ceil['compute']:.2f}")
             lines.append(f"| {model} | {weights} | " + " | ".join(cells) + " |")
+    floor = r.get("floor", {})
+    if floor:
+        lines += [
+            "",
+            "Floor: the data moments alone (`floor_kernel`: sum_t y P_k, sum_t y T P_k, "
+            "sum_t y^2 per channel, unit weights, no finiteness checks; what a fit would "
+            "still do per sample if every weight moment were shared between antennas; "
+            "'flags applied': flagged samples zeroed, as any fit must):",
+            "",
+            "| model | flags applied | threads | best [s] | ratio to sum | "
+            "ratio to reduce-over-time |",
+            "|---|---|---|---|---|---|",
+        ]
+        for v in floor.values():
+            model = "constant" if v["order"] == 0 else f"Legendre {v['order']}"
+            lines.append(
+                f"| {model} | {'yes' if v.get('flags') else 'no'} | {v['threads']} | "
+                f"{v['best_s']:.4f} | {v['ratio_to_sum']:.2f} | "
+                f"{v['ratio_to_reduce_time']:.2f} |"
+            )
     lines += [
         "",
         "All cases:",

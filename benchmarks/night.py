@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
 import math
 import os
@@ -386,9 +387,15 @@ def truth_check(solution_path: Path, folder: Path) -> dict:
 
 
 def profile_file(path: str) -> dict:
-    """Profile the per-block path on one file (pyinstrument): where the time goes."""
+    """Profile the per-block path on one file (pyinstrument): where the time goes.
+
+    The profile runs the reader's stages in the calling thread (``prefetch=False``); the
+    file's time as the pipeline runs it (reading and decoding pipelined in background
+    threads) is reported beside it.
+    """
     from pyinstrument import Profiler
 
+    import autocal.io.uvh5_blocks as uvh5_blocks
     from autocal.fit import FitModel
     from autocal.io.uvh5 import scan_uvh5
     from autocal.pipeline import FileTask, PartialSpec, compute_partial
@@ -397,10 +404,18 @@ def profile_file(path: str) -> dict:
     tsky = np.full((len(file.pols), file.lsts.size, file.freqs.size), 300.0)  # any values
     selection = {"antennas": None, "pols": None, "freq_range": None, "lst_range": None}
     spec = PartialSpec(FitModel.for_lsts(file.lsts), "radiometer", selection, 2, 1)
-    profiler = Profiler(interval=0.005)
-    profiler.start()
-    partial = compute_partial(spec, FileTask(0, file, 0, file.lsts, tsky))
-    profiler.stop()
+    task = FileTask(0, file, 0, file.lsts, tsky)
+    pipelined = compute_partial(spec, task).seconds  # as the pipeline runs (warms the cache)
+    # pyinstrument samples the calling thread: run every stage there (no prefetch threads)
+    real = uvh5_blocks.iter_uvh5_blocks
+    uvh5_blocks.iter_uvh5_blocks = functools.partial(real, prefetch=False)
+    try:
+        profiler = Profiler(interval=0.005)
+        profiler.start()
+        partial = compute_partial(spec, task)
+        profiler.stop()
+    finally:
+        uvh5_blocks.iter_uvh5_blocks = real
     parts = {
         "_read_rows": "HDF5 reads + decompression",
         "_iter_blocks": "block reader total (incl. HDF5)",
@@ -426,6 +441,7 @@ def profile_file(path: str) -> dict:
     return {
         "file": Path(path).name,
         "seconds": round(total, 2),
+        "pipelined_seconds": round(pipelined, 2),
         "values": partial.stats["samples"],
         "blocks": partial.stats["blocks"],
         "parts_s": {parts[k]: round(v, 2) for k, v in found.items()},
@@ -616,7 +632,9 @@ def markdown(report: dict) -> str:
             "",
             f"{prof['file']}: {prof['values'] / 1e6:.0f} M values in {prof['blocks']} "
             f"blocks, {prof['seconds']} s ({prof['values'] / prof['seconds'] / 1e6:.1f} M "
-            "values/s):",
+            "values/s) with every stage in one thread (profiled); as the pipeline runs it, "
+            "HDF5 reads and decoding in background threads, pipelined: "
+            f"{prof.get('pipelined_seconds', '-')} s:",
             "",
             "| part | s | share |",
             "|---|---|---|",
@@ -632,7 +650,12 @@ def markdown(report: dict) -> str:
         "```bash",
         "# on the scheduler node",
         "dask scheduler --port 8786",
-        "# on each worker node (autocal installed, the data at the same paths)",
+        "# on each worker node (autocal installed, the data at the same paths); without",
+        "# the nanny's MALLOC_TRIM_THRESHOLD_ (every large array faulted in afresh, ~1.4x",
+        "# slower): either no nanny, or a Dask config that unsets it",
+        "dask worker tcp://SCHEDULER:8786 --nthreads 1 --no-nanny",
+        "mkdir -p ~/.config/dask && printf 'distributed:\\n  nanny:\\n    pre-spawn-environ:\\n"
+        "      MALLOC_TRIM_THRESHOLD_: null\\n' > ~/.config/dask/autocal.yaml",
         "dask worker tcp://SCHEDULER:8786 --nthreads 1 --nworkers 2",
         "# then",
         "autocal calibrate /data/2458098/zen.*.uvh5 --dask tcp://SCHEDULER:8786 --out cal",

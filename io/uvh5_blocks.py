@@ -239,10 +239,11 @@ def iter_uvh5_blocks(
         computed in a second thread while the first block is read; it reads the file
         faster than HDF5 decodes it, so the data are then served from the page cache.
     prefetch
-        Read and decode the next block in a background thread while the caller works on
-        the current one (HDF5 decompression releases the GIL): at most two blocks are in
-        memory. Errors are raised at the block they belong to; closing the generator
-        early waits for the block in flight and closes the file.
+        Read and decode the next blocks in background threads while the caller works on
+        the current one (HDF5 decompression releases the GIL): at most three blocks are
+        in memory (the caller's, the next one decoded, the one after that being read).
+        Errors are raised at the block they belong to; closing the generator early waits
+        for the blocks in flight and closes the file.
     reuse_buffers
         Decode every block into the same two sets of arrays (alternating) instead of
         fresh ones, which spares faulting in new pages for every block (~10 % of a
