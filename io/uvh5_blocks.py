@@ -14,6 +14,7 @@ read once" figures). Headers, selections and whole-file reads are in
 from __future__ import annotations
 
 import io
+import itertools
 import logging
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -59,6 +60,10 @@ class ReadStats:
         compressed chunks), counted at the file object.
     bytes_decoded
         Bytes of the arrays the data sets were decoded into.
+    bytes_reused
+        Of those, bytes copied from a stored chunk identical to one already decoded
+        instead of decoded again (uniform nsamples, unflagged data; see
+        :class:`_RepeatedChunks`).
     largest_array
         Bytes of the largest single array read from a data set (bounded by the block).
     checksum_bytes
@@ -71,6 +76,7 @@ class ReadStats:
     samples: int = 0
     bytes_read: int = 0
     bytes_decoded: int = 0
+    bytes_reused: int = 0
     largest_array: int = 0
     checksum_bytes: int = 0
 
@@ -125,6 +131,7 @@ def _read_rows(
     pols: slice,
     stats: ReadStats,
     buffers: _Buffers | None = None,
+    repeats: _RepeatedChunks | None = None,
 ) -> np.ndarray:
     """Read ``rows`` (sorted blt indices) of a data set as ``(Nrows, Nchan, Npol)``.
 
@@ -133,17 +140,25 @@ def _read_rows(
     point selection, so memory stays bounded by the rows asked for. With ``buffers`` a
     slab of consecutive rows is decoded into a reused array (``read_direct``; no fresh
     pages to fault in per block); the result is then only valid until the next read of
-    this data set.
+    this data set. With ``repeats`` such a slab is assembled from the data set's distinct
+    stored chunks, each decoded once (:class:`_RepeatedChunks`).
     """
     lo, hi = int(rows[0]), int(rows[-1]) + 1
     dense = rows.size >= 0.5 * (hi - lo)
     first: slice | np.ndarray = slice(lo, hi) if dense else rows
     index: tuple[Any, ...] = (first, 0, chans, pols) if dset.ndim == 4 else (first, chans, pols)
-    if buffers is not None and dense and rows.size == hi - lo and not dset.dtype.names:
+    slab = dense and rows.size == hi - lo and not dset.dtype.names
+    if slab and (buffers is not None or (repeats is not None and repeats.active)):
         nchan = len(range(*chans.indices(dset.shape[-2])))
         npol = len(range(*pols.indices(dset.shape[-1])))
-        arr = buffers.get(f"raw {dset.name}", (rows.size, nchan, npol), dset.dtype)
-        dset.read_direct(arr, source_sel=index)
+        shape = (rows.size, nchan, npol)
+        arr = (
+            np.empty(shape, dset.dtype)
+            if buffers is None
+            else buffers.get(f"raw {dset.name}", shape, dset.dtype)
+        )
+        if repeats is None or not repeats.fill(arr, lo, hi, chans, pols, stats):
+            dset.read_direct(arr, source_sel=index)
     else:
         arr = dset[index]
     if arr.dtype.names:  # the HERA correlator's compound type (fields r, i)
@@ -173,6 +188,95 @@ class _Buffers:
 
 #: Polarisation codes whose autos are real powers (pyuvdata makes them real with abs()).
 SAME_FEED_POL_CODES = (-1, -2, -5, -6, 1, 2, 3, 4)
+
+
+class _RepeatedChunks:
+    """Decode each distinct stored chunk of a chunked data set once.
+
+    Raw HERA files have flags that are all ``False`` and ``nsamples`` that are all equal,
+    so their compressed chunks are identical byte for byte; decoding them is still 40 % of
+    reading a file (night benchmark). Here the stored bytes of every chunk a slab touches
+    are read without decompression (``read_direct_chunk``); a chunk whose bytes (and
+    filter mask and extent) were seen before is copied from its decoded copy, and only new
+    ones are decoded by HDF5. Decompression is deterministic, so the values are exactly
+    those of a plain read. After :data:`TRIAL_CHUNKS` chunks with fewer than half reused
+    (e.g. real flags with RFI), or on a chunk that is not stored, the data set is read
+    normally for the rest of the file.
+    """
+
+    #: Decoded chunks kept (distinct contents).
+    MAX_DISTINCT = 8
+    #: Chunks looked at before giving up on a data set whose chunks rarely repeat.
+    TRIAL_CHUNKS = 64
+
+    def __init__(self, dset: Any) -> None:
+        self.dset = dset
+        self.active = dset.chunks is not None and not dset.dtype.names
+        self.decoded: dict[tuple[Any, ...], np.ndarray] = {}
+        self.seen = 0
+        self.reused = 0
+
+    def fill(
+        self, out: np.ndarray, lo: int, hi: int, chans: slice, pols: slice, stats: ReadStats
+    ) -> bool:
+        """Fill ``out`` (rows ``lo:hi``, ``chans``, ``pols``) and return ``True``.
+
+        ``False`` (nothing to rely on in ``out``) when the data set is to be read
+        normally.
+        """
+        if not self.active:
+            return False
+        dset = self.dset
+        c0, c1, _ = chans.indices(dset.shape[-2])
+        p0, p1, _ = pols.indices(dset.shape[-1])
+        # (start, stop) per data set axis; the legacy 4-d layout has a spectral-window axis
+        ranges = [(lo, hi), (c0, c1), (p0, p1)]
+        if dset.ndim == 4:
+            ranges.insert(1, (0, 1))
+        grids = [
+            range(start - start % size, stop, size)
+            for (start, stop), size in zip(ranges, dset.chunks, strict=True)
+        ]
+        copies = []
+        for offset in itertools.product(*grids):
+            try:
+                mask, stored = dset.id.read_direct_chunk(offset)
+            except (KeyError, OSError, RuntimeError, ValueError):  # not stored: fill value
+                self.active = False
+                return False
+            extent = tuple(
+                min(o + size, n) - o
+                for o, size, n in zip(offset, dset.chunks, dset.shape, strict=True)
+            )
+            key = (mask, extent, stored)
+            chunk = self.decoded.get(key)
+            reused = chunk is not None
+            if chunk is None:
+                chunk = dset[tuple(slice(o, o + e) for o, e in zip(offset, extent, strict=True))]
+                if len(self.decoded) < self.MAX_DISTINCT:
+                    self.decoded[key] = chunk
+            self.seen += 1
+            self.reused += reused
+            copies.append((offset, chunk, reused))
+        if self.seen >= self.TRIAL_CHUNKS and 2 * self.reused < self.seen:
+            logger.debug("%s: stored chunks rarely repeat; decoding all", dset.name)
+            self.active = False
+        for offset, chunk, reused in copies:
+            part = [
+                (max(start, o), min(stop, o + n))
+                for (start, stop), o, n in zip(ranges, offset, chunk.shape, strict=True)
+            ]
+            src = tuple(slice(a - o, b - o) for (a, b), o in zip(part, offset, strict=True))
+            dst = [
+                slice(a - start, b - start) for (a, b), (start, _) in zip(part, ranges, strict=True)
+            ]
+            block = chunk[src]
+            if dset.ndim == 4:
+                block, dst = block[:, 0], [dst[0], *dst[2:]]
+            out[tuple(dst)] = block
+            if reused:
+                stats.bytes_reused += block.nbytes
+        return True
 
 
 def _auto_power(arr: np.ndarray, same_feed: np.ndarray) -> np.ndarray:
@@ -366,6 +470,8 @@ def _iter_blocks(
             wrows = np.flatnonzero(ia_all >= 0)
             wrows = wrows[np.argsort(tclip[wrows], kind="stable")]
             wtimes = tclip[wrows]
+            # flags and nsamples of raw files repeat chunk for chunk: decode each once
+            repeats = [None, _RepeatedChunks(datasets[1]), _RepeatedChunks(datasets[2])]
 
             def read(iblock: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
                 """Stage 1: the block's rows of the three data sets, as stored (HDF5)."""
@@ -376,9 +482,10 @@ def _iter_blocks(
                 arrays: dict[str, np.ndarray] = {}
                 if rows.size:
                     bufs = None if raw_sets is None else raw_sets[iblock % 2]
-                    for key, dset in zip(("data", "flags", "nsamples"), datasets, strict=True):
+                    keys = ("data", "flags", "nsamples")
+                    for key, dset, rep in zip(keys, datasets, repeats, strict=True):
                         arrays[key] = _read_rows(
-                            dset, rows, slice(c0, c1), slice(p0, p1), stats, bufs
+                            dset, rows, slice(c0, c1), slice(p0, p1), stats, bufs, rep
                         )
                 stats.bytes_read += raw.nread - counted
                 counted = raw.nread

@@ -545,3 +545,83 @@ def test_block_reader_early_close_and_errors_leave_no_thread_or_open_file(tmp_pa
             got.append(block.meta["block"])
     assert got == [0, 1]  # the error surfaces at the block it belongs to
     assert opened[-1].closed and not _reader_threads()
+
+
+@pytest.mark.parametrize("legacy", [False, True])
+def test_repeated_chunks_give_exactly_a_plain_read(tmp_path, legacy):
+    from autocal.io.uvh5_blocks import _RepeatedChunks
+
+    shape, chunks = (50, 37, 2), (7, 8, 1)  # chunks straddle every edge
+    if legacy:  # the old (Nblts, 1, Nfreq, Npol) layout
+        shape, chunks = (50, 1, 37, 2), (7, 1, 8, 1)
+    rng = np.random.default_rng(3)
+    uniform = np.ones(shape, np.float32)
+    with h5py.File(tmp_path / "c.h5", "w") as h5:
+        h5.create_dataset("same", data=uniform, chunks=chunks, compression="gzip")
+        mixed = uniform.copy()
+        mixed[10:12, ..., 3:5, :] = 7  # two chunks differ
+        h5.create_dataset("mixed", data=mixed, chunks=chunks, compression="lzf", shuffle=True)
+        h5.create_dataset("noisy", data=rng.random(shape), chunks=chunks, compression="gzip")
+        gaps = h5.create_dataset("gaps", shape=shape, dtype="f4", chunks=chunks, compression="gzip")
+        gaps[:7] = 1.0  # later chunks never written: fill value
+    with h5py.File(tmp_path / "c.h5", "r") as h5:
+        for name in ("same", "mixed", "noisy", "gaps"):
+            dset = h5[name]
+            rep = _RepeatedChunks(dset)
+            stats = ReadStats()
+            for lo, hi, chans, pols in [
+                (0, 50, slice(0, 37), slice(0, 2)),
+                (3, 19, slice(5, 30), slice(1, 2)),
+                (44, 50, slice(36, 37), slice(0, 1)),
+            ]:
+                out = np.full((hi - lo, chans.stop - chans.start, pols.stop - pols.start), -1.0)
+                out = out.astype(dset.dtype)
+                index = (slice(lo, hi), 0, chans, pols) if legacy else (slice(lo, hi), chans, pols)
+                if rep.fill(out, lo, hi, chans, pols, stats):
+                    np.testing.assert_array_equal(out, dset[index])
+                else:
+                    assert name in ("noisy", "gaps") and not rep.active
+            if name in ("same", "mixed"):
+                assert rep.active and rep.reused > rep.seen // 2 and stats.bytes_reused > 0
+                # full chunks, the short last row and channel chunks and their corner;
+                # 'mixed' adds the changed chunk (stored alike in both pols)
+                assert len(rep.decoded) == (4 if name == "same" else 5)
+    # a data set whose chunks never repeat is read normally after the trial
+    with h5py.File(tmp_path / "c.h5", "r") as h5:
+        rep = _RepeatedChunks(h5["noisy"])
+        lo_hi = [(i, i + 7) for i in range(0, 49, 7)] * 3
+        for lo, hi in lo_hi:
+            out = np.empty((hi - lo, 37, 2))
+            if not rep.fill(out, lo, hi, slice(0, 37), slice(0, 2), ReadStats()):
+                break
+        assert not rep.active and rep.seen >= _RepeatedChunks.TRIAL_CHUNKS
+
+
+def test_block_reader_decodes_repeated_flag_and_nsample_chunks_once(tmp_path):
+    obs = _observation(ntime=9)
+    path = tmp_path / "parts.uvh5"
+    flags = np.zeros(obs.shape, bool)
+    flags[2, 1, 4, 1:3] = True  # a few flagged samples: their chunk is decoded, not reused
+    nsamples = np.ones(obs.shape)  # uniform, as in raw HERA files
+    with _writer(obs, path, compression="gzip") as writer:
+        writer.write(0, obs.data, flags, nsamples)
+    whole = read_uvh5(path)  # pyuvdata
+    stats = ReadStats()
+    blocks = list(iter_uvh5_blocks(path, block_size=2, stats=stats))
+    for key in ("data", "flags", "nsamples"):
+        np.testing.assert_array_equal(
+            np.concatenate([getattr(b, key) for b in blocks], axis=2), getattr(whole, key)
+        )
+    assert whole.flags.sum() == 2
+    # one chunk per integration and pol (all antennas and channels): every chunk is a copy
+    # except the first of each data set and the one with the flags
+    with h5py.File(path, "r") as h5:
+        assert h5["Data/flags"].chunks == (obs.nant, obs.nfreq, 1)
+        per_chunk = {
+            k: obs.nant * obs.nfreq * h5[f"Data/{k}"].dtype.itemsize for k in ("flags", "nsamples")
+        }
+    nchunks = obs.ntime * len(obs.pols)
+    assert (
+        stats.bytes_reused
+        == (nchunks - 2) * per_chunk["flags"] + (nchunks - 1) * per_chunk["nsamples"]
+    )
