@@ -6,8 +6,9 @@ integrations, so a HERA file of 350 antennas x 1536 channels x 192 integrations 
 complex64) never sits in memory whole. Reading is a two-stage pipeline in background
 threads (HDF5 reads and decompression; conversion to the ``(Nant, Npol, Ntime, Nfreq)``
 layout and the observation checks) running ahead of the caller, with the file's SHA-256
-computed alongside. :class:`ReadStats` counts what was read (the night benchmark's "data
-read once" figures). Headers, selections and whole-file reads are in
+computed alongside; chunks of flags and nsamples that are stored identically (raw files:
+no flags, uniform nsamples) are decoded once. :class:`ReadStats` counts what was read (the
+night benchmark's "data read once" figures). Headers, selections and whole-file reads are in
 :mod:`autocal.io.uvh5`.
 """
 
