@@ -205,8 +205,9 @@ class _RepeatedChunks:
     normally for the rest of the file.
     """
 
-    #: Decoded chunks kept (distinct contents).
+    #: Decoded chunks kept (distinct contents), and their largest total size in bytes.
     MAX_DISTINCT = 8
+    MAX_BYTES = 64 << 20
     #: Chunks looked at before giving up on a data set whose chunks rarely repeat.
     TRIAL_CHUNKS = 64
 
@@ -244,6 +245,7 @@ class _RepeatedChunks:
                 mask, stored = dset.id.read_direct_chunk(offset)
             except (KeyError, OSError, RuntimeError, ValueError):  # not stored: fill value
                 self.active = False
+                self.decoded.clear()
                 return False
             extent = tuple(
                 min(o + size, n) - o
@@ -254,7 +256,8 @@ class _RepeatedChunks:
             reused = chunk is not None
             if chunk is None:
                 chunk = dset[tuple(slice(o, o + e) for o, e in zip(offset, extent, strict=True))]
-                if len(self.decoded) < self.MAX_DISTINCT:
+                kept = sum(c.nbytes for c in self.decoded.values()) + chunk.nbytes
+                if len(self.decoded) < self.MAX_DISTINCT and kept <= self.MAX_BYTES:
                     self.decoded[key] = chunk
             self.seen += 1
             self.reused += reused
@@ -262,6 +265,7 @@ class _RepeatedChunks:
         if self.seen >= self.TRIAL_CHUNKS and 2 * self.reused < self.seen:
             logger.debug("%s: stored chunks rarely repeat; decoding all", dset.name)
             self.active = False
+            self.decoded.clear()
         for offset, chunk, reused in copies:
             part = [
                 (max(start, o), min(stop, o + n))

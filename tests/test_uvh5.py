@@ -594,7 +594,7 @@ def test_repeated_chunks_give_exactly_a_plain_read(tmp_path, legacy):
             out = np.empty((hi - lo, 37, 2))
             if not rep.fill(out, lo, hi, slice(0, 37), slice(0, 2), ReadStats()):
                 break
-        assert not rep.active and rep.seen >= _RepeatedChunks.TRIAL_CHUNKS
+        assert not rep.active and not rep.decoded and rep.seen >= _RepeatedChunks.TRIAL_CHUNKS
 
 
 def test_block_reader_decodes_repeated_flag_and_nsample_chunks_once(tmp_path):
