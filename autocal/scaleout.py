@@ -50,9 +50,10 @@ LOCAL_PROCESSES = True
 #: Environment variable Dask's nanny sets to 65536 in every worker it starts
 #: (``distributed.nanny.pre-spawn-environ``). Setting it fixes glibc's mmap threshold at
 #: 128 kB, so every array above that is mapped afresh and its pages faulted in again on
-#: each allocation: a HERA-size night file took ~12 s instead of ~8.5 s per worker here
-#: (two processes side by side). Local clusters are started without it; workers of a
-#: remote cluster that have it are reported with the fix.
+#: each allocation: a HERA-size night file took 10.5-10.7 s instead of 6.3-7.8 s per
+#: worker here (two processes side by side, ``benchmarks/malloc_trim.py``). Local clusters
+#: are started without it; workers of a remote cluster that have it are reported with the
+#: fix.
 MALLOC_TRIM_ENV = "MALLOC_TRIM_THRESHOLD_"
 
 
@@ -195,7 +196,7 @@ def _check_worker_malloc(client: Any, description: dict[str, Any]) -> None:
         description["worker_malloc_trim_threshold"] = found
         logger.warning(
             "%d of %d Dask workers run with %s=%s (the nanny's default), which makes "
-            "glibc map and fault in every large array afresh (~1.4x slower calibration); "
+            "glibc map and fault in every large array afresh (~1.4-1.7x slower calibration); "
             "start them without it: `MALLOC_TRIM_THRESHOLD_: null` under "
             "distributed.nanny.pre-spawn-environ in the workers' Dask config (e.g. "
             "~/.config/dask/autocal.yaml), or `dask worker --no-nanny`",
