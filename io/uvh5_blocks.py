@@ -321,6 +321,7 @@ def iter_uvh5_blocks(
     checksum: bool = True,
     prefetch: bool = True,
     reuse_buffers: bool = False,
+    decode_repeats_once: bool = True,
 ) -> Iterator[Observation]:
     """Yield the autos of one UVH5 file in blocks of consecutive integrations.
 
@@ -358,6 +359,10 @@ def iter_uvh5_blocks(
         fresh ones, which spares faulting in new pages for every block (~10 % of a
         file's read time here). A yielded block is then valid only until the next one is
         requested: copy what must outlive the loop iteration. The values are the same.
+    decode_repeats_once
+        Decode each distinct stored chunk of the flags and nsamples once and copy its
+        repeats (:class:`_RepeatedChunks`; raw files: ~40 % of the decoding spared). The
+        values are the same; ``False`` decodes every chunk.
 
     Yields
     ------
@@ -382,6 +387,7 @@ def iter_uvh5_blocks(
         checksum=checksum,
         prefetch=prefetch,
         reuse_buffers=reuse_buffers,
+        decode_repeats_once=decode_repeats_once,
     )
 
 
@@ -398,6 +404,7 @@ def _iter_blocks(
     checksum: bool = True,
     prefetch: bool = True,
     reuse_buffers: bool = False,
+    decode_repeats_once: bool = True,
 ) -> Iterator[Observation]:
     import h5py
 
@@ -476,7 +483,9 @@ def _iter_blocks(
             wrows = wrows[np.argsort(tclip[wrows], kind="stable")]
             wtimes = tclip[wrows]
             # flags and nsamples of raw files repeat chunk for chunk: decode each once
-            repeats = [None, _RepeatedChunks(datasets[1]), _RepeatedChunks(datasets[2])]
+            repeats = [None] + [
+                _RepeatedChunks(d) if decode_repeats_once else None for d in datasets[1:]
+            ]
 
             def read(iblock: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
                 """Stage 1: the block's rows of the three data sets, as stored (HDF5)."""

@@ -613,6 +613,12 @@ def test_block_reader_decodes_repeated_flag_and_nsample_chunks_once(tmp_path):
             np.concatenate([getattr(b, key) for b in blocks], axis=2), getattr(whole, key)
         )
     assert whole.flags.sum() == 2
+    plain_stats = ReadStats()
+    plain = list(iter_uvh5_blocks(path, block_size=2, stats=plain_stats, decode_repeats_once=False))
+    for b, c in zip(blocks, plain, strict=True):
+        np.testing.assert_array_equal(b.flags, c.flags)
+        np.testing.assert_array_equal(b.nsamples, c.nsamples)
+    assert plain_stats.bytes_reused == 0
     # one chunk per integration and pol (all antennas and channels): every chunk is a copy
     # except the first of each data set and the one with the flags
     with h5py.File(path, "r") as h5:
