@@ -196,7 +196,7 @@ def _check_worker_malloc(client: Any, description: dict[str, Any]) -> None:
         description["worker_malloc_trim_threshold"] = found
         logger.warning(
             "%d of %d Dask workers run with %s=%s (the nanny's default), which makes "
-            "glibc map and fault in every large array afresh (~1.4-1.7x slower calibration); "
+            "glibc map and fault in every large array afresh (~1.3-1.7x slower calibration); "
             "start them without it: `MALLOC_TRIM_THRESHOLD_: null` under "
             "distributed.nanny.pre-spawn-environ in the workers' Dask config (e.g. "
             "~/.config/dask/autocal.yaml), or `dask worker --no-nanny`",

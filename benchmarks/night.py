@@ -651,7 +651,7 @@ def markdown(report: dict) -> str:
         "# on the scheduler node",
         "dask scheduler --port 8786",
         "# on each worker node (autocal installed, the data at the same paths); without",
-        "# the nanny's MALLOC_TRIM_THRESHOLD_ (every large array faulted in afresh, 1.4-1.7x",
+        "# the nanny's MALLOC_TRIM_THRESHOLD_ (every large array faulted in afresh, 1.3-1.7x",
         "# slower): either no nanny, or a Dask config that unsets it",
         "dask worker tcp://SCHEDULER:8786 --nthreads 1 --no-nanny",
         "mkdir -p ~/.config/dask && printf 'distributed:\\n  nanny:\\n    pre-spawn-environ:\\n"
