@@ -498,9 +498,16 @@ def _iter_blocks(
                     bufs = None if raw_sets is None else raw_sets[iblock % 2]
                     keys = ("data", "flags", "nsamples")
                     for key, dset, rep in zip(keys, datasets, repeats, strict=True):
-                        arrays[key] = _read_rows(
-                            dset, rows, slice(c0, c1), slice(p0, p1), stats, bufs, rep
-                        )
+                        try:
+                            arrays[key] = _read_rows(
+                                dset, rows, slice(c0, c1), slice(p0, p1), stats, bufs, rep
+                            )
+                        except OSError as err:  # a chunk that does not decode, a short file
+                            raise UVH5FormatError(
+                                f"{meta.path}: cannot read {dset.name} for integrations "
+                                f"{t0}-{t1 - 1} ({err}); the file is corrupt or truncated: "
+                                "copy it again from the archive, or leave it out"
+                            ) from err
                 stats.bytes_read += raw.nread - counted
                 counted = raw.nread
                 return arrays, rows

@@ -631,3 +631,25 @@ def test_block_reader_decodes_repeated_flag_and_nsample_chunks_once(tmp_path):
         stats.bytes_reused
         == (nchunks - 2) * per_chunk["flags"] + (nchunks - 1) * per_chunk["nsamples"]
     )
+
+
+@pytest.mark.parametrize("dataset", ["Data/visdata", "Data/flags"])
+def test_a_chunk_that_does_not_decode_is_a_clear_error(tmp_path, dataset, capsys):
+    from autocal.cli import main
+
+    obs = _observation(ntime=9)
+    path = tmp_path / "corrupt.uvh5"
+    with _writer(obs, path, compression="gzip") as writer:
+        writer.write(0, obs.data, np.zeros(obs.shape, bool), np.ones(obs.shape))
+    with h5py.File(path, "r+") as h5:  # the chunk of integration 5, pol 0: garbage bytes
+        dset = h5[dataset]
+        mask, _ = dset.id.read_direct_chunk((obs.nant * 5, 0, 0))
+        dset.id.write_direct_chunk((obs.nant * 5, 0, 0), b"\x00garbage" * 4, mask)
+    with pytest.raises(UVH5FormatError, match=r"integrations 4-5 .*corrupt or truncated"):
+        for _ in iter_uvh5_blocks(path, block_size=2):
+            pass
+    assert not _reader_threads()
+    out = tmp_path / "cal"
+    argv = ["calibrate", str(path), "--beam", "dipole", "--nside", "16", "--out", str(out)]
+    assert main(argv) == 2
+    assert "corrupt or truncated" in capsys.readouterr().err and not out.exists()
