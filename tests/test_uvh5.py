@@ -540,7 +540,7 @@ def test_block_reader_early_close_and_errors_leave_no_thread_or_open_file(tmp_pa
 
     monkeypatch.setattr(uvh5, "_read_rows", failing)
     got = []
-    with pytest.raises(OSError, match="simulated read error"):
+    with pytest.raises(UVH5FormatError, match="simulated read error"):
         for block in iter_uvh5_blocks(path, block_size=2):
             got.append(block.meta["block"])
     assert got == [0, 1]  # the error surfaces at the block it belongs to
