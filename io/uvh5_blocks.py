@@ -195,14 +195,15 @@ class _RepeatedChunks:
     """Decode each distinct stored chunk of a chunked data set once.
 
     Raw HERA files have flags that are all ``False`` and ``nsamples`` that are all equal,
-    so their compressed chunks are identical byte for byte; decoding them is still 40 % of
-    reading a file (night benchmark). Here the stored bytes of every chunk a slab touches
-    are read without decompression (``read_direct_chunk``); a chunk whose bytes (and
-    filter mask and extent) were seen before is copied from its decoded copy, and only new
-    ones are decoded by HDF5. Decompression is deterministic, so the values are exactly
-    those of a plain read. After :data:`TRIAL_CHUNKS` chunks with fewer than half reused
-    (e.g. real flags with RFI), or on a chunk that is not stored, the data set is read
-    normally for the rest of the file.
+    so their compressed chunks are identical byte for byte; decoding them took a third of
+    the HDF5 time of a night file (profile: 5.7 s -> 3.8 s, ``benchmarks/night.py``).
+    Here the stored bytes of every chunk a slab touches are read without decompression
+    (``read_direct_chunk``); a chunk whose bytes (and filter mask and extent) were seen
+    before is copied from its decoded copy, and only new ones are decoded by HDF5.
+    Decompression is deterministic, so the values are exactly those of a plain read.
+    After :data:`TRIAL_CHUNKS` chunks with fewer than half reused (e.g. real flags with
+    RFI), or on a chunk that is not stored, the data set is read normally for the rest of
+    the file.
     """
 
     #: Decoded chunks kept (distinct contents), and their largest total size in bytes.
@@ -356,12 +357,13 @@ def iter_uvh5_blocks(
         for the blocks in flight and closes the file.
     reuse_buffers
         Decode every block into the same two sets of arrays (alternating) instead of
-        fresh ones, which spares faulting in new pages for every block (~10 % of a
-        file's read time here). A yielded block is then valid only until the next one is
-        requested: copy what must outlive the loop iteration. The values are the same.
+        fresh ones, which spares faulting in new pages for every block (~7 % of a night
+        file's time here, ``benchmarks/reader.py``). A yielded block is then valid only
+        until the next one is requested: copy what must outlive the loop iteration. The
+        values are the same.
     decode_repeats_once
         Decode each distinct stored chunk of the flags and nsamples once and copy its
-        repeats (:class:`_RepeatedChunks`; raw files: ~40 % of the decoding spared). The
+        repeats (:class:`_RepeatedChunks`; on raw files a third of the HDF5 time). The
         values are the same; ``False`` decodes every chunk.
 
     Yields
