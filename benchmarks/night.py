@@ -418,7 +418,7 @@ def profile_file(path: str) -> dict:
         uvh5_blocks.iter_uvh5_blocks = real
     parts = {
         "_read_rows": "HDF5 reads + decompression",
-        "_iter_blocks": "block reader total (incl. HDF5)",
+        "iter_uvh5_blocks": "block reader total (incl. HDF5)",
         "file_checksum": "SHA-256 of the file",
         "accumulate": "autocal.fit.accumulate (normal sums)",
         "bandwidth_time": "dnu dt N per sample",

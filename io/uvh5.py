@@ -1041,13 +1041,13 @@ def iter_uvh5(
     each file is yielded in blocks of integrations, so memory is bounded by the block,
     not the file.
     """
-    from autocal.io.uvh5_blocks import _iter_blocks
+    from autocal.io.uvh5_blocks import iter_uvh5_blocks
 
     for meta in _scan(paths):
         if not np.any(_lst_mask(meta.lsts, lst_range)):
             continue
         if block_size is not None:
-            yield from _iter_blocks(
+            yield from iter_uvh5_blocks(
                 meta,
                 antennas=antennas,
                 pols=pols,

@@ -214,7 +214,15 @@ class _RepeatedChunks:
 
     def __init__(self, dset: Any) -> None:
         self.dset = dset
-        self.active = dset.chunks is not None and not dset.dtype.names
+        # h5py properties take its lock on every access: read them once
+        self.ndim, self.shape, self.chunks, self.name = (
+            dset.ndim,
+            dset.shape,
+            dset.chunks,
+            dset.name,
+        )
+        self.dsid = dset.id
+        self.active = self.chunks is not None and not dset.dtype.names
         self.decoded: dict[tuple[Any, ...], np.ndarray] = {}
         self.seen = 0
         self.reused = 0
@@ -230,27 +238,27 @@ class _RepeatedChunks:
         if not self.active:
             return False
         dset = self.dset
-        c0, c1, _ = chans.indices(dset.shape[-2])
-        p0, p1, _ = pols.indices(dset.shape[-1])
+        c0, c1, _ = chans.indices(self.shape[-2])
+        p0, p1, _ = pols.indices(self.shape[-1])
         # (start, stop) per data set axis; the legacy 4-d layout has a spectral-window axis
         ranges = [(lo, hi), (c0, c1), (p0, p1)]
-        if dset.ndim == 4:
+        if self.ndim == 4:
             ranges.insert(1, (0, 1))
         grids = [
             range(start - start % size, stop, size)
-            for (start, stop), size in zip(ranges, dset.chunks, strict=True)
+            for (start, stop), size in zip(ranges, self.chunks, strict=True)
         ]
         copies = []
         for offset in itertools.product(*grids):
             try:
-                mask, stored = dset.id.read_direct_chunk(offset)
+                mask, stored = self.dsid.read_direct_chunk(offset)
             except (KeyError, OSError, RuntimeError, ValueError):  # not stored: fill value
                 self.active = False
                 self.decoded.clear()
                 return False
             extent = tuple(
                 min(o + size, n) - o
-                for o, size, n in zip(offset, dset.chunks, dset.shape, strict=True)
+                for o, size, n in zip(offset, self.chunks, self.shape, strict=True)
             )
             key = (mask, extent, stored)
             chunk = self.decoded.get(key)
@@ -264,7 +272,7 @@ class _RepeatedChunks:
             self.reused += reused
             copies.append((offset, chunk, reused))
         if self.seen >= self.TRIAL_CHUNKS and 2 * self.reused < self.seen:
-            logger.debug("%s: stored chunks rarely repeat; decoding all", dset.name)
+            logger.debug("%s: stored chunks rarely repeat; decoding all", self.name)
             self.active = False
             self.decoded.clear()
         for offset, chunk, reused in copies:
@@ -277,7 +285,7 @@ class _RepeatedChunks:
                 slice(a - start, b - start) for (a, b), (start, _) in zip(part, ranges, strict=True)
             ]
             block = chunk[src]
-            if dset.ndim == 4:
+            if self.ndim == 4:
                 block, dst = block[:, 0], [dst[0], *dst[2:]]
             out[tuple(dst)] = block
             if reused:
@@ -310,7 +318,7 @@ def _meta_of(file: UVH5File | _FileMeta | str | Path) -> _FileMeta:
 
 
 def iter_uvh5_blocks(
-    file: UVH5File | str | Path,
+    file: UVH5File | _FileMeta | str | Path,
     *,
     antennas: Sequence[int] | None = None,
     pols: Sequence[str] | None = None,
@@ -377,39 +385,9 @@ def iter_uvh5_blocks(
     UVH5FormatError, ObservationError
         As :func:`read_uvh5`; ``ValueError`` for a block size below 1.
     """
-    yield from _iter_blocks(
-        _meta_of(file),
-        antennas=antennas,
-        pols=pols,
-        freq_range=freq_range,
-        lst_range=lst_range,
-        block_size=block_size,
-        max_block_samples=max_block_samples,
-        stats=stats,
-        checksum=checksum,
-        prefetch=prefetch,
-        reuse_buffers=reuse_buffers,
-        decode_repeats_once=decode_repeats_once,
-    )
-
-
-def _iter_blocks(
-    meta: _FileMeta,
-    *,
-    antennas: Sequence[int] | None,
-    pols: Sequence[str] | None,
-    freq_range: tuple[float, float] | None,
-    lst_range: tuple[float, float] | None,
-    block_size: int | None = None,
-    max_block_samples: int = BLOCK_SAMPLES,
-    stats: ReadStats | None = None,
-    checksum: bool = True,
-    prefetch: bool = True,
-    reuse_buffers: bool = False,
-    decode_repeats_once: bool = True,
-) -> Iterator[Observation]:
     import h5py
 
+    meta = _meta_of(file)
     stats = stats if stats is not None else ReadStats()
     ants = _select_antennas(meta, antennas)
     pol_idx = _select_pols(meta, pols)
