@@ -373,10 +373,12 @@ class _Chunk:
 def _num_array(values: Any, data: np.ndarray) -> np.ndarray | float:
     """Return per-sample ``dnu dt N`` or user weights in the layout the engines read.
 
-    A scalar stays a float; values that vary only with time and frequency (what the
-    pipeline passes when ``nsamples`` is uniform) become one ``(Ntime, Nfreq)`` array shared
-    by all antennas and polarisations, so the kernel reads 8 bytes per sample less;
-    anything else a C-ordered float64 array of the data's shape.
+    A scalar stays a float; values that vary only with frequency (uniform ``nsamples`` and
+    integration time: what the pipeline passes for raw files) become one ``(Nfreq,)`` row,
+    which stays in the L1 cache while the kernel streams the data; values that vary only
+    with time and frequency one ``(Ntime, Nfreq)`` array shared by all antennas and
+    polarisations, so the kernel reads 8 bytes per sample less; anything else a C-ordered
+    float64 array of the data's shape.
     """
     arr = np.asarray(values, dtype=np.float64)
     if arr.size == 1:
@@ -388,8 +390,12 @@ def _num_array(values: Any, data: np.ndarray) -> np.ndarray | float:
     if not ok:
         raise FitError(f"weights of shape {arr.shape} do not broadcast to the data's {data.shape}")
     if all(n == 1 for n in arr.shape[:-2]):
-        shared = arr.reshape(arr.shape[-2:]) if arr.ndim >= 2 else arr
-        return _offset_copy(np.broadcast_to(shared, data.shape[2:]), data, 3072)
+        shared = np.broadcast_to(
+            arr.reshape(arr.shape[-2:]) if arr.ndim >= 2 else arr, data.shape[2:]
+        )
+        if (shared == shared[:1]).all():  # the same for every integration (NaN never is)
+            return _offset_copy(shared[0], data, 3072)
+        return _offset_copy(shared, data, 3072)
     return np.ascontiguousarray(np.broadcast_to(arr, data.shape))
 
 
@@ -459,7 +465,9 @@ def _moments_numpy(c: _Chunk, a0: int, a1: int, out: dict[str, np.ndarray]) -> i
             ata, aty = _assemble(c.lin, mom, ymom)
             out["ata"][a] += ata
             out["aty"][a] += aty
-            out["count"][a] += np.count_nonzero(used, axis=1)
+            count = np.count_nonzero(used, axis=1)
+            out["count"][a] += count
+            out["nflagged"][a] += shape[1] - count
     return nbad
 
 
@@ -470,8 +478,12 @@ def _moments_numpy(c: _Chunk, a0: int, a1: int, out: dict[str, np.ndarray]) -> i
 #: one 8-way L1 set; at most 8 of them may be in flight. Tsky is copied to another offset
 #: (:func:`_offset_copy`) and the kernel places its accumulators off that set too.
 _TUNROLL = {1: 4, 2: 4, 3: 2}
-#: Channels per block (the block's accumulators, ~(8p + 8) x _FBLOCK doubles, stay in L1/L2).
-_FBLOCK = 512
+#: Bytes of accumulators per channel block: a block has as many channels (a multiple of 256,
+#: 256 to 1536) as keep its ``3 (2p + 1) + 2 (p + 1) + 2`` accumulator rows within this, so
+#: they stay in the L2 cache; a longer block reads a longer stretch of each data row per pass,
+#: which the hardware prefetcher streams faster (constant model: 1536 channels, Legendre 1:
+#: 768, Legendre 2: 512; ``benchmarks/fit.py``).
+_BLOCK_BYTES = 96 * 1024
 _KERNELS: dict[tuple[Any, ...], Any] = {}
 _KERNEL_LOCK = threading.Lock()
 
@@ -486,9 +498,11 @@ def _numba_available() -> bool:
 
 def _kernel_key(c: _Chunk) -> tuple[Any, ...]:
     nb, _, nr = c.lin.shape
-    num_dims = np.ndim(c.num)  # 0 scalar, 2 (Ntime, Nfreq) shared, 4 per sample
+    num_dims = np.ndim(c.num)  # 0 scalar, 1 (Nfreq,) / 2 (Ntime, Nfreq) shared, 4 per sample
     nbig = 1 + (num_dims == 4) + (c.power is not None)
-    return (nr, nb, c.mode, num_dims, c.power is None, c.lin.tobytes(), _TUNROLL[nbig], _FBLOCK)
+    nacc = 3 * nr + 2 * nb + 2 + (c.mode == "user")
+    fb = int(np.clip(_BLOCK_BYTES // (8 * nacc) // 256 * 256, 256, 1536))
+    return (nr, nb, c.mode, num_dims, c.power is None, c.lin.tobytes(), _TUNROLL[nbig], fb)
 
 
 def _kernel_source(key: tuple[Any, ...], lin: np.ndarray) -> str:
@@ -505,7 +519,7 @@ def _kernel_source(key: tuple[Any, ...], lin: np.ndarray) -> str:
     names += ["yy", "cn"] + (["bd"] if mode == "user" else [])
     src = [
         "def kernel(data, flags, num, power, tsky, coef, a_start, a_stop, ata, aty, yty, "
-        "count, bad):",
+        "count, nflagged, bad):",
         "    npol, ntime, nfreq = data.shape[1], data.shape[2], data.shape[3]",
         # the accumulator rows start one cache line after the data rows modulo 4 kB, so
         # they never share an L1 set with the data (see _TUNROLL)
@@ -518,20 +532,20 @@ def _kernel_source(key: tuple[Any, ...], lin: np.ndarray) -> str:
         f"            for f0 in range(0, nfreq, {fb}):",
         f"                nf = min({fb}, nfreq - f0)",
         "                acc[:] = 0.0",
-        f"                for t0 in range(0, ntime, {tu}):",
+        f"                for tb in range(0, ntime, {tu}):",
     ]
     ind = " " * 20
     for u in range(tu):
         src += [
-            f"{ind}t{u} = min(t0 + {u}, ntime - 1)",
-            f"{ind}v{u} = t0 + {u} < ntime",
+            f"{ind}t{u} = min(tb + {u}, ntime - 1)",
+            f"{ind}v{u} = tb + {u} < ntime",
             f"{ind}d{u} = data[ia, p, t{u}, f0:f0 + nf]",
             f"{ind}g{u} = flags[ia, p, t{u}, f0:f0 + nf]",
             f"{ind}s{u} = tsky[p, t{u}, f0:f0 + nf]",
         ]
         if mode != "identity" and num_dims:
-            lead = "ia, p, " if num_dims == 4 else ""
-            src.append(f"{ind}n{u} = num[{lead}t{u}, f0:f0 + nf]")
+            lead = {1: "", 2: f"t{u}, ", 4: f"ia, p, t{u}, "}[num_dims]
+            src.append(f"{ind}n{u} = num[{lead}f0:f0 + nf]")
         if mode == "radiometer" and not own_power:
             src.append(f"{ind}w{u} = power[ia, p, t{u}, f0:f0 + nf]")
         src += [f"{ind}c{u}_{r} = coef[{r}, t{u}]" for r in range(1, nr)]
@@ -600,7 +614,11 @@ def _kernel_source(key: tuple[Any, ...], lin: np.ndarray) -> str:
             ]
     for k in range(nb):
         src += [f"{ind}aty[ia, p, f, {k}] += q1_{k}", f"{ind}aty[ia, p, f, {nb + k}] += q0_{k}"]
-    src += [f"{ind}yty[ia, p, f] += yy", f"{ind}count[ia, p, f] += np.int64(cn)"]
+    src += [
+        f"{ind}yty[ia, p, f] += yy",
+        f"{ind}count[ia, p, f] += np.int64(cn)",
+        f"{ind}nflagged[ia, p, f] += ntime - np.int64(cn)",
+    ]
     if mode == "user":
         src.append(f"{ind}nbad += bd")
     src.append("        bad[ia] = nbad")
@@ -687,6 +705,7 @@ def _moments_numba(c: _Chunk, a0: int, a1: int, out: dict[str, np.ndarray]) -> i
         out["aty"],
         out["yty"],
         out["count"],
+        out["nflagged"],
         out["bad"],
     )
     return int(out["bad"][a0:a1].sum())
@@ -824,10 +843,14 @@ def accumulate(
     lead = (nant, npol, nfreq)
     out = NormalSums.zeros(model, *lead) if into is None else into  # the engines add to it
     _check_into(out, model, lead)
-    bufs = {"ata": out.ata, "aty": out.aty, "yty": out.yty, "count": out.count}
-    bufs["bad"] = np.zeros(nant)
-    out.nflagged += out.count  # nflagged + ntime - (count after - count before)
-    out.nflagged += ntime
+    bufs = {
+        "ata": out.ata,
+        "aty": out.aty,
+        "yty": out.yty,
+        "count": out.count,
+        "nflagged": out.nflagged,
+        "bad": np.zeros(nant),
+    }
     nthreads = _default_threads() if threads is None else max(1, int(threads))
     moments = _moments_numba if _choose_engine(engine, chunk) == "numba" else _moments_numpy
     blocks = _antenna_blocks(nant, nant if nthreads == 1 else -(-nant // (4 * nthreads)))
@@ -838,7 +861,6 @@ def accumulate(
             nbad = sum(pool.map(lambda ab: moments(chunk, *ab, bufs), blocks))
     if nbad:
         raise FitError("user weights (1/sigma^2) must be finite and >= 0")
-    out.nflagged -= out.count
     out.lst_min = min(out.lst_min, float(lsts.min()))
     out.lst_max = max(out.lst_max, float(lsts.max()))
     return out

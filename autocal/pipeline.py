@@ -519,7 +519,8 @@ def compute_partial(
 def _bandwidth_time(chunk: Observation) -> np.ndarray:
     """Return ``dnu dt N``: ``(Ntime, Nfreq)`` when ``nsamples`` is uniform, else per sample.
 
-    The shared form spares a chunk-sized array and a third of the fit kernel's reads.
+    The shared form spares a chunk-sized array and a third of the fit kernel's reads (which
+    reads it as one ``(Nfreq,)`` row when the integration time is uniform too).
     """
     tf = chunk.integration_time[:, None] * chunk.channel_width
     ns = chunk.nsamples

@@ -11,6 +11,7 @@ from autocal.fit import (
     NormalSums,
     Solution,
     _default_threads,
+    _num_array,
     _numba_available,
     _offset_copy,
     _time_functions,
@@ -400,24 +401,30 @@ def test_engines_accept_broadcast_and_float32_inputs(engine: str) -> None:
 
 @pytest.mark.parametrize("engine", ENGINES)
 def test_shared_weights_give_the_per_sample_sums(engine: str) -> None:
-    """dnu dt N or user weights varying only in (time, frequency) are read as one array."""
+    """dnu dt N or user weights varying only in (time, frequency) are read as one array,
+    and those varying only in frequency as one row."""
     c = random_chunk(21, nant=3, ntime=13, nfreq=16)
     model = FitModel.for_lsts(c["lsts"], "legendre", 2)
-    shared = c["bt"][0, 0]
+    per_time = c["bt"][0, 0]
+    per_channel = np.broadcast_to(per_time[0], per_time.shape).copy()  # uniform in time
+    assert _num_array(per_time, c["data"]).shape == per_time.shape
+    assert _num_array(per_channel, c["data"]).shape == per_time.shape[1:]
     args = (model, c["data"], c["tsky"], c["lsts"])
-    for weights, key in (("radiometer", "bandwidth_time"), (None, "weights")):
-        kw = {"weights": weights} if weights else {}
-        full = accumulate(
-            *args,
-            flags=c["flags"],
-            engine=engine,
-            **kw,
-            **{key: np.broadcast_to(shared, c["data"].shape).copy()},
-        )
-        for form in (shared, shared[None, None], shared[None]):
-            sums = accumulate(*args, flags=c["flags"], engine=engine, **kw, **{key: form})
-            for name in ("ata", "aty", "yty", "count"):
-                np.testing.assert_array_equal(getattr(sums, name), getattr(full, name))
+    for shared in (per_time, per_channel):
+        for weights, key in (("radiometer", "bandwidth_time"), (None, "weights")):
+            kw = {"weights": weights} if weights else {}
+            full = accumulate(
+                *args,
+                flags=c["flags"],
+                engine=engine,
+                **kw,
+                **{key: np.broadcast_to(shared, c["data"].shape).copy()},
+            )
+            row = (shared[0],) if shared is per_channel else ()
+            for form in (shared, shared[None, None], shared[None], *row):
+                sums = accumulate(*args, flags=c["flags"], engine=engine, **kw, **{key: form})
+                for name in ("ata", "aty", "yty", "count"):
+                    np.testing.assert_array_equal(getattr(sums, name), getattr(full, name))
     with pytest.raises(FitError, match="do not broadcast"):
         accumulate(*args, bandwidth_time=np.ones((2, 5)), engine=engine)
 
