@@ -9,8 +9,9 @@ round-robin over the repeats, by
   ``np.add.reduce(data, axis=2)`` (the same time-axis reduction shape as the fit);
 - :func:`autocal.fit.accumulate` for the constant and Legendre order-1/2 models with
   radiometer weights (``dnu dt N`` as the pipeline passes it for uniform ``nsamples``: one
-  ``(Ntime, Nfreq)`` array; and ``radiometer-nsamples``: a full per-sample array, as for
-  LST-binned data) and identity weights, with 1 thread and with all threads, per engine,
+  ``(Ntime, Nfreq)`` array, which the kernel reads as one ``(Nfreq,)`` row since the
+  integration time is uniform too; and ``radiometer-nsamples``: a full per-sample array, as
+  for LST-binned data) and identity weights, with 1 thread and with all threads, per engine,
   adding into one running set of sums (``into=``, as the pipeline's blocks do); and with
   fresh output arrays (1 thread, the first block of every file);
 - the previous design-matrix implementation on a few antennas (the "before" rate);
@@ -526,7 +527,8 @@ def render_markdown(r: dict[str, Any]) -> str:
         "",
         f"Chunk {tuple(r['shape'])} (antennas, pols, integrations, channels), float64 data "
         f"(what `Observation` holds), bool flags, `dnu dt N` as one (Ntime, Nfreq) array "
-        "('radiometer', uniform nsamples, what the pipeline passes for raw files) or per "
+        "('radiometer', uniform nsamples, what the pipeline passes for raw files; uniform in "
+        "time, so the kernel reads it as one (Nfreq,) row) or per "
         "sample ('radiometer-nsamples') = "
         f"{r['samples'] / 1e6:.1f} M samples; best of {r['repeats']} wall times. The "
         "chunk's sums are added into one running set of sums (`into=`), as the pipeline "
