@@ -808,6 +808,11 @@ def accumulate(
     if data.ndim != 4:
         raise FitError(f"data must be (Nant, Npol, Ntime, Nfreq), got shape {data.shape}")
     nant, npol, ntime, nfreq = data.shape
+    if data.size == 0:
+        raise FitError(
+            f"nothing to fit: the chunk has shape {data.shape} (antennas, pols, integrations, "
+            "channels); select at least one of each"
+        )
     lsts = np.asarray(lsts, dtype=np.float64)
     if lsts.shape != (ntime,):
         raise FitError(f"{lsts.size} LSTs for {ntime} integrations")

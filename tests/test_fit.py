@@ -232,6 +232,15 @@ def test_bad_inputs_are_refused_with_a_reason() -> None:
     )
     with pytest.raises(FitError, match="identity"):
         fit(no_width, tsky)
+    for empty in ((1, 1, 0, NF), (0, 1, 4, NF), (1, 1, 4, 0)):
+        with pytest.raises(FitError, match="nothing to fit"):
+            accumulate(
+                FitModel(),
+                np.ones(empty),
+                np.ones(empty[1:]),
+                np.zeros(empty[2]),
+                bandwidth_time=np.ones(empty[3]),
+            )
     with pytest.raises(FitError, match="shape"):
         Solution(
             model=FitModel(),
