@@ -432,7 +432,7 @@ def test_shared_weights_give_the_per_sample_sums(engine: str) -> None:
             row = (shared[0],) if shared is per_channel else ()
             for form in (shared, shared[None, None], shared[None], *row):
                 sums = accumulate(*args, flags=c["flags"], engine=engine, **kw, **{key: form})
-                for name in ("ata", "aty", "yty", "count"):
+                for name in ("ata", "aty", "yty", "count", "nflagged"):
                     np.testing.assert_array_equal(getattr(sums, name), getattr(full, name))
     with pytest.raises(FitError, match="do not broadcast"):
         accumulate(*args, bandwidth_time=np.ones((2, 5)), engine=engine)
