@@ -532,6 +532,26 @@ def test_solve_flags_non_finite_normal_matrices() -> None:
     )
 
 
+def test_solve_in_blocks_gives_the_whole_solve() -> None:
+    """Channel blocks bound solve_sums' memory; every block size gives the same arrays,
+    including flagged channels of each reason at block edges."""
+    c = random_chunk(31, nant=3, ntime=20, nfreq=7)
+    model = FitModel.for_lsts(c["lsts"], "legendre", 2)
+    sums = accumulate(model, c["data"], c["tsky"], c["lsts"], flags=c["flags"], weights="identity")
+    sums.count[0, 0, 0] = 2  # too few samples
+    sums.ata[0, 1, 3] = 0.0  # singular
+    sums.aty[1, 0, 6, 0] = -1e9  # non-positive gain
+    whole = solve_sums(sums, scale_covariance=True, block=sums.count.size)
+    assert {1, 2, 3} <= set(np.unique(whole["flag_reason"]))
+    for block in (1, 5, 16):
+        part = solve_sums(sums, scale_covariance=True, block=block)
+        for name, value in whole.items():
+            np.testing.assert_array_equal(part[name], value)
+            assert part[name].shape == value.shape
+    with pytest.raises(FitError, match="block must be at least 1"):
+        solve_sums(sums, block=0)
+
+
 def test_offset_copy_moves_rows_to_other_cache_sets() -> None:
     other = np.zeros((3, 512))
     arr = np.arange(6 * 512, dtype=float).reshape(2, 3, 512)
