@@ -292,7 +292,12 @@ def calibrate_child(spec: dict) -> None:
                 Path("/proc/self/clear_refs").write_text("5")
 
     t0 = time.perf_counter()
-    config = CalibrationConfig(inputs=[str(f) for f in files], products=["calh5", "hdf5", "png"])
+    config = CalibrationConfig(
+        inputs=[str(f) for f in files],
+        products=["calh5", "hdf5", "png"],
+        model=spec.get("model", "constant"),
+        order=spec.get("order", 1),
+    )
     result = run_calibration(
         config,
         spec["out"],
@@ -320,8 +325,18 @@ def calibrate_child(spec: dict) -> None:
     Path(spec["result"]).write_text(json.dumps(out, indent=2, default=str))
 
 
-def measure(name: str, files: list[str], folder: Path, dask: str | None, workers: int) -> dict:
-    """Calibrate ``files`` in a fresh subprocess and return its measurements."""
+def measure(
+    name: str,
+    files: list[str],
+    folder: Path,
+    dask: str | None,
+    workers: int,
+    fit_model: dict | None = None,
+) -> dict:
+    """Calibrate ``files`` in a fresh subprocess and return its measurements.
+
+    ``fit_model``: ``{"model": ..., "order": ...}`` (default: the pipeline's constant model).
+    """
     out = folder / "runs" / name
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
@@ -332,6 +347,7 @@ def measure(name: str, files: list[str], folder: Path, dask: str | None, workers
         "result": str(out / "measurements.json"),
         "dask": dask,
         "dask_workers": workers if dask else None,
+        **(fit_model or {}),
     }
     print(f"calibrating {name}: {len(files)} files{' on Dask' if dask else ''} ...", flush=True)
     t0 = time.perf_counter()
@@ -529,6 +545,12 @@ def _row(label: str, nfiles: int, run: dict, manifest: dict, night: Night) -> di
     }
 
 
+def _model_text(fit_model: dict | None) -> str:
+    if not fit_model or fit_model.get("model", "constant") == "constant":
+        return "constant G, Trxr (the default)"
+    return f"Legendre order {fit_model['order']} in LST (`--model legendre --order N`)"
+
+
 def markdown(report: dict) -> str:
     m, night, manifest = report["machine"], report["night"], report["storage"]
     lines = [
@@ -565,7 +587,7 @@ def markdown(report: dict) -> str:
         f"Generated in {manifest['generate_s']:.0f} s with {manifest['jobs']} processes.",
         "",
         "## Calibration (`autocal calibrate`, each run in a fresh process, Tsky computed "
-        "once per run and cached)",
+        f"once per run and cached; fit model: {_model_text(report.get('fit_model'))})",
         "",
         "| run | files | integrations (LST h) | values | disk GB | wall s | Tsky s | fit s | "
         "passes | peak RSS GB: all (scan+Tsky / fit+products) | workers' peak GB | "
@@ -678,6 +700,9 @@ def markdown(report: dict) -> str:
 def run_all(args: argparse.Namespace, night: Night) -> None:
     """Generate if needed, measure the runs, compare, profile; save after every step."""
     t0 = time.perf_counter()
+    fit_model = {"model": args.model, "order": args.order if args.model == "legendre" else 0}
+    # runs and results of another fit model go beside the default's, not over them
+    suffix = "" if args.model == "constant" else f"-legendre{args.order}"
     folder = args.data
     generated = not (folder / "night.json").exists() or args.regenerate
     report: dict = {
@@ -690,17 +715,19 @@ def run_all(args: argparse.Namespace, night: Night) -> None:
         "dnu_dt": night.channel_width * night.integration_time,
         "dask_night": args.dask_night,
         "dask_workers": args.dask_workers,
+        "fit_model": fit_model,
         "rows": [],
         "runs": {},
         "complete": False,
     }
     results = args.results or (RESULTS if night.is_full else folder / "results")
     results.mkdir(parents=True, exist_ok=True)
+    stem = "night" if suffix == "" else f"night{suffix}"
 
     def save() -> None:
         report["total_s"] = time.perf_counter() - t0
-        (results / "night.json").write_text(json.dumps(report, indent=2, default=str))
-        (results / "night.md").write_text(markdown(report))
+        (results / f"{stem}.json").write_text(json.dumps(report, indent=2, default=str))
+        (results / f"{stem}.md").write_text(markdown(report))
 
     manifest = load_or_generate(night, folder, args.jobs, args.regenerate)
     report["storage"] = manifest
@@ -712,13 +739,18 @@ def run_all(args: argparse.Namespace, night: Night) -> None:
     runs = report["runs"]
     for label in ("quarter", "half", "full"):
         if label in wanted:
-            runs[label] = measure(label, files[: parts[label]], folder, None, 0)
+            runs[label] = measure(label + suffix, files[: parts[label]], folder, None, 0, fit_model)
             report["rows"].append(_row(label, parts[label], runs[label], manifest, night))
             save()
     dask_label = args.dask_night
     if "dask" in wanted:
         runs["dask"] = measure(
-            f"dask-{dask_label}", files[: parts[dask_label]], folder, "local", args.dask_workers
+            f"dask-{dask_label}{suffix}",
+            files[: parts[dask_label]],
+            folder,
+            "local",
+            args.dask_workers,
+            fit_model,
         )
         report["rows"].append(
             _row(
@@ -729,7 +761,7 @@ def run_all(args: argparse.Namespace, night: Night) -> None:
                 night,
             )
         )
-        serial = folder / "runs" / dask_label / "solution.h5"
+        serial = folder / "runs" / (dask_label + suffix) / "solution.h5"
         if serial.exists():
             report["dask_vs_serial"] = compare_solutions(
                 serial, Path(runs["dask"]["out"]) / "solution.h5"
@@ -743,7 +775,7 @@ def run_all(args: argparse.Namespace, night: Night) -> None:
     report["complete"] = True
     save()
     print(markdown(report))
-    print(f"wrote {results / 'night.json'} and {results / 'night.md'}")
+    print(f"wrote {results / (stem + '.json')} and {results / (stem + '.md')}")
 
 
 def main() -> None:
@@ -764,6 +796,14 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2, help="generation processes (2)")
     parser.add_argument("--regenerate", action="store_true", help="rewrite the night")
     parser.add_argument("--dask-workers", type=int, default=2)
+    parser.add_argument(
+        "--model",
+        default="constant",
+        choices=["constant", "legendre"],
+        help="fit model (constant, the pipeline's default); other models write "
+        "night-legendre<order>.json/md and runs/<run>-legendre<order>",
+    )
+    parser.add_argument("--order", type=int, default=2, help="Legendre order (2)")
     parser.add_argument(
         "--runs",
         default="quarter,half,full,dask,profile",
