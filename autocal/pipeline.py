@@ -85,7 +85,7 @@ class CalibrationConfig(BaseModel):
     sky: str = Field("gsm2008", description="sky model (autocal.sky.get_sky spec)")
     beam: str = Field("hera", description="beam (autocal.beams.get_beam spec)")
     tgnd_k: float = Field(300.0, ge=0.0, description="ground temperature")
-    nside: int = Field(64, description="HEALPix resolution of the Tsky computation")
+    nside: int = Field(64, ge=2, description="HEALPix resolution of Tsky (a power of two)")
     model: Literal["constant", "legendre"] = "constant"
     order: int = Field(1, ge=0, le=10, description="Legendre order (model=legendre)")
     weights: Literal["radiometer", "identity"] = "radiometer"
@@ -109,6 +109,8 @@ class CalibrationConfig(BaseModel):
     @model_validator(mode="after")
     def _check(self) -> CalibrationConfig:
         check_ranges(self.freq_range_mhz, self.lst_range_h)
+        if self.nside & (self.nside - 1):
+            raise ValueError(f"nside must be a power of two (got {self.nside})")
         return self
 
 

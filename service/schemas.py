@@ -134,7 +134,18 @@ class CalibrationOptions(BaseModel):
     tgnd_k: float | None = Field(None, ge=0.0, le=10_000.0, description="ground temperature K")
     nside: int | None = Field(None, ge=2, le=1024, description="HEALPix nside, power of two")
     input_format: Literal["auto", "uvh5", "miriad", "edges"] | None = None
-    inflate_errors: bool | None = None
+    edges_r: Literal["q", "p0"] | None = Field(
+        None, description="EDGES: fit Q = (p0 - p1)/(p2 - p1) or the raw antenna power p0"
+    )
+    edges_bin: int | None = Field(
+        None, ge=1, le=65536, description="EDGES: native channels averaged per bin"
+    )
+    passes: Literal["auto", 1, 2] | None = Field(
+        None, description="radiometer weighting passes (auto: 2 only when data weights bias G)"
+    )
+    inflate_errors: bool | None = Field(
+        None, description="radiometer weights: scale each channel's covariance by chi2/dof > 1"
+    )
 
     @field_validator("nside")
     @classmethod

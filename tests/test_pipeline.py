@@ -149,6 +149,26 @@ def test_cli_calibrate(night, tmp_path, capsys) -> None:
     assert "products" in capsys.readouterr().err
 
 
+def test_cli_passes_and_error_scaling_reach_the_run(night, tmp_path, capsys) -> None:
+    """``--passes`` and ``--no-inflate-errors`` change what the run does, not just its config."""
+    common = [*map(str, night), "--beam", "dipole", "--nside", "32", "--products", "hdf5"]
+    runs = {}
+    for name, extra in {
+        "auto": [],
+        "one": ["--passes", "1", "--no-inflate-errors"],
+    }.items():
+        assert main(["calibrate", *common, *extra, "--out", str(tmp_path / name)]) == 0
+        runs[name] = json.loads((tmp_path / name / "summary.json").read_text())
+    capsys.readouterr()
+    # the simulation's dnu dt N makes data weights bias G by > 1e-5: auto makes two passes
+    assert runs["auto"]["provenance"]["passes"] == 2
+    assert runs["one"]["provenance"]["passes"] == 1
+    assert runs["one"]["config"]["passes"] == 1
+    assert runs["auto"]["provenance"]["errors"] == "covariance x max(1, chi2/dof)"
+    assert runs["one"]["provenance"]["errors"] == "covariance"
+    assert runs["one"]["config"]["inflate_errors"] is False
+
+
 def test_miriad_input(data_root, tmp_path) -> None:
     folder = data_root / "hera" / "autos"
     inputs = sorted(str(p) for p in folder.glob("zen.2458099.*.uvOR_36x_auto_only"))
@@ -188,6 +208,31 @@ def test_edges_raw_files_calibrate_to_the_receiver_solution(data_root, tmp_path)
     for pull in (pull_g, pull_t):
         assert abs(np.mean(pull)) < 0.3
         assert 0.75 < np.std(pull) < 1.25
+
+
+def test_cli_calibrates_edges_p0_with_a_chosen_binning(data_root, tmp_path, capsys) -> None:
+    """``--format edges --edges-r p0 --edges-bin N``: the raw power, N native channels a bin."""
+    from autocal.edges_receiver import simulate_edges_day
+    from autocal.io.products import read_solution
+
+    day = simulate_edges_day(
+        tmp_path / "raw", n_times=12, nside=32, n_files=2, bin_factor=128, file_format="hdf5"
+    )
+    out = tmp_path / "cal"
+    argv = ["calibrate", *map(str, day.paths), "--format", "edges", "--beam", "edges-low"]
+    argv += ["--sky", day.config["sky"], "--nside", "32", "--freq-range", "50:100"]
+    argv += ["--edges-r", "p0", "--edges-bin", "128", "--products", "hdf5", "--out", str(out)]
+    assert main(argv) == 0, capsys.readouterr().err
+    sol = read_solution(out / "solution.h5")
+    np.testing.assert_allclose(sol.freqs, day.freqs)  # 128 native channels per bin
+    expected = day.expected["p0"]
+    pull = (sol.Trxr[0, 0] - np.interp(sol.freqs, expected.freqs, expected.trxr)) / sol.sigma_Trxr[
+        0, 0
+    ]
+    assert abs(np.median(pull)) < 0.5 and 0.6 < np.std(pull) < 1.4  # seeds 0-2: 0.19, 0.94
+    # the default (Q) calibrates the same files to a different receiver temperature
+    q_trxr = np.interp(sol.freqs, day.expected["q"].freqs, day.expected["q"].trxr)
+    assert np.all(np.abs(sol.Trxr[0, 0] - q_trxr) > 10 * sol.sigma_Trxr[0, 0])
 
 
 def test_radiometer_bandwidth_time_is_shared_when_nsamples_are_uniform() -> None:

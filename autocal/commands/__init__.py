@@ -10,6 +10,14 @@ from typing import Any
 
 import numpy as np
 
+#: What ``--sky`` accepts (every command that computes Tsky).
+SKY_HELP = "gsm2008 | gsm2016 | lfsm | haslam | uniform:T0 | powerlaw:BASE@NU0MHZ:BETA"
+#: What ``--beam`` accepts.
+BEAM_HELP = (
+    "dipole | airy | hera | edges-low | edges-low-45deg | edges-mid | edges-high | PATH "
+    "(UVBeam file or EDGES FEKO .txt)"
+)
+
 
 class CliError(ValueError):
     """A command-line argument is invalid."""

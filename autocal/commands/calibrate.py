@@ -6,13 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
-from autocal.commands import (
-    CliError,
-    parse_int_list,
-    parse_pair,
-    parse_str_list,
-    validation_message,
-)
+from autocal.commands import CliError, validation_message
+from autocal.commands.options import add_calibration_arguments, calibration_settings
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -20,36 +15,18 @@ def add(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "calibrate",
         help="fit G and Trxr to the autos of one observation and write calibration products",
-        description="Calibrate the auto-correlations of one observation (UVH5 files or "
-        "Miriad folders, consecutive in time) against sky x beam + CMB + ground: fit "
-        "G (|g| = sqrt(G)) and Trxr per antenna, polarisation and channel, streaming the "
-        "files, and write solution.calh5 / solution.calfits (pyuvdata UVCal), solution.h5 "
-        "(every array, configuration and provenance), PNG plots and summary.json to --out.",
-    )
-    p.add_argument("inputs", nargs="+", type=Path, help="UVH5 files or Miriad folders")
-    p.add_argument("--sky", default="gsm2008", help="sky model (default gsm2008)")
-    p.add_argument("--beam", default="hera", help="beam: hera | dipole | airy | PATH (hera)")
-    p.add_argument("--tgnd", type=float, default=300.0, help="ground temperature K (300)")
-    p.add_argument("--nside", type=int, default=64, help="HEALPix resolution of Tsky (64)")
-    p.add_argument("--model", default="constant", choices=["constant", "legendre"])
-    p.add_argument("--order", type=int, default=1, help="Legendre order (1)")
-    p.add_argument("--weights", default="radiometer", choices=["radiometer", "identity"])
-    p.add_argument("--antennas", help="comma-separated antenna numbers (default all)")
-    p.add_argument("--pols", help="comma-separated polarisations (default ee,nn)")
-    p.add_argument("--freq-range", help="LOW:HIGH in MHz")
-    p.add_argument("--lst-range", help="START:STOP in hours (START > STOP wraps)")
-    p.add_argument(
-        "--products",
-        default="calh5,hdf5,png",
-        help="comma-separated of calh5, calfits, hdf5, png (default calh5,hdf5,png)",
+        description="Calibrate the auto-correlations of one observation (UVH5 files, "
+        "Miriad folders or EDGES ACQ / HDF5 spectra, consecutive in time) against "
+        "sky x beam + CMB + ground: fit G (|g| = sqrt(G)) and Trxr per antenna, "
+        "polarisation and channel, streaming the files, and write solution.calh5 / "
+        "solution.calfits (pyuvdata UVCal), solution.h5 (every array, configuration and "
+        "provenance), PNG plots and summary.json to --out. Options not given take the "
+        "defaults shown (those of autocal.pipeline.CalibrationConfig and the REST API).",
     )
     p.add_argument(
-        "--reference",
-        nargs="+",
-        type=Path,
-        help="reference gains (calfits/calh5, abscal or redcal) to compare |g| with",
+        "inputs", nargs="+", type=Path, help="UVH5 files, Miriad folders or EDGES ACQ / HDF5 files"
     )
-    p.add_argument("--format", default="auto", choices=["auto", "uvh5", "miriad"])
+    add_calibration_arguments(p)
     p.add_argument(
         "--dask",
         metavar="SCHEDULER",
@@ -79,24 +56,9 @@ def run(args: argparse.Namespace) -> int:
 
     from autocal.pipeline import CalibrationConfig, run_calibration
 
+    settings = calibration_settings(args)
     try:
-        config = CalibrationConfig(
-            inputs=[str(p) for p in args.inputs],
-            input_format=args.format,
-            sky=args.sky,
-            beam=args.beam,
-            tgnd_k=args.tgnd,
-            nside=args.nside,
-            model=args.model,
-            order=args.order,
-            weights=args.weights,
-            antennas=parse_int_list(args.antennas, "antennas") if args.antennas else None,
-            pols=parse_str_list(args.pols, "pols") if args.pols else None,
-            freq_range_mhz=parse_pair(args.freq_range, "freq-range", "MHz"),
-            lst_range_h=parse_pair(args.lst_range, "lst-range", "hours"),
-            products=parse_str_list(args.products, "products"),
-            reference=[str(p) for p in args.reference] if args.reference else None,
-        )
+        config = CalibrationConfig(inputs=[str(p) for p in args.inputs], **settings)
     except ValidationError as err:
         raise CliError(validation_message(err)) from None
     if args.dask_workers is not None and args.dask_workers < 1:

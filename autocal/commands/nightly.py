@@ -18,13 +18,8 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from autocal.commands import (
-    CliError,
-    parse_int_list,
-    parse_pair,
-    parse_str_list,
-    validation_message,
-)
+from autocal.commands import CliError
+from autocal.commands.options import add_calibration_arguments, calibration_settings
 
 logger = logging.getLogger(__name__)
 
@@ -136,55 +131,8 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--once", action="store_true", help="--watch: one pass, then exit")
     p.add_argument("--json", action="store_true", help="print the submission result as JSON")
     cal = p.add_argument_group("calibration options (default: those of autocal calibrate)")
-    cal.add_argument("--sky", help="sky model")
-    cal.add_argument("--beam", help="beam: hera | dipole | airy | PATH")
-    cal.add_argument("--tgnd", type=float, help="ground temperature K")
-    cal.add_argument("--nside", type=int, help="HEALPix resolution of Tsky")
-    cal.add_argument("--model", choices=["constant", "legendre"])
-    cal.add_argument("--order", type=int, help="Legendre order")
-    cal.add_argument("--weights", choices=["radiometer", "identity"])
-    cal.add_argument("--antennas", help="comma-separated antenna numbers")
-    cal.add_argument("--pols", help="comma-separated polarisations")
-    cal.add_argument("--freq-range", help="LOW:HIGH in MHz")
-    cal.add_argument("--lst-range", help="START:STOP in hours")
-    cal.add_argument("--products", help="comma-separated of calh5, calfits, hdf5, png")
-    cal.add_argument("--format", choices=["auto", "uvh5", "miriad"], help="input format")
+    add_calibration_arguments(cal)
     p.set_defaults(func=run)
-
-
-def calibration_options(args: argparse.Namespace) -> dict[str, Any]:
-    """Return the calibration options given on the command line (validated).
-
-    Raises
-    ------
-    CliError
-        When an option is invalid.
-    """
-    from pydantic import ValidationError
-
-    from autocal.pipeline import CalibrationConfig
-
-    options: dict[str, Any] = {
-        "sky": args.sky,
-        "beam": args.beam,
-        "tgnd_k": args.tgnd,
-        "nside": args.nside,
-        "model": args.model,
-        "order": args.order,
-        "weights": args.weights,
-        "antennas": parse_int_list(args.antennas, "antennas") if args.antennas else None,
-        "pols": parse_str_list(args.pols, "pols") if args.pols else None,
-        "freq_range_mhz": parse_pair(args.freq_range, "freq-range", "MHz"),
-        "lst_range_h": parse_pair(args.lst_range, "lst-range", "hours"),
-        "products": parse_str_list(args.products, "products") if args.products else None,
-        "input_format": args.format,
-    }
-    options = {k: v for k, v in options.items() if v is not None}
-    try:
-        CalibrationConfig(inputs=["-"], **options)
-    except ValidationError as err:
-        raise CliError(validation_message(err, "options")) from None
-    return options
 
 
 def _count(value: Any) -> int:
@@ -234,7 +182,7 @@ def _submit(args: argparse.Namespace, **where: Any) -> dict[str, Any]:
     store = JobStore(settings.resolved_database_url())
     try:
         return submit_nightly(
-            store, settings, force=args.force, options=calibration_options(args), **where
+            store, settings, force=args.force, options=calibration_settings(args), **where
         )
     finally:
         store.engine.dispose()
@@ -244,7 +192,7 @@ def _watch(args: argparse.Namespace) -> int:
     folder = args.watch.expanduser().resolve()
     if not folder.is_dir():
         raise CliError(f"--watch {args.watch}: not a folder")
-    calibration_options(args)  # fail early on bad options
+    calibration_settings(args)  # fail early on bad options
     submitted: dict[str, tuple[int, int]] | None = None
     while True:
         snap = _snapshot(folder)
@@ -282,7 +230,7 @@ def run(args: argparse.Namespace) -> int:
             return _watch(args)
         except KeyboardInterrupt:
             return 130
-    calibration_options(args)  # fail early on bad options
+    calibration_settings(args)  # fail early on bad options
     folder = args.folder.expanduser().resolve() if args.folder is not None else None
     if folder is not None and not folder.is_dir():
         raise CliError(f"--folder {args.folder}: not a folder")

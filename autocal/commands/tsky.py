@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from autocal.commands import CliError, parse_range
+from autocal.commands import BEAM_HELP, SKY_HELP, CliError, parse_range
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -20,14 +20,12 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--sky",
         default="gsm2008",
-        help="gsm2008 | gsm2016 | lfsm | haslam | uniform:T0 | "
-        "powerlaw:BASE@NU0MHZ:BETA (default gsm2008)",
+        help=f"{SKY_HELP} (default gsm2008)",
     )
     p.add_argument(
         "--beam",
         default="dipole",
-        help="dipole | airy | hera | edges-low | edges-low-45deg | edges-mid | "
-        "edges-high | PATH (UVBeam file or EDGES FEKO .txt); default dipole",
+        help=f"{BEAM_HELP}; default dipole",
     )
     p.add_argument("--pol", default="ee", choices=["ee", "nn"], help="polarisation")
     p.add_argument("--site", default="hera", help="hera | edges | LAT,LON[,ALT]")
