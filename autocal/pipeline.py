@@ -226,6 +226,16 @@ def _open_source(config: CalibrationConfig) -> _Source:
     paths = [Path(p).expanduser().absolute() for p in config.inputs]
     kind = _detect(paths, config.input_format)
     sel = _selection(config)
+    defaults = CalibrationConfig.model_fields
+    edges_options = [
+        f"{name}={getattr(config, name)!r}"
+        for name in ("edges_r", "edges_bin")
+        if getattr(config, name) != defaults[name].default
+    ]
+    if kind != "edges" and edges_options:
+        logger.warning(
+            "%s: options of EDGES spectra, ignored for %s input", ", ".join(edges_options), kind
+        )
     if kind == "edges":
         return _open_edges(paths, config, sel)
     if kind == "uvh5":

@@ -249,3 +249,18 @@ def test_radiometer_bandwidth_time_is_shared_when_nsamples_are_uniform() -> None
     nsamples[0, 0, 2, 3] *= 0.5  # one sample with half the integration
     varied = dataclasses.replace(obs, nsamples=nsamples)
     np.testing.assert_array_equal(_bandwidth_time(varied), varied.bandwidth_time())
+
+
+def test_edges_options_on_uvh5_input_are_reported(night, tmp_path, caplog) -> None:
+    """A HERA user passing an EDGES-only option is told that it has no effect."""
+    config = CalibrationConfig(
+        inputs=[str(night[0])], beam="dipole", nside=32, products=[], edges_bin=128
+    )
+    with caplog.at_level("WARNING", logger="autocal.pipeline"):
+        run_calibration(config, tmp_path / "o")
+    assert "edges_bin=128: options of EDGES spectra, ignored for uvh5 input" in caplog.text
+    caplog.clear()
+    dumped = CalibrationConfig(**config.model_dump(mode="json") | {"edges_bin": 64})
+    with caplog.at_level("WARNING", logger="autocal.pipeline"):
+        run_calibration(dumped, tmp_path / "o2")  # every field set, all at their defaults
+    assert "EDGES" not in caplog.text
