@@ -93,6 +93,26 @@ def test_hera_file_beam_uses_pyuvdata_azimuth_convention(data_root):
 
 
 @pytest.mark.data
+def test_hera_beam_is_upsampled_only_when_evaluated(data_root, tmp_cache, monkeypatch):
+    """A Tsky cache hit names and checks the beam but never upsamples its maps."""
+    from autocal import beams
+    from autocal.tsky import compute_tsky
+
+    monkeypatch.setattr(beams, "_UPSAMPLED", {})
+    beam = get_beam("hera", "nn")
+    beam.describe(), beam.check_freqs(np.array([150e6]))
+    assert beams._UPSAMPLED == {} and "_maps_t" not in vars(beam)
+    beam.power(np.array([150e6]), np.array([0.0]), np.array([0.1]))
+    assert beam._maps_t.shape == (12 * 512**2, beam.native_freqs.size)  # upsampled to 512
+    args = ("uniform:100", "hera", "hera", np.array([150e6, 160e6]), np.array([1.0, 2.0]))
+    first = compute_tsky(*args, nside=16, pol="nn")  # computed (and cached)
+    beams._UPSAMPLED.clear()
+    hit = compute_tsky(*args, nside=16, pol="nn")
+    assert beams._UPSAMPLED == {}
+    np.testing.assert_array_equal(hit.tsky, first.tsky)
+
+
+@pytest.mark.data
 def test_hera_file_beam_interpolates_frequency_smoothly(data_root):
     beam = get_beam("hera", "ee")
     assert beam.freq_range == (100e6, 200e6)
