@@ -493,9 +493,8 @@ class HealpixFileBeam(_GriddedFileBeam):
     The stored maps (zenith at the pole, pyuvdata azimuth from east through north) are
     upsampled once, on first evaluation, by spherical-harmonic interpolation (band limit
     ``3 nside - 1`` of the file) to ``upsample_nside`` (stored as float32), then
-    interpolated bilinearly: the
-    beam is smooth, so evaluating it on rotated grids does not add pixel-scale noise.
-    A cubic spline interpolates in frequency.
+    interpolated bilinearly: the beam is smooth, so evaluating it on rotated grids does
+    not add pixel-scale noise. A cubic spline interpolates in frequency.
     """
 
     def __init__(self, path: str | Path, pol: str = "ee", upsample_nside: int = 512) -> None:
