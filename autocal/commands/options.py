@@ -22,14 +22,6 @@ from autocal.commands import (
     parse_str_list,
 )
 
-#: Configuration field of every option's ``dest`` (the same name when absent).
-FIELD_OF_DEST = {
-    "tgnd": "tgnd_k",
-    "freq_range": "freq_range_mhz",
-    "lst_range": "lst_range_h",
-    "format": "input_format",
-}
-
 
 def _default(name: str) -> str:
     """Return the configuration's default of a field, as ``--help`` shows it."""
@@ -64,7 +56,11 @@ def add_calibration_arguments(group: argparse._ActionsContainer) -> None:
         help=f"beam: {BEAM_HELP} ({d('beam')})",
     )
     group.add_argument(
-        "--tgnd", type=float, metavar="K", help=f"ground temperature K ({d('tgnd_k')})"
+        "--tgnd",
+        dest="tgnd_k",
+        type=float,
+        metavar="K",
+        help=f"ground temperature K ({d('tgnd_k')})",
     )
     group.add_argument(
         "--nside", type=int, help=f"HEALPix resolution of Tsky, a power of two ({d('nside')})"
@@ -91,9 +87,14 @@ def add_calibration_arguments(group: argparse._ActionsContainer) -> None:
     )
     group.add_argument("--antennas", help=f"comma-separated antenna numbers ({d('antennas')})")
     group.add_argument("--pols", help="comma-separated polarisations (default: all in the data)")
-    group.add_argument("--freq-range", metavar="LOW:HIGH", help="frequencies in MHz")
     group.add_argument(
-        "--lst-range", metavar="START:STOP", help="LSTs in hours (START > STOP wraps)"
+        "--freq-range", dest="freq_range_mhz", metavar="LOW:HIGH", help="frequencies in MHz"
+    )
+    group.add_argument(
+        "--lst-range",
+        dest="lst_range_h",
+        metavar="START:STOP",
+        help="LSTs in hours (START > STOP wraps)",
     )
     group.add_argument(
         "--products",
@@ -107,6 +108,7 @@ def add_calibration_arguments(group: argparse._ActionsContainer) -> None:
     )
     group.add_argument(
         "--format",
+        dest="input_format",
         choices=["auto", "uvh5", "miriad", "edges"],
         help=f"input format; edges: ACQ or autocal's EDGES HDF5 ({d('input_format')})",
     )
@@ -151,16 +153,16 @@ def calibration_settings(args: argparse.Namespace) -> dict[str, Any]:
         "antennas": lambda v: parse_int_list(v, "antennas"),
         "pols": lambda v: parse_str_list(v, "pols"),
         "products": lambda v: parse_str_list(v, "products"),
-        "freq_range": lambda v: parse_pair(v, "freq-range", "MHz"),
-        "lst_range": lambda v: parse_pair(v, "lst-range", "hours"),
+        "freq_range_mhz": lambda v: parse_pair(v, "freq-range", "MHz"),
+        "lst_range_h": lambda v: parse_pair(v, "lst-range", "hours"),
         "passes": lambda v: v if v == "auto" else int(v),
         "reference": lambda v: [str(p) for p in v],
     }
     settings: dict[str, Any] = {}
-    for dest in calibration_dests():
-        value = getattr(args, dest)
+    for name in calibration_dests():
+        value = getattr(args, name)
         if value is not None:
-            settings[FIELD_OF_DEST.get(dest, dest)] = parsers.get(dest, lambda v: v)(value)
+            settings[name] = parsers.get(name, lambda v: v)(value)
     try:
         CalibrationConfig(inputs=["-"], **settings)
     except ValidationError as err:
@@ -169,7 +171,10 @@ def calibration_settings(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def calibration_dests() -> list[str]:
-    """Return the ``dest`` of every option :func:`add_calibration_arguments` adds, in order."""
+    """Return the ``dest`` of every option :func:`add_calibration_arguments` adds, in order.
+
+    Each is the name of the :class:`~autocal.pipeline.CalibrationConfig` field it sets.
+    """
     parser = argparse.ArgumentParser(add_help=False)
     add_calibration_arguments(parser)
     return [action.dest for action in parser._actions]
