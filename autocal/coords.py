@@ -57,6 +57,48 @@ def parse_epoch(epoch: str | float | Time | None) -> Time:
     return parse_epoch(value)
 
 
+def night_epoch(jds: np.ndarray | list[float] | float, lon_deg: float) -> float:
+    """Return the epoch of the sky frame for data taken at ``jds``: their night's local midnight.
+
+    The night is the one containing the data's mean time, counted from local mean noon to
+    the next local mean noon at longitude ``lon_deg``; the epoch is that night's local
+    mean midnight (a JD). Every observation of one night therefore gets the same epoch,
+    so their Tsky share one set of LST harmonics (:func:`autocal.tsky.compute_tsky`'s
+    cache), and a night is never split however its files are grouped. The frame is then
+    at most ~12 h from the data; precession and nutation move it by < 0.1 arcsec in that
+    time, which changes a HERA-beam GSM2008 Tsky by at most 4.9 mK (2e-6 of Tsky) at
+    nside 128 over a day of LSTs (``python benchmarks/observations.py --parts frame``;
+    tested at a coarser resolution in ``tests/test_tsky_harmonics.py``).
+
+    Parameters
+    ----------
+    jds
+        Julian dates (UTC) of the data.
+    lon_deg
+        Site longitude, degrees east.
+
+    Returns
+    -------
+    float
+        The JD of the night's local mean midnight.
+
+    Raises
+    ------
+    ValueError
+        If ``jds`` is empty or not finite, or not a Julian date.
+    """
+    arr = np.asarray(jds, dtype=np.float64).ravel()
+    if arr.size == 0 or not np.all(np.isfinite(arr)):
+        raise ValueError("the epoch needs at least one finite Julian date")
+    mean = float(arr.mean())
+    if mean < 2e6:
+        raise ValueError(f"time {mean} is not a Julian date (expected > 2e6)")
+    # local mean solar time as a "local JD" (integer at local mean noon, like the JD at
+    # Greenwich noon): the night is its integer part, its midnight that + 0.5
+    offset = lon_deg / 360.0
+    return float(np.floor(mean + offset) + 0.5 - offset)
+
+
 @lru_cache(maxsize=32)
 def _galactic_to_tete(jd: float) -> np.ndarray:
     from astropy import units as u

@@ -37,6 +37,7 @@ from pydantic import (
     model_validator,
 )
 
+from autocal.coords import night_epoch
 from autocal.diagnose import ALPHA, BIC_THRESHOLD, DiagnoseError
 from autocal.pipeline import PipelineError, check_ranges
 
@@ -235,7 +236,7 @@ def run_diagnosis(
     timings["read_s"] = time.perf_counter() - t0
 
     beam_pols = _beam_pols(tuple(p.lower() for p in obs.pols))
-    epoch = float(np.mean(obs.jds))
+    epoch = night_epoch(obs.jds, obs.site.lon_deg)
     report(
         0.15,
         f"sky templates for {len(beam_pols)} pol(s), {obs.nfreq} channels, {obs.ntime} LSTs",

@@ -71,6 +71,7 @@ from typing import Any, Literal
 import numpy as np
 
 from autocal.beams import file_checksum
+from autocal.coords import night_epoch
 
 logger = logging.getLogger(__name__)
 
@@ -1072,7 +1073,14 @@ def simulate_edges_day(
     jds = acq_time_to_jd(jd_to_acq_time(jds))  # whole seconds, as an ACQ file stores them
     lsts = lsts_for_jds(jds, EDGES)
     t_ant = compute_tsky(
-        sky, beam, EDGES, freqs, lsts, tgnd=tgnd, nside=nside, epoch=float(jds.mean())
+        sky,
+        beam,
+        EDGES,
+        freqs,
+        lsts,
+        tgnd=tgnd,
+        nside=nside,
+        epoch=night_epoch(jds, EDGES.lon_deg),
     ).tsky
     powers = decalibrate(t_ant, sol, gamma, raw_scale=raw_scale, t_offset=t_offset)
     rng = np.random.default_rng(seed)
@@ -1208,7 +1216,7 @@ def fit_edges_day(
         obs.lsts,
         tgnd=cfg["tgnd_K"],
         nside=cfg["nside"],
-        epoch=float(obs.jds.mean()),
+        epoch=night_epoch(obs.jds, obs.site.lon_deg),
     ).tsky
     w: Any = "identity"
     if weights == "variance":

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from autocal.coords import night_epoch
 from autocal.effects import Effect, ScaledBeam, SkyTemplates, catalogue, sky_templates
 from autocal.observation import Observation
 from autocal.simulate import (
@@ -170,7 +171,7 @@ class HiddenGenerator:
             pols=tuple(config.pols),
             tgnd=tgnd_k,
             nside=config.nside,
-            epoch=float(np.mean(self.base.jds)),
+            epoch=night_epoch(self.base.jds, self.base.site.lon_deg),
         )
         self.bandwidth_time = config.noise_dnu_hz * config.noise_dt_s
 
@@ -191,7 +192,7 @@ class HiddenGenerator:
                 obs.lsts,
                 tgnd=self.tgnd_k,
                 nside=cfg.nside,
-                epoch=float(np.mean(obs.jds)),
+                epoch=night_epoch(obs.jds, obs.site.lon_deg),
                 pol=pol,
                 cache=False,
                 progress=False,

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from autocal.coords import night_epoch
 from autocal.delay import delay_spectrum
 from autocal.fit import Solution, fit
 from autocal.observation import Observation
@@ -200,7 +201,7 @@ class PaperRun:
                 self.lsts,
                 tgnd=self.config.tgnd_k,
                 nside=self.config.nside,
-                epoch=float(np.mean(self.jds)),
+                epoch=night_epoch(self.jds, get_site(self.config.site).lon_deg),
                 cache=self.cache,
             ).tsky
         return self._tsky[key]

@@ -38,6 +38,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from autocal.coords import night_epoch
 from autocal.fit import (
     FitModel,
     NormalSums,
@@ -714,12 +715,12 @@ def _calibrate(
     timings["scan_s"] = time.perf_counter() - t0
 
     pols = tuple(p.lower() for p in (config.pols or source.pols))
-    epoch = float(np.mean(source.jds))
+    site = source.site
+    epoch = night_epoch(source.jds, site.lon_deg)
     report(
         0.05, f"Tsky for {len(pols)} pol(s), {source.freqs.size} channels, {source.lsts.size} LSTs"
     )
     t1 = time.perf_counter()
-    site = source.site
     tsky_all: np.ndarray | None = None
     tsky_meta: dict[str, Any] = {}
     for ip, pol in enumerate(pols):

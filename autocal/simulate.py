@@ -28,6 +28,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from autocal.beams import Beam, PerturbedBeam, get_beam, s1_airy, s1_dipole
+from autocal.coords import night_epoch
 from autocal.observation import Observation
 from autocal.sites import get_site
 from autocal.tsky import compute_tsky
@@ -289,7 +290,7 @@ def true_tsky(
 ) -> np.ndarray:
     """``(Npol, Ntime, Nfreq)`` true Tsky of a simulation."""
     freqs, lsts = config.freqs(), config.lsts()
-    epoch = float(np.mean(jds))
+    epoch = night_epoch(jds, get_site(config.site).lon_deg)
     return np.stack(
         [
             compute_tsky(

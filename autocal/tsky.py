@@ -24,7 +24,9 @@ Two implementations:
   per LST, one matrix product per LST.
 
 :func:`compute_tsky` is the public entry point: it resolves names, checks the grids,
-chooses the method, and reads/writes the on-disk cache (:mod:`autocal.tsky_cache`).
+chooses the method, and reads/writes the on-disk cache (:mod:`autocal.tsky_cache`) of
+the engine's LST-free output (:class:`TskyHarmonics`: Tsky's Fourier series in LST), from
+which a table for any LSTs is one inverse FFT.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import healpy as hp
@@ -91,6 +93,83 @@ class TskyResult:
     meta: dict[str, Any] = field(default_factory=dict)
     components: np.ndarray | None = None
     spectra: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class TskyHarmonics:
+    """Tsky at every LST at once: its Fourier series in LST (the engine's LST-free output).
+
+    For a drift scan the beam-weighted sky is periodic in LST, band-limited at
+    ``m <= 2 nside``:
+
+        Tsky(nu, L) = [Re sum_m coef[m, nu] exp(-i m L) + Tgnd(nu) sum_below(nu)] / sum_all(nu)
+
+    (``L`` in radians). Nothing here depends on the LST grid or the ground temperature,
+    so :func:`compute_tsky` caches it and turns it into a table for any LSTs
+    (:meth:`table`) in milliseconds.
+
+    Attributes
+    ----------
+    freqs
+        ``(Nfreq,)`` Hz.
+    coef
+        ``(M, Nfreq)`` complex harmonics ``m = 0 .. M - 1`` of the above-horizon
+        beam-sky overlap (kelvin times beam integral).
+    sum_all, sum_below
+        ``(Nfreq,)`` the beam integral over the sphere and below the horizon.
+    meta
+        Description of the sky, beam, site, resolution, epoch and method.
+    """
+
+    freqs: np.ndarray
+    coef: np.ndarray
+    sum_all: np.ndarray
+    sum_below: np.ndarray
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        nf = self.freqs.shape
+        if self.coef.ndim != 2 or self.coef.shape[1:] != nf:
+            raise TskyError(f"harmonics of shape {self.coef.shape} do not match {nf[0]} freqs")
+        if self.sum_all.shape != nf or self.sum_below.shape != nf:
+            raise TskyError("beam integrals must have one value per frequency")
+
+    def table(
+        self,
+        lsts: np.ndarray | list[float],
+        tgnd: float | np.ndarray = T_GROUND,
+        meta: dict[str, Any] | None = None,
+    ) -> TskyResult:
+        """Return Tsky at ``lsts`` (hours) for ground temperature ``tgnd`` (K).
+
+        Parameters
+        ----------
+        lsts
+            LSTs in hours.
+        tgnd
+            Ground temperature in kelvin (scalar or per frequency).
+        meta
+            Description stored with the table (default: this object's).
+
+        Returns
+        -------
+        TskyResult
+            The table.
+        """
+        lsts = check_grid(lsts, "LST")
+        tg = _tgnd_array(tgnd, self.freqs.size)
+        tsky = _synthesise(self.coef, _lst_radians(lsts))  # (Nlst, Nf): the numerator
+        tsky += tg * self.sum_below
+        tsky /= self.sum_all
+        f_below = self.sum_below / self.sum_all
+        return TskyResult(
+            tsky=tsky,
+            freqs=self.freqs,
+            lsts=lsts,
+            f_above=1 - f_below,
+            f_below=f_below,
+            meta=dict(self.meta if meta is None else meta),
+        )
 
 
 def check_grid(values: np.ndarray | list[float] | float, what: str) -> np.ndarray:
@@ -471,6 +550,122 @@ def _synthesise(coef: np.ndarray, lst_rad: np.ndarray) -> np.ndarray:
     return np.cos(phase) @ coef.real + np.sin(phase) @ coef.imag
 
 
+def _fft_overlaps(
+    sky: SkyComponents,
+    beam: Beam,
+    site: Site,
+    horizon_width_deg: float,
+    freq_chunk: int | None,
+    progress: bool | None,
+    workers: int | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run the ring-FFT engine: ``(freqs, sums, overlap)``, nothing depending on the LSTs.
+
+    ``sums`` is ``(2 + Ncomp, Nfreq)``: the beam integral, its below-horizon part and
+    each component's ``m = 0`` overlap; ``overlap`` is ``(M, Ncomp, Nfreq)`` complex, the
+    harmonics of every component's above-horizon overlap (its ``m = 0`` row set from
+    ``sums``). See :func:`tsky_fft` for the method and the parameters.
+    """
+    freqs = beam.check_freqs(sky.freqs)
+    nside = sky.nside
+    npix = hp.nside2npix(nside)
+    wall0 = time.perf_counter()
+    clock = _Clock()
+    az, za = topocentric_at_lst0(nside, site)
+    w_above = horizon_weight(np.pi / 2 - za, horizon_width_deg)
+    evaluator = beam.on(az, za)
+    clock.lap("beam_bind")
+    plan = _ring_plan(sky.maps, w_above, nside)
+    ncomp, nfreq, mmax = sky.ncomp, freqs.size, 2 * nside
+    chunk = int(freq_chunk) if freq_chunk is not None else _default_chunk(npix)
+    if chunk < 1:
+        raise TskyError("freq_chunk must be >= 1")
+    job = _FftJob(
+        plan=plan,
+        evaluator=evaluator,
+        beam_name=beam.name,
+        freqs=freqs,
+        chunk=chunk,
+        weights=np.vstack([np.ones(npix), 1.0 - w_above, w_above * plan.mean_ring]),
+        w_above=w_above,
+        sums=np.empty((2 + ncomp, nfreq)),
+        overlap=np.zeros((mmax + 1, ncomp, nfreq), dtype=np.complex128),
+    )
+    starts = list(range(0, nfreq, chunk))
+    nworkers = max(1, min(int(workers) if workers is not None else _default_workers(), len(starts)))
+    clock.lap("setup")
+    bar = tqdm(total=len(starts), desc="Tsky (ring FFT)", unit="chunk", disable=_no_bar(progress))
+    with bar:
+        if nworkers == 1:
+            for start in starts:
+                clock.merge(job.run(start))
+                bar.update()
+        else:
+            with ThreadPoolExecutor(max_workers=nworkers) as pool:
+                futures = [pool.submit(job.run, start) for start in starts]
+                try:
+                    for future in as_completed(futures):
+                        clock.merge(future.result())
+                        bar.update()
+                except BaseException:
+                    for future in futures:
+                        future.cancel()
+                    raise
+    clock.lap()
+    sums, overlap = job.sums, job.overlap
+    if not np.all(np.isfinite(sums)):
+        raise TskyError(f"beam {beam.name} gave negative or non-finite values")
+    if np.any(sums[0] <= 0):
+        bad = freqs[sums[0] <= 0] / 1e6
+        raise TskyError(f"beam {beam.name} integrates to zero at {bad[:5]} MHz")
+    overlap[0] = sums[2:]
+    logger.debug(
+        "ring-FFT engine: %d freqs at nside %d in %.3f s wall; thread CPU per stage: %s",
+        nfreq,
+        nside,
+        time.perf_counter() - wall0,
+        clock.report(),
+    )
+    return freqs, sums, overlap
+
+
+def tsky_harmonics(
+    sky: SkyComponents,
+    beam: Beam,
+    site: Site,
+    horizon_width_deg: float = HORIZON_WIDTH_DEG,
+    freq_chunk: int | None = None,
+    progress: bool | None = None,
+    workers: int | None = None,
+) -> TskyHarmonics:
+    """Tsky's Fourier series in LST by the ring-FFT engine (see :func:`tsky_fft`).
+
+    Parameters are as for :func:`tsky_fft`; the LSTs and the ground temperature come
+    later, in :meth:`TskyHarmonics.table`.
+
+    Returns
+    -------
+    TskyHarmonics
+        Harmonics and beam integrals (``meta`` empty: :func:`compute_tsky` fills it).
+    """
+    freqs, sums, overlap = _fft_overlaps(
+        sky, beam, site, horizon_width_deg, freq_chunk, progress, workers
+    )
+    return _harmonics(sky.spectra, freqs, sums, overlap)
+
+
+def _harmonics(
+    spectra: np.ndarray, freqs: np.ndarray, sums: np.ndarray, overlap: np.ndarray
+) -> TskyHarmonics:
+    """Combine the engine's per-component output with the component ``spectra``."""
+    return TskyHarmonics(
+        freqs=freqs,
+        coef=np.einsum("fc,mcf->mf", spectra, overlap),
+        sum_all=sums[0],
+        sum_below=sums[1],
+    )
+
+
 def tsky_fft(
     sky: SkyComponents,
     beam: Beam,
@@ -525,86 +720,23 @@ def tsky_fft(
     TskyResult
         The table.
     """
-    freqs = beam.check_freqs(sky.freqs)
     lsts = check_grid(lsts, "LST")
-    tg = _tgnd_array(tgnd, freqs.size)
-    nside = sky.nside
-    npix = hp.nside2npix(nside)
-    wall0 = time.perf_counter()
-    clock = _Clock()
-    az, za = topocentric_at_lst0(nside, site)
-    w_above = horizon_weight(np.pi / 2 - za, horizon_width_deg)
-    evaluator = beam.on(az, za)
-    clock.lap("beam_bind")
-    plan = _ring_plan(sky.maps, w_above, nside)
-    ncomp, nfreq, mmax = sky.ncomp, freqs.size, 2 * nside
-    chunk = int(freq_chunk) if freq_chunk is not None else _default_chunk(npix)
-    if chunk < 1:
-        raise TskyError("freq_chunk must be >= 1")
-    job = _FftJob(
-        plan=plan,
-        evaluator=evaluator,
-        beam_name=beam.name,
-        freqs=freqs,
-        chunk=chunk,
-        weights=np.vstack([np.ones(npix), 1.0 - w_above, w_above * plan.mean_ring]),
-        w_above=w_above,
-        sums=np.empty((2 + ncomp, nfreq)),
-        overlap=np.zeros((mmax + 1, ncomp, nfreq), dtype=np.complex128),
+    tg = _tgnd_array(tgnd, sky.freqs.size)
+    freqs, sums, overlap = _fft_overlaps(
+        sky, beam, site, horizon_width_deg, freq_chunk, progress, workers
     )
-    starts = list(range(0, nfreq, chunk))
-    nworkers = max(1, min(int(workers) if workers is not None else _default_workers(), len(starts)))
-    clock.lap("setup")
-    bar = tqdm(total=len(starts), desc="Tsky (ring FFT)", unit="chunk", disable=_no_bar(progress))
-    with bar:
-        if nworkers == 1:
-            for start in starts:
-                clock.merge(job.run(start))
-                bar.update()
-        else:
-            with ThreadPoolExecutor(max_workers=nworkers) as pool:
-                futures = [pool.submit(job.run, start) for start in starts]
-                try:
-                    for future in as_completed(futures):
-                        clock.merge(future.result())
-                        bar.update()
-                except BaseException:
-                    for future in futures:
-                        future.cancel()
-                    raise
-    clock.lap()
-    sums, overlap = job.sums, job.overlap
-    sum_all, sum_below = sums[0], sums[1]
-    if not np.all(np.isfinite(sums)):
-        raise TskyError(f"beam {beam.name} gave negative or non-finite values")
-    if np.any(sum_all <= 0):
-        bad = freqs[sum_all <= 0] / 1e6
-        raise TskyError(f"beam {beam.name} integrates to zero at {bad[:5]} MHz")
-    overlap[0] = sums[2:]
-    clock.lap()
-    lst_rad = _lst_radians(lsts)
-    total = np.einsum("fc,mcf->mf", sky.spectra, overlap)
-    tsky = _synthesise(total, lst_rad)  # (Nlst, Nf): the numerator
-    tsky += tg * sum_below
-    tsky /= sum_all
-    comps = None
-    if keep_components:
-        per_comp = _synthesise(overlap.reshape(mmax + 1, ncomp * nfreq), lst_rad)
-        comps = per_comp.reshape(lsts.size, ncomp, nfreq).transpose(0, 2, 1) / sum_all[:, None]
-    clock.lap("synthesis")
-    logger.debug(
-        "tsky_fft %d freqs x %d LSTs in %.3f s wall; thread CPU per stage: %s",
-        nfreq,
-        lsts.size,
-        time.perf_counter() - wall0,
-        clock.report(),
-    )
+    result = _harmonics(sky.spectra, freqs, sums, overlap).table(lsts, tg)
+    if not keep_components:
+        return result
+    ncomp, nfreq, nm = sky.ncomp, freqs.size, overlap.shape[0]
+    per_comp = _synthesise(overlap.reshape(nm, ncomp * nfreq), _lst_radians(lsts))
+    comps = per_comp.reshape(lsts.size, ncomp, nfreq).transpose(0, 2, 1) / sums[0][:, None]
     return TskyResult(
-        tsky=tsky,
+        tsky=result.tsky,
         freqs=freqs,
         lsts=lsts,
-        f_above=1 - sum_below / sum_all,
-        f_below=sum_below / sum_all,
+        f_above=result.f_above,
+        f_below=result.f_below,
         components=comps,
     )
 
@@ -828,15 +960,18 @@ def compute_tsky(
     nside
         HEALPix resolution of the computation.
     epoch
-        Epoch of the equatorial frame (default J2000; use the observation date).
+        Epoch of the equatorial frame (default J2000; for data, their night's:
+        :func:`autocal.coords.night_epoch`).
     pol
         Polarisation for named beams.
     horizon_width_deg
         Width of the soft horizon in degrees (:func:`horizon_weight`).
     method
-        ``"fft"`` (fast engine) or ``"brute"`` (reference).
+        ``"fft"`` (fast engine) or ``"brute"`` (reference, never cached).
     cache
-        Read and write the on-disk cache (:mod:`autocal.tsky_cache`).
+        Read and write the on-disk cache (:mod:`autocal.tsky_cache`). It holds the
+        LST-free harmonics (:class:`TskyHarmonics`), so one entry serves every LST grid
+        and ground temperature: every observation of a night, once the first has run.
     keep_components
         Also return per-component contributions (``fft`` only; never cached).
     progress
@@ -874,12 +1009,35 @@ def compute_tsky(
         "frame": "apparent equatorial of epoch (TETE); LST = apparent sidereal time",
         "azimuth_convention": "east of north",
     }
-    key = tsky_cache.cache_key(meta, freqs, lsts, tg)
-    if cache and not keep_components:
-        hit = tsky_cache.load(key)
-        if hit is not None:
+    if method == "fft" and not keep_components:
+        # the LST-free harmonics are what is cached: any LST grid (every observation of
+        # a night) and any ground temperature then reuse them
+        lst_free = {k: v for k, v in meta.items() if k != "tgnd_K"}
+        key = tsky_cache.cache_key(lst_free, freqs)
+        harmonics = tsky_cache.load(key) if cache else None
+        if harmonics is None:
+            t0 = time.perf_counter()
+            comps = sky_model.components(freqs, nside=nside, epoch=time_epoch)
+            computed = tsky_harmonics(
+                comps, beam_obj, site_obj, horizon_width_deg, progress=progress
+            )
+            info = {
+                "component_labels": list(comps.labels),
+                "compute_seconds": round(time.perf_counter() - t0, 3),
+            }
+            harmonics = replace(computed, meta={**lst_free, **info})
+            logger.info(
+                "Tsky harmonics for %d freqs at nside %d in %.2f s",
+                freqs.size,
+                nside,
+                info["compute_seconds"],
+            )
+            if cache:
+                tsky_cache.store(key, harmonics)
+        else:
             logger.info("Tsky cache hit %s", key)
-            return hit
+        extra = {k: harmonics.meta[k] for k in ("component_labels", "compute_seconds")}
+        return harmonics.table(lsts, tg, meta={**meta, **extra})
     t0 = time.perf_counter()
     comps = sky_model.components(freqs, nside=nside, epoch=time_epoch)
     if method == "fft":
@@ -900,16 +1058,6 @@ def compute_tsky(
     elapsed = time.perf_counter() - t0
     meta["component_labels"] = list(comps.labels)
     meta["compute_seconds"] = round(elapsed, 3)
-    result = TskyResult(
-        tsky=result.tsky,
-        freqs=result.freqs,
-        lsts=result.lsts,
-        f_above=result.f_above,
-        f_below=result.f_below,
-        meta=meta,
-        components=result.components,
-        spectra=comps.spectra if keep_components else None,
-    )
     logger.info(
         "Tsky %s: %d LSTs x %d freqs at nside %d in %.2f s",
         method,
@@ -918,6 +1066,4 @@ def compute_tsky(
         nside,
         elapsed,
     )
-    if cache and not keep_components:
-        tsky_cache.store(key, result)
-    return result
+    return replace(result, meta=meta, spectra=comps.spectra if keep_components else None)

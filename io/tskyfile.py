@@ -1,10 +1,16 @@
-"""HDF5 Tsky tables.
+"""HDF5 Tsky tables and Tsky harmonics.
 
-Layout: datasets ``tsky`` (Nlst, Nfreq; kelvin), ``freqs`` (Hz), ``lsts`` (hours),
-``f_above`` and ``f_below`` (Nfreq; beam fractions above/below the horizon); root
-attributes ``sky``, ``beam``, ``site`` (JSON), ``tgnd_K``, ``nside``, ``epoch_jd``,
-``method``, ``engine_version``, ``cmb``, ``frame``, ``azimuth_convention``,
-``autocal_version``. Files are written atomically (temporary file, then rename).
+Tables (:func:`write_tsky`, format ``autocal-tsky-1``): datasets ``tsky`` (Nlst, Nfreq;
+kelvin), ``freqs`` (Hz), ``lsts`` (hours), ``f_above`` and ``f_below`` (Nfreq; beam
+fractions above/below the horizon); root attributes ``sky``, ``beam``, ``site`` (JSON),
+``tgnd_K``, ``nside``, ``epoch_jd``, ``method``, ``engine_version``, ``cmb``, ``frame``,
+``azimuth_convention``, ``autocal_version``.
+
+Harmonics (:func:`write_harmonics`, format ``autocal-tsky-harmonics-1``, the Tsky cache's
+entries): datasets ``coef`` (M, Nfreq; complex, kelvin times beam integral), ``freqs``,
+``sum_all`` and ``sum_below`` (Nfreq); the same root attributes but ``tgnd_K``.
+
+Files are written atomically (temporary file, then rename).
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ import h5py
 import numpy as np
 
 FORMAT = "autocal-tsky-1"
+HARMONICS_FORMAT = "autocal-tsky-harmonics-1"
 
 
 def _current_umask() -> int:
@@ -79,21 +86,51 @@ def write_tsky(path: str | Path, result: Any) -> Path:
     pathlib.Path
         The written file.
     """
+    arrays = {
+        name: np.asarray(getattr(result, name), dtype=np.float64)
+        for name in ("tsky", "freqs", "lsts", "f_above", "f_below")
+    }
+    labels = {
+        "tsky": {"units": "K", "axes": "lst, freq"},
+        "freqs": {"units": "Hz"},
+        "lsts": {"units": "hour"},
+    }
+    return _write(path, FORMAT, arrays, labels, result.meta)
+
+
+def _write(
+    path: str | Path,
+    fmt: str,
+    arrays: dict[str, np.ndarray],
+    labels: dict[str, dict[str, str]],
+    meta: dict[str, Any],
+) -> Path:
+    """Write datasets (with attributes ``labels``) and root attributes ``meta`` atomically."""
     from autocal import __version__
 
     path = Path(path)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
-        h5.attrs["format"] = FORMAT
+        h5.attrs["format"] = fmt
         h5.attrs["autocal_version"] = __version__
-        for name in ("tsky", "freqs", "lsts", "f_above", "f_below"):
-            h5.create_dataset(name, data=np.asarray(getattr(result, name), dtype=np.float64))
-        h5["tsky"].attrs["units"] = "K"
-        h5["tsky"].attrs["axes"] = "lst, freq"
-        h5["freqs"].attrs["units"] = "Hz"
-        h5["lsts"].attrs["units"] = "hour"
-        for key, value in result.meta.items():
+        for name, data in arrays.items():
+            h5.create_dataset(name, data=data)
+            h5[name].attrs.update(labels.get(name, {}))
+        for key, value in meta.items():
             h5.attrs[key] = _attr(value)
     return path
+
+
+def _read_meta(h5: h5py.File) -> dict[str, Any]:
+    meta: dict[str, Any] = {}
+    for key, value in h5.attrs.items():
+        if key in {"format", "autocal_version"}:
+            continue
+        if isinstance(value, str) and value[:1] in "{[":
+            value = json.loads(value)
+        elif isinstance(value, np.generic):
+            value = value.item()
+        meta[key] = value
+    return meta
 
 
 def read_tsky(path: str | Path) -> Any:
@@ -112,15 +149,57 @@ def read_tsky(path: str | Path) -> Any:
             if h5.attrs.get("format") != FORMAT:
                 raise ValueError(f"{path} is not an autocal Tsky table")
             arrays = {n: h5[n][()] for n in ("tsky", "freqs", "lsts", "f_above", "f_below")}
-            meta: dict[str, Any] = {}
-            for key, value in h5.attrs.items():
-                if key in {"format", "autocal_version"}:
-                    continue
-                if isinstance(value, str) and value[:1] in "{[":
-                    value = json.loads(value)
-                elif isinstance(value, np.generic):
-                    value = value.item()
-                meta[key] = value
+            meta = _read_meta(h5)
     except OSError as err:
         raise ValueError(f"{path} is not a readable HDF5 file: {err}") from err
     return TskyResult(meta=meta, **arrays)
+
+
+_HARMONICS_ARRAYS = ("coef", "freqs", "sum_all", "sum_below")
+
+
+def write_harmonics(path: str | Path, harmonics: Any) -> Path:
+    """Write :class:`autocal.tsky.TskyHarmonics` to HDF5 atomically.
+
+    Parameters
+    ----------
+    path
+        Output file.
+    harmonics
+        The harmonics.
+
+    Returns
+    -------
+    pathlib.Path
+        The written file.
+    """
+    arrays = {name: np.asarray(getattr(harmonics, name)) for name in _HARMONICS_ARRAYS}
+    labels = {"coef": {"axes": "m, freq"}, "freqs": {"units": "Hz"}}
+    return _write(path, HARMONICS_FORMAT, arrays, labels, harmonics.meta)
+
+
+def read_harmonics(path: str | Path) -> Any:
+    """Read Tsky harmonics written by :func:`write_harmonics`.
+
+    Raises
+    ------
+    ValueError
+        If the file is not autocal Tsky harmonics or its arrays are inconsistent.
+    """
+    from autocal.tsky import TskyError, TskyHarmonics
+
+    path = Path(path)
+    try:
+        with h5py.File(path, "r") as h5:
+            if h5.attrs.get("format") != HARMONICS_FORMAT:
+                raise ValueError(f"{path} is not an autocal Tsky harmonics file")
+            arrays = {n: h5[n][()] for n in _HARMONICS_ARRAYS}
+            meta = _read_meta(h5)
+    except OSError as err:
+        raise ValueError(f"{path} is not a readable HDF5 file: {err}") from err
+    if arrays["coef"].dtype.kind != "c":
+        raise ValueError(f"{path}: harmonics are not complex")
+    try:
+        return TskyHarmonics(meta=meta, **arrays)
+    except TskyError as err:
+        raise ValueError(f"{path}: {err}") from err

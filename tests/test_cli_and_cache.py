@@ -106,23 +106,32 @@ def test_empty_grids_are_refused():
 def test_cache_hit_and_key(tmp_cache, monkeypatch):
     import autocal.tsky as tsky_module
 
-    kwargs = dict(freqs=[1e8, 1.5e8], lsts=[0.0, 12.0], nside=8)
-    first = compute_tsky("uniform:100", "dipole", "hera", **kwargs)
+    freqs = [1e8, 1.5e8]
+    first = compute_tsky("uniform:100", "dipole", "hera", freqs, [0.0, 12.0], nside=8)
     files = list(tmp_cache.glob("*.h5"))
     assert len(files) == 1
 
     def no_compute(*args, **kw):
-        raise AssertionError("cache miss: the table was recomputed")
+        raise AssertionError("cache miss: the harmonics were recomputed")
 
-    monkeypatch.setattr(tsky_module, "tsky_fft", no_compute)
-    second = compute_tsky("uniform:100", "dipole", "hera", **kwargs)  # must come from disk
+    monkeypatch.setattr(tsky_module, "tsky_harmonics", no_compute)
+    second = compute_tsky("uniform:100", "dipole", "hera", freqs, [0.0, 12.0], nside=8)
     np.testing.assert_array_equal(first.tsky, second.tsky)
-    monkeypatch.undo()
+    # other LSTs and another ground temperature come from the same entry
+    other = compute_tsky("uniform:100", "dipole", "hera", freqs, [3.0, 5.5], tgnd=250.0, nside=8)
+    monkeypatch.undo()  # (also the fixture's cache folder)
     monkeypatch.setenv("AUTOCAL_CACHE_DIR", str(tmp_cache))
-    compute_tsky("uniform:100", "dipole", "hera", tgnd=250.0, **kwargs)
-    compute_tsky("uniform:100", "airy", "hera", **kwargs)
-    compute_tsky("uniform:100", "dipole", "edges", **kwargs)
-    assert len(list(tmp_cache.glob("*.h5"))) == 4  # distinct keys
+    fresh = compute_tsky(
+        "uniform:100", "dipole", "hera", freqs, [3.0, 5.5], tgnd=250.0, nside=8, cache=False
+    )
+    np.testing.assert_allclose(other.tsky, fresh.tsky, rtol=1e-13, atol=0)
+    assert other.meta["tgnd_K"] == 250.0 and other.meta["compute_seconds"] >= 0
+    assert len(list(tmp_cache.glob("*.h5"))) == 1
+    compute_tsky("uniform:100", "airy", "hera", freqs, [0.0], nside=8)
+    compute_tsky("uniform:100", "dipole", "edges", freqs, [0.0], nside=8)
+    compute_tsky("uniform:100", "dipole", "hera", freqs, [0.0], nside=8, epoch=2458098.5)
+    compute_tsky("uniform:100", "dipole", "hera", [1e8, 1.6e8], [0.0], nside=8)
+    assert len(list(tmp_cache.glob("*.h5"))) == 5  # distinct keys
 
 
 def test_corrupt_cache_entry_is_recomputed(tmp_cache):

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import autocal  # noqa: F401
+from autocal.coords import night_epoch
 from autocal.diagnose import Diagnosis, diagnose, write_diagnosis
 from autocal.effects import SkyTemplates, sky_templates
 from autocal.hidden import HiddenGenerator, draw_case, draw_effect, run_case, score, suite_cases
@@ -33,7 +34,13 @@ def setup() -> tuple[Observation, SkyTemplates]:
     )
     obs, truth = simulate(cfg)
     tpl = sky_templates(
-        SKY, "dipole", "hera", obs.freqs, obs.lsts, nside=32, epoch=float(np.mean(obs.jds))
+        SKY,
+        "dipole",
+        "hera",
+        obs.freqs,
+        obs.lsts,
+        nside=32,
+        epoch=night_epoch(obs.jds, obs.site.lon_deg),
     )
     np.testing.assert_allclose(tpl.total, truth.tsky, rtol=1e-10)
     return obs, tpl

@@ -10,6 +10,7 @@ import pytest
 from pydantic import ValidationError
 
 from autocal.cli import main
+from autocal.coords import night_epoch
 from autocal.fit import fit
 from autocal.io.uvh5 import read_uvh5, write_uvh5
 from autocal.pipeline import CalibrationConfig, PipelineError, run_calibration
@@ -44,7 +45,13 @@ def _in_memory(paths: list[Path], model: str, order: int) -> object:
     tsky = np.stack(
         [
             compute_tsky(
-                "gsm2008", "dipole", obs.site, obs.freqs, obs.lsts, pol=p, epoch=obs.jds.mean()
+                "gsm2008",
+                "dipole",
+                obs.site,
+                obs.freqs,
+                obs.lsts,
+                pol=p,
+                epoch=night_epoch(obs.jds, obs.site.lon_deg),
             ).tsky
             for p in obs.pols
         ]
@@ -264,3 +271,22 @@ def test_edges_options_on_uvh5_input_are_reported(night, tmp_path, caplog) -> No
     with caplog.at_level("WARNING", logger="autocal.pipeline"):
         run_calibration(dumped, tmp_path / "o2")  # every field set, all at their defaults
     assert "EDGES" not in caplog.text
+
+
+def test_observations_of_one_night_share_the_tsky_cache(night, tmp_path, monkeypatch) -> None:
+    """The night's second observation takes its Tsky from the first one's cache entries."""
+    import autocal.tsky as tsky_module
+
+    monkeypatch.setenv("AUTOCAL_CACHE_DIR", str(tmp_path / "cache"))
+    config = {"beam": "dipole", "products": ["hdf5"], "passes": 1}
+    first = run_calibration(CalibrationConfig(inputs=[str(night[0])], **config), tmp_path / "a")
+    assert len(list((tmp_path / "cache").glob("*.h5"))) == 2  # one per polarisation
+
+    def engine(*args, **kwargs):
+        raise AssertionError("the second observation recomputed Tsky")
+
+    monkeypatch.setattr(tsky_module, "tsky_harmonics", engine)
+    second = run_calibration(CalibrationConfig(inputs=[str(night[1])], **config), tmp_path / "b")
+    epochs = [r.summary["provenance"]["epoch_jd"] for r in (first, second)]
+    obs = read_uvh5(night[1])
+    assert epochs[0] == epochs[1] == night_epoch(obs.jds, obs.site.lon_deg)

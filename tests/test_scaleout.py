@@ -16,6 +16,7 @@ import pytest
 import autocal.pipeline
 import autocal.scaleout
 from autocal.cli import main
+from autocal.coords import night_epoch
 from autocal.fit import fit
 from autocal.io.uvh5 import UVH5AutosWriter, read_uvh5, scan_uvh5
 from autocal.io.uvh5_blocks import ReadStats, iter_uvh5_blocks
@@ -101,7 +102,7 @@ def test_block_streaming_equals_whole_file_reading(night, tmp_path) -> None:
                 whole.freqs,
                 whole.lsts,
                 nside=NSIDE,
-                epoch=whole.jds.mean(),
+                epoch=night_epoch(whole.jds, whole.site.lon_deg),
                 pol=p,
             ).tsky
             for p in whole.pols
@@ -182,7 +183,7 @@ def test_waterfall_rows_are_the_normalised_residuals(night, tmp_path) -> None:
                 whole.freqs,
                 whole.lsts,
                 nside=NSIDE,
-                epoch=whole.jds.mean(),
+                epoch=night_epoch(whole.jds, whole.site.lon_deg),
                 pol=p,
             ).tsky
             for p in whole.pols
