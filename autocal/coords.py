@@ -57,6 +57,10 @@ def parse_epoch(epoch: str | float | Time | None) -> Time:
     return parse_epoch(value)
 
 
+#: Longest span of data (days) given the frame of their night by :func:`night_epoch`.
+NIGHT_SPAN_DAYS = 0.5
+
+
 def night_epoch(jds: np.ndarray | list[float] | float, lon_deg: float) -> float:
     """Return the epoch of the sky frame for data taken at ``jds``: their night's local midnight.
 
@@ -64,11 +68,13 @@ def night_epoch(jds: np.ndarray | list[float] | float, lon_deg: float) -> float:
     the next local mean noon at longitude ``lon_deg``; the epoch is that night's local
     mean midnight (a JD). Every observation of one night therefore gets the same epoch,
     so their Tsky share one set of LST harmonics (:func:`autocal.tsky.compute_tsky`'s
-    cache), and a night is never split however its files are grouped. The frame is then
-    at most ~12 h from the data; precession and nutation move it by < 0.1 arcsec in that
-    time, which changes a HERA-beam GSM2008 Tsky by at most 4.9 mK (2e-6 of Tsky) at
-    nside 128 over a day of LSTs (``python benchmarks/observations.py --parts frame``;
-    tested at a coarser resolution in ``tests/test_tsky_harmonics.py``).
+    cache), and a night is never split however its files are grouped. Data spanning more
+    than :data:`NIGHT_SPAN_DAYS` (an EDGES day file, several nights) have nothing to share
+    and keep their mean time, so the frame stays within half their span. For a night's
+    data the frame is within ~12 h of every sample; precession and nutation move it by
+    < 0.1 arcsec in that time, which changes a HERA-beam GSM2008 Tsky by at most 4.9 mK
+    (2e-6 of Tsky) at nside 128 over a day of LSTs (``python benchmarks/observations.py
+    --parts frame``; tested at a coarser resolution in ``tests/test_tsky_harmonics.py``).
 
     Parameters
     ----------
@@ -80,7 +86,8 @@ def night_epoch(jds: np.ndarray | list[float] | float, lon_deg: float) -> float:
     Returns
     -------
     float
-        The JD of the night's local mean midnight.
+        The JD of the night's local mean midnight (or the data's mean time for spans
+        over :data:`NIGHT_SPAN_DAYS`).
 
     Raises
     ------
@@ -93,6 +100,8 @@ def night_epoch(jds: np.ndarray | list[float] | float, lon_deg: float) -> float:
     mean = float(arr.mean())
     if mean < 2e6:
         raise ValueError(f"time {mean} is not a Julian date (expected > 2e6)")
+    if np.ptp(arr) > NIGHT_SPAN_DAYS:
+        return mean
     # local mean solar time as a "local JD" (integer at local mean noon, like the JD at
     # Greenwich noon): the night is its integer part, its midnight that + 0.5
     offset = lon_deg / 360.0
