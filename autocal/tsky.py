@@ -1036,7 +1036,11 @@ def compute_tsky(
                 tsky_cache.store(key, harmonics)
         else:
             logger.info("Tsky cache hit %s", key)
-        extra = {k: harmonics.meta[k] for k in ("component_labels", "compute_seconds")}
+        extra = {
+            k: harmonics.meta[k]
+            for k in ("component_labels", "compute_seconds")
+            if k in harmonics.meta
+        }
         return harmonics.table(lsts, tg, meta={**meta, **extra})
     t0 = time.perf_counter()
     comps = sky_model.components(freqs, nside=nside, epoch=time_epoch)
