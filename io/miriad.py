@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from autocal.beams import file_checksum
-from autocal.io.pyuvdata_helpers import warnings_to_log
+from autocal.io.pyuvdata_helpers import uvdata_class, warnings_to_log
 from autocal.io.uvh5 import UVH5FormatError, read_uvh5
 from autocal.observation import Observation
 
@@ -49,7 +49,7 @@ def read_miriad(
     MiriadFormatError
         If a path is not a Miriad data set, or pyuvdata cannot read it.
     """
-    from pyuvdata import UVData
+    UVData = uvdata_class()
 
     path_list = [Path(paths)] if isinstance(paths, (str, Path)) else [Path(p) for p in paths]
     if not path_list:

@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from autocal.beams import file_checksum
-from autocal.io.pyuvdata_helpers import warnings_to_log
+from autocal.io.pyuvdata_helpers import uvdata_class, warnings_to_log
 from autocal.io.pyuvdata_helpers import x_orientation as feed_orientation
 from autocal.io.tskyfile import atomic_path
 from autocal.observation import Observation, ObservationError
@@ -232,7 +232,7 @@ def _build_uvdata(
     The baseline-time axis is time-major (antennas fastest). Checks that pyuvdata kept
     that order and that its LSTs agree with ``lsts`` to 1 s.
     """
-    from pyuvdata import UVData
+    UVData = uvdata_class()
 
     antennas = np.asarray(antennas)
     codes, x_orientation = _pol_codes_for_write(pols)
@@ -694,7 +694,7 @@ def _open_check(path: Path) -> None:
 
 
 def _read_meta(path: Path) -> _FileMeta:
-    from pyuvdata import UVData
+    UVData = uvdata_class()
 
     _open_check(path)
     try:
@@ -848,7 +848,7 @@ def _read_data(
     keep_times: np.ndarray,
 ) -> dict[str, np.ndarray]:
     """Read the selected autos of one file into (Nant, Npol, Ntime, Nfreq) arrays."""
-    from pyuvdata import UVData
+    UVData = uvdata_class()
 
     codes = [meta.pol_codes[i] for i in pol_idx]
     try:

@@ -653,3 +653,17 @@ def test_a_chunk_that_does_not_decode_is_a_clear_error(tmp_path, dataset, capsys
     argv = ["calibrate", str(path), "--beam", "dipole", "--nside", "16", "--out", str(out)]
     assert main(argv) == 2
     assert "corrupt or truncated" in capsys.readouterr().err and not out.exists()
+
+
+@pytest.mark.data
+def test_pyuvdata_compiled_helpers_are_cached_on_disk(data_root, tmp_path) -> None:
+    """A process reading a UVH5 header leaves pyuvdata's machine code for the next one."""
+    import os
+    import subprocess
+    import sys
+
+    path = data_root / AUTOS / XRAA[0]
+    code = "import sys; from autocal.io.uvh5 import scan_uvh5; scan_uvh5([sys.argv[1]])"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    subprocess.run([sys.executable, "-c", code, str(path)], env=env, check=True, timeout=300)
+    assert list(tmp_path.rglob("bls_numba._antnums_to_baseline-*.nbi"))
