@@ -960,6 +960,31 @@ def solve_sums(
     return {name: value.reshape(*lead, *value.shape[1:]) for name, value in out.items()}
 
 
+def _eigvalsh(a: np.ndarray) -> np.ndarray:
+    """Eigenvalues of ``(..., M, M)`` symmetric matrices; closed form for ``M = 2``.
+
+    The constant model's 2 x 2 systems (a million per HERA file) take 10 ms this way
+    against 0.3 s through LAPACK.
+    """
+    if a.shape[-1] != 2:
+        return np.linalg.eigvalsh(a)
+    mean = (a[..., 0, 0] + a[..., 1, 1]) / 2
+    radius = np.hypot((a[..., 0, 0] - a[..., 1, 1]) / 2, a[..., 1, 0])
+    return np.stack([mean - radius, mean + radius], axis=-1)
+
+
+def _inv(a: np.ndarray) -> np.ndarray:
+    """Inverses of ``(..., M, M)`` symmetric matrices; closed form (adjugate) for ``M = 2``."""
+    if a.shape[-1] != 2:
+        return np.linalg.inv(a)
+    det = a[..., 0, 0] * a[..., 1, 1] - a[..., 1, 0] * a[..., 1, 0]
+    out = np.empty_like(a)
+    out[..., 0, 0] = a[..., 1, 1] / det
+    out[..., 1, 1] = a[..., 0, 0] / det
+    out[..., 0, 1] = out[..., 1, 0] = -a[..., 1, 0] / det
+    return out
+
+
 def _solve_block(
     ata: np.ndarray,
     aty: np.ndarray,
@@ -982,14 +1007,14 @@ def _solve_block(
     scaled = np.where(ok[..., None, None], scaled, eye)
     # 2-norm condition number of the symmetric matrix from its eigenvalues (as
     # np.linalg.cond, but eigvalsh is several times faster than an SVD per channel)
-    ev = np.abs(np.linalg.eigvalsh(scaled))
+    ev = np.abs(_eigvalsh(scaled))
     with np.errstate(divide="ignore", invalid="ignore"):
         cond = ev.max(axis=-1) / ev.min(axis=-1)
     singular = ok & ~(np.isfinite(cond) & (cond < max_condition))
     reason[singular] = 2
     ok &= ~singular
     scaled = np.where(ok[..., None, None], scaled, eye)
-    inv = np.linalg.inv(scaled)
+    inv = _inv(scaled)
     cov = inv / (d[..., :, None] * d[..., None, :])
     coeffs = (cov @ aty[..., None])[..., 0]
     chi2 = yty - np.einsum("...m,...m->...", coeffs, aty)

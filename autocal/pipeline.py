@@ -31,7 +31,7 @@ import os
 import shutil
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -58,8 +58,6 @@ REWEIGHT_THRESHOLD = 1e-5
 MAX_PLOTTED = 4
 #: Rows (time bins) of the residual waterfall; longer observations are binned in time.
 MAX_WATERFALL_ROWS = 512
-#: Antennas drawn in ``solution.png`` (every antenna is in the other products).
-MAX_SOLUTION_PLOTTED = 16
 
 ProductName = Literal["calh5", "calfits", "hdf5", "png"]
 Progress = Callable[[float, str], None]
@@ -1024,15 +1022,7 @@ def _write_products(
         if "png" in config.products:
             from autocal.plots import plot_residuals, plot_solution
 
-            shown = solution
-            if solution.antennas.size > MAX_SOLUTION_PLOTTED:
-                logger.info(
-                    "solution.png shows the first %d of %d antennas",
-                    MAX_SOLUTION_PLOTTED,
-                    solution.antennas.size,
-                )
-                shown = _first_antennas(solution, MAX_SOLUTION_PLOTTED)
-            plot_solution(shown, staging / "solution.png")
+            plot_solution(solution, staging / "solution.png")
             labels, resid, bin_lsts = _waterfall_residuals(solution, run, config, source.lsts)
             plot_residuals(labels, resid, solution.freqs, bin_lsts, staging / "residuals.png")
             names["png"] = "solution.png"
@@ -1053,20 +1043,3 @@ def _write_products(
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return written
-
-
-def _first_antennas(solution: Solution, n: int) -> Solution:
-    """Return the solution of its first ``n`` antennas (for plots)."""
-    keep = slice(0, n)
-    return replace(
-        solution,
-        antennas=solution.antennas[keep],
-        coeffs=solution.coeffs[keep],
-        cov=solution.cov[keep],
-        chi2=solution.chi2[keep],
-        dof=solution.dof[keep],
-        count=solution.count[keep],
-        nflagged=solution.nflagged[keep],
-        flag_reason=solution.flag_reason[keep],
-        antenna_names=tuple(solution.antenna_names[keep]),
-    )

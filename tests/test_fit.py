@@ -6,11 +6,14 @@ import numpy as np
 import pytest
 
 from autocal.fit import (
+    MAX_CONDITION,
     FitError,
     FitModel,
     NormalSums,
     Solution,
     _default_threads,
+    _eigvalsh,
+    _inv,
     _num_array,
     _numba_available,
     _offset_copy,
@@ -530,6 +533,45 @@ def test_solve_flags_non_finite_normal_matrices() -> None:
     np.testing.assert_allclose(
         out["coeffs"][0, 0, 0], np.linalg.solve(sums.ata[0, 0, 0], sums.aty[0, 0, 0])
     )
+
+
+def test_two_parameter_systems_are_solved_in_closed_form_as_lapack_would() -> None:
+    """The constant model's 2 x 2 systems skip LAPACK: eigenvalues and inverses agree
+    with numpy's to rounding, conditioning included, and solve_sums flags the same
+    channels as singular (condition numbers around MAX_CONDITION, on both sides)."""
+    rng = np.random.default_rng(7)
+    n = 4000
+    a = rng.standard_normal((n, 2, 2))
+    a = a @ np.swapaxes(a, -1, -2) + np.eye(2) * rng.uniform(0, 1, (n, 1, 1))
+    # near-singular: columns almost parallel, condition numbers from 1e6 to 1e14
+    c = np.logspace(6, 14, 200)
+    eps = 2.0 / c
+    a[:200] = np.stack([np.ones(200), 1 - eps, 1 - eps, np.ones(200)], -1).reshape(200, 2, 2)
+    ev = np.linalg.eigvalsh(a)
+    np.testing.assert_allclose(_eigvalsh(a), ev, rtol=1e-12, atol=1e-15 * np.abs(ev).max())
+    well = np.abs(ev).max(-1) / np.abs(ev).min(-1) < 1e8
+    np.testing.assert_allclose(_inv(a)[well], np.linalg.inv(a[well]), rtol=1e-7)
+    # the general path is LAPACK's own
+    b = rng.standard_normal((5, 3, 3))
+    np.testing.assert_array_equal(_eigvalsh(b @ b.mT), np.linalg.eigvalsh(b @ b.mT))
+    np.testing.assert_array_equal(_inv(b), np.linalg.inv(b))
+
+    sums = NormalSums.zeros(FitModel(), 1, 1, n)
+    sums.ata[0, 0] = a * 1e6  # column scaling is undone by solve_sums
+    sums.aty[0, 0] = np.abs(rng.standard_normal((n, 2))) * 1e3
+    sums.yty[...] = 1e9
+    sums.count[...] = 100
+    out = solve_sums(sums)
+    cond = np.linalg.cond(a)
+    singular = out["flag_reason"][0, 0] == 2
+    clear = np.abs(np.log10(cond / MAX_CONDITION)) > 0.01
+    np.testing.assert_array_equal(singular[clear], (cond >= MAX_CONDITION)[clear])
+    assert singular.any() and not singular.all()
+    solved = out["flag_reason"][0, 0] != 2
+    ref = np.linalg.solve(sums.ata[0, 0][solved & well], sums.aty[0, 0][solved & well][..., None])
+    got = out["coeffs"][0, 0][solved & well]
+    keep = np.isfinite(got[:, 0])  # reason 3 (non-positive gain) is NaN in both
+    np.testing.assert_allclose(got[keep], ref[keep, :, 0], rtol=1e-7)
 
 
 def test_solve_in_blocks_gives_the_whole_solve() -> None:
