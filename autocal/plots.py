@@ -223,12 +223,13 @@ def _solution_array(solution: Any) -> Any:
     ticks = np.unique(np.linspace(0, nant - 1, min(nant, 8)).astype(int))
     for r, (name, values, cmap) in enumerate(rows):
         values = np.where(solution.flags, np.nan, values)
-        limits = robust_limits(values) or (None, None)
-        style = {
-            "cmap": matplotlib.colormaps[cmap].with_extremes(bad="0.85"),
-            "vmin": limits[0],
-            "vmax": limits[1],
-        }
+        style: dict[str, Any] = {"cmap": matplotlib.colormaps[cmap].with_extremes(bad="0.85")}
+        if r == 2:  # chi2/dof spans decades where the model fails: a log scale around 1
+            limits = _chi2_limits(values)
+            style["norm"] = matplotlib.colors.LogNorm(*limits)
+        else:
+            limits = robust_limits(values) or (None, None)
+            style.update(vmin=limits[0], vmax=limits[1])
         for ip, pol in enumerate(solution.pols):
             ax = fig.add_subplot(grid[r, ip])
             image = channel_image(ax, fmhz, values[:, ip], **style)
@@ -242,14 +243,24 @@ def _solution_array(solution: Any) -> Any:
         for ip, pol in enumerate(solution.pols):
             (line,) = ax.plot(fmhz, median[ip], lw=1, label=f"{pol} median")
             ax.fill_between(fmhz, lo[ip], hi[ip], color=line.get_color(), alpha=0.25, lw=0)
+        if r == 2:
+            ax.axhline(1.0, color="k", lw=0.6, ls="--")
+            ax.set(yscale="log", xlabel="frequency [MHz]")
         if limits[0] is not None:
             ax.set_ylim(*limits)
         ax.set(ylabel=name, title="spread over antennas (16-84 %)")
-        if r == 2:
-            ax.axhline(1.0, color="k", lw=0.6, ls="--")
-            ax.set_xlabel("frequency [MHz]")
         ax.legend(fontsize=7)
     return fig
+
+
+def _chi2_limits(values: np.ndarray) -> tuple[float, float]:
+    """Return log-scale limits of ``chi^2 / dof``.
+
+    The central 2-98 % of the positive values, widened to at least 0.5 to 2.
+    """
+    positive = values[np.isfinite(values) & (values > 0)]
+    lo, hi = np.percentile(np.log10(positive), [2, 98]) if positive.size else (0.0, 0.0)
+    return min(10.0**lo, 0.5), max(10.0**hi, 2.0)
 
 
 def nan_quantiles(values: np.ndarray, qs: tuple[float, ...]) -> list[np.ndarray]:
