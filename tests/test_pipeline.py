@@ -290,3 +290,34 @@ def test_observations_of_one_night_share_the_tsky_cache(night, tmp_path, monkeyp
     epochs = [r.summary["provenance"]["epoch_jd"] for r in (first, second)]
     obs = read_uvh5(night[1])
     assert epochs[0] == epochs[1] == night_epoch(obs.jds, obs.site.lon_deg)
+
+
+def test_radiometer_weights_need_positive_bandwidth_time_where_data_are_used(tmp_path) -> None:
+    """An integration with no integration time may be read only if every antenna-pol is
+    flagged there (the shared (time, channel) dnu dt is checked against the block's flags
+    as if broadcast to it); otherwise radiometer weights are refused with advice."""
+    import dataclasses
+
+    import h5py
+
+    obs, _ = simulate(SIM.model_copy(update={"duration_h": 2.0}))
+    flags = np.array(obs.flags)
+    flags[:, :, 3] = True
+
+    def write(flags: np.ndarray, name: str) -> Path:
+        path = write_uvh5(dataclasses.replace(obs, flags=flags), tmp_path / name)
+        with h5py.File(path, "r+") as f:  # a file with a dead integration (our writer refuses)
+            times = f["Header/time_array"][:]
+            f["Header/integration_time"][times == np.unique(times)[3]] = 0.0
+        return path
+
+    good = write(flags, "flagged.uvh5")
+    result = run_calibration(
+        CalibrationConfig(inputs=[str(good)], products=["hdf5"]), tmp_path / "a"
+    )
+    assert result.solution.count.max() == obs.ntime - 1
+    flags[1, 0, 3] = False  # one antenna-pol uses the integration
+    bad = write(flags, "used.uvh5")
+    with pytest.raises(PipelineError, match="positive channel width, integration time"):
+        run_calibration(CalibrationConfig(inputs=[str(bad)], products=["hdf5"]), tmp_path / "b")
+    assert not (tmp_path / "b" / "solution.h5").exists()
