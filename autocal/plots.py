@@ -156,8 +156,8 @@ def plot_solution(solution: Any, path: str | Path, title: str | None = None) -> 
 
     Up to :data:`MAX_SOLUTION_CURVES` antenna-polarisations: ``|g|``, ``G`` and ``Trxr``
     of each with its 2-sigma band. More: every antenna as a row of an image of ``|g|``,
-    ``Trxr`` and ``chi^2 / dof`` per polarisation, beside the median over antennas and
-    the 16-84 % spread between them.
+    ``Trxr`` and ``chi^2 / dof`` (log scale) per polarisation, beside the median over
+    antennas and the 16-84 % spread between them.
 
     Parameters
     ----------
