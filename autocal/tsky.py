@@ -36,6 +36,7 @@ import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
+from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -1015,27 +1016,31 @@ def compute_tsky(
         lst_free = {k: v for k, v in meta.items() if k != "tgnd_K"}
         key = tsky_cache.cache_key(lst_free, freqs)
         harmonics = tsky_cache.load(key) if cache else None
-        if harmonics is None:
-            t0 = time.perf_counter()
-            comps = sky_model.components(freqs, nside=nside, epoch=time_epoch)
-            computed = tsky_harmonics(
-                comps, beam_obj, site_obj, horizon_width_deg, progress=progress
-            )
-            info = {
-                "component_labels": list(comps.labels),
-                "compute_seconds": round(time.perf_counter() - t0, 3),
-            }
-            harmonics = replace(computed, meta={**lst_free, **info})
-            logger.info(
-                "Tsky harmonics for %d freqs at nside %d in %.2f s",
-                freqs.size,
-                nside,
-                info["compute_seconds"],
-            )
-            if cache:
-                tsky_cache.store(key, harmonics)
-        else:
-            logger.info("Tsky cache hit %s", key)
+        lock = tsky_cache.computing(key) if cache and harmonics is None else nullcontext()
+        with lock:
+            if cache and harmonics is None:  # another process may have stored it meanwhile
+                harmonics = tsky_cache.load(key)
+            if harmonics is None:
+                t0 = time.perf_counter()
+                comps = sky_model.components(freqs, nside=nside, epoch=time_epoch)
+                computed = tsky_harmonics(
+                    comps, beam_obj, site_obj, horizon_width_deg, progress=progress
+                )
+                info = {
+                    "component_labels": list(comps.labels),
+                    "compute_seconds": round(time.perf_counter() - t0, 3),
+                }
+                harmonics = replace(computed, meta={**lst_free, **info})
+                logger.info(
+                    "Tsky harmonics for %d freqs at nside %d in %.2f s",
+                    freqs.size,
+                    nside,
+                    info["compute_seconds"],
+                )
+                if cache:
+                    tsky_cache.store(key, harmonics)
+            else:
+                logger.info("Tsky cache hit %s", key)
         extra = {
             k: harmonics.meta[k]
             for k in ("component_labels", "compute_seconds")

@@ -9,6 +9,11 @@ channels at nside 64, the default, 6.3 MB at nside 128) under ``$AUTOCAL_CACHE_D
 (default ``~/.cache/autocal/tsky``), named by a SHA-256 of the sky, beam (including the
 beam file's checksum), site, frequencies, nside, epoch, horizon and engine version. Set
 ``AUTOCAL_CACHE_DIR=off`` to disable caching.
+
+A night's first jobs often start together (one per service worker): :func:`computing`
+lets one process compute an entry while the others wait for it and then read it, instead
+of each computing it (seconds of CPU and ~1.3 GB of beam maps per process for HERA).
+The lock is an advisory ``flock`` on an empty ``KEY.lock`` file beside the entry.
 """
 
 from __future__ import annotations
@@ -17,12 +22,18 @@ import hashlib
 import json
 import logging
 import os
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 logger = logging.getLogger(__name__)
+
+#: Longest wait (s) for another process computing the same entry; then compute anyway.
+LOCK_TIMEOUT_S = 600.0
 
 
 def cache_dir() -> Path | None:
@@ -73,4 +84,60 @@ def store(key: str, harmonics: Any) -> Path | None:
         return write_harmonics(folder / f"{key}.h5", harmonics)
     except OSError as err:
         logger.warning("could not write Tsky cache entry in %s: %s", folder, err)
+        return None
+
+
+@contextmanager
+def computing(key: str, timeout: float = LOCK_TIMEOUT_S) -> Iterator[None]:
+    """Hold the lock of ``key``'s entry while computing it.
+
+    Another process (or thread) computing the same entry makes this wait until it is done,
+    so the caller should look in the cache again once inside. Where no lock can be taken
+    (caching off, a file system without ``flock``, a read-only folder) or the wait passes
+    ``timeout`` seconds, the caller computes without it: the lock only saves work, the
+    entries stay correct without it (they are written atomically).
+    """
+    handle = _lock_file(key)
+    if handle is None:
+        yield
+        return
+    import fcntl
+
+    try:
+        start = time.monotonic()
+        waiting = False
+        while True:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() - start > timeout:
+                    logger.warning("waited %.0f s for Tsky entry %s; computing it", timeout, key)
+                    break
+                if not waiting:
+                    logger.info("waiting for another process computing Tsky entry %s", key)
+                    waiting = True
+                time.sleep(0.1)
+            except OSError as err:  # no flock on this file system
+                logger.debug("computing %s without the cache lock: %s", key, err)
+                break
+        yield
+    finally:
+        handle.close()  # releases the lock
+
+
+def _lock_file(key: str) -> Any | None:
+    """Open ``key``'s lock file, or return ``None`` where there can be no lock."""
+    folder = cache_dir()
+    if folder is None:
+        return None
+    try:
+        import fcntl  # noqa: F401 - POSIX only
+    except ImportError:
+        return None
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        return open(folder / f"{key}.lock", "a")  # closed by computing()
+    except OSError as err:
+        logger.debug("computing %s without the cache lock: %s", key, err)
         return None

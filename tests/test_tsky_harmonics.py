@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import h5py
@@ -149,3 +150,60 @@ def test_the_night_frame_changes_tsky_by_millikelvin(data_root):
     shared = compute_tsky("gsm2008", "hera", "hera", freqs, lsts, epoch=night, **kwargs)
     diff = np.abs(shared.tsky - own.tsky)
     assert 0 < diff.max() < 0.01
+
+
+def test_concurrent_jobs_of_a_night_compute_its_harmonics_once(tmp_cache, monkeypatch, caplog):
+    """A night's first jobs start together: one computes the entry, the others wait for it
+    under the entry's lock and read it (flock also excludes threads with their own file)."""
+    import threading
+
+    from autocal import tsky_cache
+
+    calls = []
+    engine = tsky_module.tsky_harmonics
+
+    def slow_engine(*args, **kw):
+        calls.append(threading.get_ident())
+        time.sleep(0.5)  # the others arrive while this one computes
+        return engine(*args, **kw)
+
+    monkeypatch.setattr(tsky_module, "tsky_harmonics", slow_engine)
+    kwargs = dict(nside=16, epoch=2458098.5, pol="ee")
+    results, errors = {}, []
+
+    def job(i):
+        try:
+            lsts = [1.0 + i, 1.1 + i]
+            results[i] = compute_tsky(DipoleSky(), "airy", "hera", FREQS, lsts, **kwargs)
+        except Exception as err:  # pragma: no cover - reported below
+            errors.append(err)
+
+    caplog.set_level("INFO", logger="autocal.tsky_cache")
+    threads = [threading.Thread(target=job, args=(i,)) for i in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    assert len(calls) == 1
+    assert "waiting for another process computing Tsky entry" in caplog.text
+    monkeypatch.undo()
+    for i, result in results.items():
+        fresh = compute_tsky(
+            DipoleSky(), "airy", "hera", FREQS, [1.0 + i, 1.1 + i], cache=False, **kwargs
+        )
+        np.testing.assert_allclose(result.tsky, fresh.tsky, rtol=1e-13)
+    assert len(list(tmp_cache.glob("*.h5"))) == 1
+
+    # no lock where the cache folder cannot hold one: the job computes all the same
+    monkeypatch.setenv("AUTOCAL_CACHE_DIR", str(tmp_cache / "entry.h5" / "x"))
+    (tmp_cache / "entry.h5").write_text("a file where a folder should be")
+    with tsky_cache.computing("k"):
+        pass
+    # a holder that never finishes: the waiter computes after the timeout
+    monkeypatch.setenv("AUTOCAL_CACHE_DIR", str(tmp_cache))
+    with tsky_cache.computing("k2"):
+        t0 = time.monotonic()
+        with tsky_cache.computing("k2", timeout=0.3):
+            assert time.monotonic() - t0 >= 0.3
+    assert "computing it" in caplog.text
