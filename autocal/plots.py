@@ -266,9 +266,9 @@ def _chi2_limits(values: np.ndarray) -> tuple[float, float]:
 def nan_quantiles(values: np.ndarray, qs: tuple[float, ...]) -> list[np.ndarray]:
     """Quantiles over the first axis ignoring NaN, as ``np.nanquantile`` (linear).
 
-    Vectorised through one sort (``np.nanquantile`` loops over the other axes in Python:
-    0.7 s against 0.03 s for 350 antennas x 2 pols x 1536 channels). NaN where a column
-    has no value.
+    Vectorised through one sort (numpy's NaN-aware median and percentiles take 0.17 s
+    against 0.02 s for 350 antennas x 2 pols x 1536 channels with flagged channels). NaN
+    where a column has no value.
     """
     ordered = np.sort(values, axis=0)  # NaN last
     last = np.count_nonzero(~np.isnan(values), axis=0) - 1
