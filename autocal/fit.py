@@ -44,6 +44,7 @@ import numpy as np
 from numpy.polynomial import legendre
 
 from autocal.observation import Observation
+from autocal.user_cache import user_cache_dir
 
 logger = logging.getLogger(__name__)
 
@@ -640,13 +641,7 @@ def kernel_cache_dir() -> Path | None:
     (default ``~/.cache/autocal/fit_kernels``). Each kernel is a generated module there
     whose machine code numba caches next to it, so a process does not recompile it.
     """
-    env = os.environ.get("AUTOCAL_KERNEL_CACHE", "")
-    if env.strip().lower() in {"off", "none", "0", "false"}:
-        return None
-    if env:
-        return Path(env).expanduser()
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "autocal" / "fit_kernels"
+    return user_cache_dir("AUTOCAL_KERNEL_CACHE", "fit_kernels")
 
 
 def _load_kernel(source: str) -> Any:

@@ -22,7 +22,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -30,6 +29,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from autocal.user_cache import user_cache_dir
 
 logger = logging.getLogger(__name__)
 
@@ -39,13 +40,7 @@ LOCK_TIMEOUT_S = 600.0
 
 def cache_dir() -> Path | None:
     """Return the cache folder, or ``None`` when caching is disabled."""
-    env = os.environ.get("AUTOCAL_CACHE_DIR", "")
-    if env.strip().lower() in {"off", "none", "0", "false"}:
-        return None
-    if env:
-        return Path(env).expanduser()
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "autocal" / "tsky"
+    return user_cache_dir("AUTOCAL_CACHE_DIR", "tsky")
 
 
 def cache_key(meta: dict[str, Any], freqs: np.ndarray) -> str:

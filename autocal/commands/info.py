@@ -10,8 +10,9 @@ def add(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "info",
         help="show version, data and cache folders",
-        description="Show the autocal version, the data folder, the Tsky "
-        "cache folder and which data-backed sky models and beams are present.",
+        description="Show the autocal version, the data folder, the cache folders "
+        "(Tsky harmonics, compiled fit kernels, parsed IERS table) and which data-backed "
+        "sky models and beams are present.",
     )
     p.set_defaults(func=run)
 
@@ -19,13 +20,18 @@ def add(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
     from autocal import __version__
+    from autocal.fit import kernel_cache_dir
     from autocal.io import datasets
+    from autocal.offline import iers_cache_file
     from autocal.tsky_cache import cache_dir
 
     root = datasets.data_dir()
     print(f"autocal {__version__}")
     print(f"data folder:  {root or 'not found (set AUTOCAL_DATA_DIR)'}")
     print(f"Tsky cache:   {cache_dir() or 'disabled'}")
+    print(f"fit kernels:  {kernel_cache_dir() or 'not cached'}")
+    iers_file = iers_cache_file()
+    print(f"IERS table:   {iers_file.parent if iers_file else 'not cached'}")
     files = {
         "gsm2008 sky": datasets.GSM2008_FILE,
         "hera beam": datasets.HERA_BEAM_FILE,
