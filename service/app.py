@@ -21,6 +21,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from autocal.service.routers import (
@@ -107,7 +108,25 @@ async def _http_error(request: Request, exc: Exception) -> JSONResponse:
     errors = getattr(exc, "errors", None)
     if errors:
         body["errors"] = errors
-    return JSONResponse(body, status_code=exc.status_code, headers=exc.headers)
+    headers = dict(exc.headers or {})
+    if exc.status_code == 405:
+        headers["Allow"] = _allowed_methods(request)
+        body["detail"] = f"method {request.method} not allowed here; use {headers['Allow']}"
+    return JSONResponse(body, status_code=exc.status_code, headers=headers)
+
+
+def _allowed_methods(request: Request) -> str:
+    """Return every method of the routes at the request's path, for a 405's ``Allow``.
+
+    Starlette lists only the first route's methods, but ``/jobs`` is two routes (``GET``
+    and ``POST``); RFC 9110 asks for all of them.
+    """
+    methods: set[str] = set()
+    for route in request.app.state.api_routes:
+        match, _ = route.matches(request.scope)
+        if match != Match.NONE:
+            methods |= set(getattr(route, "methods", None) or ())
+    return ", ".join(sorted(methods))
 
 
 def create_app(settings: Settings | None = None, store: JobStore | None = None) -> FastAPI:
@@ -151,6 +170,8 @@ def create_app(settings: Settings | None = None, store: JobStore | None = None) 
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_middleware(CatchAllMiddleware)
-    for module in (jobs, uploads, nightly, health):
+    modules = (jobs, uploads, nightly, health)
+    for module in modules:
         app.include_router(module.router)
+    app.state.api_routes = [route for module in modules for route in module.router.routes]
     return app

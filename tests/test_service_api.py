@@ -19,7 +19,13 @@ import uvicorn
 from hypothesis import HealthCheck, given
 from hypothesis import settings as hypothesis_settings
 from schemathesis import GenerationMode
-from schemathesis.checks import not_a_server_error
+from schemathesis.checks import (
+    content_type_conformance,
+    not_a_server_error,
+    response_headers_conformance,
+    response_schema_conformance,
+    status_code_conformance,
+)
 
 import autocal
 from autocal.service.app import create_app
@@ -163,6 +169,36 @@ def test_unknown_job_is_404_with_message(client: TestClient) -> None:
         response = client.request(method, url, headers=AUTH)
         assert response.status_code == 404, url
         assert "no job 'nope'" in response.json()["detail"]
+
+
+def test_a_wrong_method_is_405_listing_every_method_of_the_resource(client: TestClient) -> None:
+    for method, url, allowed in [
+        ("OPTIONS", "/jobs", "GET, POST"),  # two routes share the path
+        ("DELETE", "/jobs/nope", "GET"),
+        ("GET", "/jobs/nope/cancel", "POST"),
+        ("GET", "/uploads", "POST"),
+        ("PUT", "/health", "GET"),
+    ]:
+        response = client.request(method, url, headers=AUTH)
+        assert response.status_code == 405, (method, url)
+        assert response.headers["allow"] == allowed, (method, url)
+        assert response.json()["detail"] == f"method {method} not allowed here; use {allowed}"
+
+
+def test_every_error_answer_is_documented_as_the_error_body(settings: Settings) -> None:
+    """Generated clients parse errors by the schema: it must be the body the API sends."""
+    spec = create_app(settings).openapi()
+    for path, item in spec["paths"].items():
+        for method, operation in item.items():
+            for code, response in operation["responses"].items():
+                if code[0] in "45" and path != "/health":  # /health answers 503 with Health
+                    schema = response["content"]["application/json"]["schema"]
+                    assert schema == {"$ref": "#/components/schemas/ErrorBody"}, (
+                        method,
+                        path,
+                        code,
+                    )
+    assert "HTTPValidationError" not in spec["components"]["schemas"]
 
 
 # authentication -------------------------------------------------------------------------
@@ -547,6 +583,17 @@ OPERATIONS = [
 ]
 
 
+#: Every answer: no server error, a documented status code, and a body, media type and
+#: headers as documented for that status (what generated clients rely on).
+CHECKS = [
+    not_a_server_error,
+    status_code_conformance,
+    content_type_conformance,
+    response_schema_conformance,
+    response_headers_conformance,
+]
+
+
 def _schema(tmp_path: Path, data: Path) -> object:
     app = create_app(_settings(tmp_path, data, max_upload_bytes=10_000))
     return schemathesis.openapi.from_asgi("/openapi.json", app)
@@ -580,7 +627,7 @@ def test_fuzzed_operations_cover_the_schema(tmp_path: Path, data: Path) -> None:
         if path != "/health" or mode == GenerationMode.POSITIVE  # nothing to get wrong
     ],
 )
-def test_api_never_answers_a_server_error(
+def test_api_answers_as_documented_and_never_with_a_server_error(
     tmp_path: Path, data: Path, method: str, path: str, mode: GenerationMode
 ) -> None:
     operation = _schema(tmp_path, data)[path][method]
@@ -593,7 +640,7 @@ def test_api_never_answers_a_server_error(
         max_examples=25, deadline=None, suppress_health_check=list(HealthCheck), database=None
     )
     def check(case: schemathesis.Case) -> None:
-        case.call_and_validate(headers=AUTH, checks=[not_a_server_error])
+        case.call_and_validate(headers=AUTH, checks=CHECKS)
 
     check()
 

@@ -471,7 +471,7 @@ def get_job(
     status_code=202,
     response_model=JobDetail,
     dependencies=[Depends(require_token)],
-    responses=_errors(401, 404, 409, 503),
+    responses=_errors(401, 404, 409, 422, 503),
 )
 def cancel_job(job_id: JobId, store: StoreDep) -> JobDetail:
     """Cancel a queued job at once, or ask the worker of a running job to stop."""
