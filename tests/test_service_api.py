@@ -645,6 +645,54 @@ def test_api_answers_as_documented_and_never_with_a_server_error(
     check()
 
 
+def test_job_links_lead_to_the_operations_on_the_new_job(settings: Settings) -> None:
+    spec = create_app(settings).openapi()
+    links = spec["paths"]["/jobs"]["post"]["responses"]["202"]["links"]
+    targets = set()
+    for link in links.values():
+        assert link["parameters"] == {"job_id": "$response.body#/id"}
+        _, _, pointer = link["operationRef"].partition("#/paths/")
+        path, method = pointer.replace("~1", "/").rsplit("/", 1)
+        assert "job_id" in {p["name"] for p in spec["paths"][path][method]["parameters"]}
+        targets.add((method.upper(), path))
+    assert targets == {
+        ("GET", "/jobs/{job_id}"),
+        ("POST", "/jobs/{job_id}/cancel"),
+        ("GET", "/jobs/{job_id}/results"),
+    }
+
+
+def test_sequences_of_calls_on_a_job_answer_as_documented(tmp_path: Path, data: Path) -> None:
+    """Stateful: submit, then follow the links (get, cancel, results) in random orders."""
+    machine = _schema(tmp_path, data).as_state_machine()
+    seen: set[tuple[str, str, int]] = set()
+
+    class Steered(machine):  # type: ignore[misc, valid-type]
+        def before_call(self, case: schemathesis.Case) -> None:
+            _steer(case)
+
+        def get_call_kwargs(self, case: schemathesis.Case) -> dict[str, object]:
+            return {"headers": AUTH}
+
+        def validate_response(self, response, case, **kwargs):  # type: ignore[no-untyped-def]
+            seen.add((case.method.upper(), case.path, response.status_code))
+            case.validate_response(response, checks=CHECKS)
+
+    Steered.run(
+        settings=hypothesis_settings(
+            max_examples=30,
+            stateful_step_count=6,
+            deadline=None,
+            suppress_health_check=list(HealthCheck),
+            database=None,
+        )
+    )
+    # the links were followed to an existing job: a 200 of GET /jobs/{id} and a 409 of its
+    # results (the job never runs here), not only 404s of made-up ids
+    assert ("GET", "/jobs/{job_id}", 200) in seen
+    assert ("GET", "/jobs/{job_id}/results", 409) in seen
+
+
 # nightly --------------------------------------------------------------------------------
 
 

@@ -385,12 +385,28 @@ def _diagnosis_results(settings: Settings, job: dict[str, Any]) -> DiagnosisResu
 # endpoints ------------------------------------------------------------------------------
 
 
+#: OpenAPI links of a queued job (``POST /jobs`` -> the operations on its ``id``): Swagger UI
+#: shows them and schemathesis follows them in its stateful tests.
+_JOB_LINKS = {
+    name: {
+        "operationRef": f"#/paths/~1jobs~1{{job_id}}{suffix}",
+        "parameters": {"job_id": "$response.body#/id"},
+        "description": text,
+    }
+    for name, suffix, text in (
+        ("GetJob", "/get", "the job's state, progress and products"),
+        ("CancelJob", "~1cancel/post", "cancel the job"),
+        ("JobResults", "~1results/get", "the job's results once it succeeded"),
+    )
+}
+
+
 @router.post(
     "",
     status_code=202,
     response_model=JobAccepted,
     dependencies=[Depends(require_token)],
-    responses=_errors(400, 401, 403, 422, 503),
+    responses={202: {"links": _JOB_LINKS}, **_errors(400, 401, 403, 422, 503)},
 )
 def create_job(
     body: JobCreate, response: Response, store: StoreDep, settings: SettingsDep
