@@ -103,6 +103,12 @@ class ErrorBody(BaseModel):
 # requests -------------------------------------------------------------------------------
 
 
+#: HEALPix resolutions of Tsky the service takes; the schema lists them as an ``enum`` (so
+#: forms and generated clients offer them) while the validator names a wrong one.
+NSIDES = tuple(2**k for k in range(1, 11))
+Nside = Annotated[int, Field(ge=2, le=1024, json_schema_extra={"enum": list(NSIDES)})]
+
+
 class CalibrationOptions(BaseModel):
     """Calibration settings; omitted ones take the :class:`CalibrationConfig` defaults."""
 
@@ -132,7 +138,7 @@ class CalibrationOptions(BaseModel):
         None, max_length=1000, description="reference gains (calfits/calh5) to compare with"
     )
     tgnd_k: float | None = Field(None, ge=0.0, le=10_000.0, description="ground temperature K")
-    nside: int | None = Field(None, ge=2, le=1024, description="HEALPix nside, power of two")
+    nside: Nside | None = Field(None, description="HEALPix nside, a power of two")
     input_format: Literal["auto", "uvh5", "miriad", "edges"] | None = None
     edges_r: Literal["q", "p0"] | None = Field(
         None, description="EDGES: fit Q = (p0 - p1)/(p2 - p1) or the raw antenna power p0"

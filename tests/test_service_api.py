@@ -289,6 +289,12 @@ def test_unknown_fields_and_bad_values_are_422_naming_the_field(client: TestClie
     fields = {e["field"] for e in several.json()["errors"]}
     assert {"body.model", "body.nside", "body.order", "body.pols.0"} <= fields
     assert "power of two" in several.json()["detail"]
+    # the schema lists the nsides it takes, so forms and generated clients offer only those
+    nside = client.get("/openapi.json").json()["components"]["schemas"]["JobCreate"]
+    nside = nside["properties"]["nside"]["anyOf"][0]
+    assert nside["enum"] == [2**k for k in range(1, 11)]
+    for good in nside["enum"]:
+        assert "body.nside" not in str(_submit(client, nside=good).json())
 
     for body_extra, word in [
         ({"kind": "teleport"}, "kind"),
