@@ -117,7 +117,8 @@ def install_iers_table() -> None:
     :data:`astropy.utils.iers.earth_orientation_table`, astropy's documented way to choose
     the table of a session, so later processes load it in ~10 ms. The table is the one
     astropy would build, so times and coordinates are unchanged. An unreadable entry is
-    replaced; an unwritable cache folder only costs the parse.
+    replaced; an unwritable cache folder only costs the parse. Loading a pickle runs code,
+    so the folder must be writable only by its user (as numba's cache of the fit kernels).
     """
     from astropy.utils import iers
 
