@@ -118,7 +118,8 @@ def install_iers_table() -> None:
     the table of a session, so later processes load it in ~10 ms. The table is the one
     astropy would build, so times and coordinates are unchanged. An unreadable entry is
     replaced; an unwritable cache folder only costs the parse. Loading a pickle runs code,
-    so the folder must be writable only by its user (as numba's cache of the fit kernels).
+    so an entry or folder owned by another user or writable by everyone is not loaded (a
+    warning says so and the text tables are parsed instead).
     """
     from astropy.utils import iers
 
@@ -127,11 +128,14 @@ def install_iers_table() -> None:
         return
     table = None
     try:
+        untrusted = _writable_by_others(path)
+        if untrusted:
+            raise PermissionError(f"{untrusted} is writable by other users; not loading it")
         data: bytes | None = path.read_bytes()
     except FileNotFoundError:
         data = None
     except OSError as err:  # e.g. the folder's parent is a file: parse, don't cache
-        logger.info("not using the IERS table cache %s: %s", path, err)
+        logger.warning("not using the IERS table cache %s: %s", path, err)
         iers.earth_orientation_table.set(iers.IERS_Auto.open())
         return
     if data is not None:
@@ -146,6 +150,22 @@ def install_iers_table() -> None:
         table = iers.IERS_Auto.open()
         _store_iers_table(path, table)
     iers.earth_orientation_table.set(table)
+
+
+def _writable_by_others(path: Path) -> Path | None:
+    """Return the entry or its folder if another user could have written it, else ``None``.
+
+    Trusted: owned by this user or root and not writable by everyone. (A group-writable
+    folder is the administrator's choice, e.g. one cache for a service's workers.)
+    """
+    for item in (path.parent, path):
+        try:
+            stat = item.stat()
+        except FileNotFoundError:
+            return None
+        if stat.st_uid not in (os.getuid(), 0) or stat.st_mode & 0o002:
+            return item
+    return None
 
 
 def _store_iers_table(path: Path, table: Any) -> None:

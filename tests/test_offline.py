@@ -150,6 +150,27 @@ def test_an_unusable_cache_folder_only_costs_the_parse(
     assert list(iers_cache.iterdir()) == []  # no entry, no temporary file left
 
 
+def test_an_entry_others_could_have_written_is_not_loaded(
+    iers_cache: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    install_iers_table()
+    path = iers_cache_file()
+    assert path is not None and path.is_file()
+    sentinel = iers.IERS_Auto.read()
+    monkeypatch.setattr(iers.IERS_Auto, "open", classmethod(lambda cls: sentinel))
+    for item in (iers_cache, path):
+        mode = item.stat().st_mode
+        item.chmod(mode | 0o002)  # writable by everyone
+        with caplog.at_level(logging.WARNING, logger="autocal.offline"):
+            install_iers_table()
+        assert "writable by other users" in caplog.text
+        assert iers.earth_orientation_table.get() is sentinel  # parsed, not unpickled
+        item.chmod(mode)
+        caplog.clear()
+    install_iers_table()
+    assert iers.earth_orientation_table.get() is not sentinel  # trusted again: loaded
+
+
 def test_importing_autocal_installs_the_cached_table(tmp_path: Path) -> None:
     """A new process with a warm cache converts times without parsing the text files."""
     script = (
