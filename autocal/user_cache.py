@@ -38,12 +38,16 @@ def user_cache_dir(variable: str, name: str) -> Path | None:
     Returns
     -------
     Path or None
-        The folder (not created here).
+        The folder (not created here); also ``None`` when the default is wanted but there
+        is no home folder to put it in (the XDG rule: a relative ``XDG_CACHE_HOME`` is
+        ignored), rather than a ``~`` folder in the working directory.
     """
     value = os.environ.get(variable, "").strip()
     if value.lower() in OFF_VALUES:
         return None
     if value:
         return Path(value).expanduser()
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "autocal" / name
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    if not base.is_absolute():  # no home folder (HOME unset, no passwd entry): no cache
+        return None
+    return base / "autocal" / name

@@ -195,3 +195,22 @@ def test_importing_autocal_installs_the_cached_table(tmp_path: Path) -> None:
     )
     assert warm.returncode == 0, warm.stderr
     assert warm.stdout == cold.stdout
+
+
+def test_cache_folders_follow_the_variables_and_xdg(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv("AUTOCAL_IERS_CACHE", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert user_cache_dir("AUTOCAL_IERS_CACHE", "iers") == tmp_path / "xdg" / "autocal" / "iers"
+    monkeypatch.setenv("AUTOCAL_IERS_CACHE", " OFF ")
+    assert user_cache_dir("AUTOCAL_IERS_CACHE", "iers") is None
+    monkeypatch.setenv("AUTOCAL_IERS_CACHE", str(tmp_path / "mine"))
+    assert user_cache_dir("AUTOCAL_IERS_CACHE", "iers") == tmp_path / "mine"
+    # no home folder: no default cache, rather than a "~" folder in the working directory
+    monkeypatch.delenv("AUTOCAL_IERS_CACHE")
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    monkeypatch.setattr(Path, "home", classmethod(lambda cls: Path("~")))
+    assert user_cache_dir("AUTOCAL_IERS_CACHE", "iers") is None
+    monkeypatch.setenv("XDG_CACHE_HOME", "relative/cache")
+    assert user_cache_dir("AUTOCAL_IERS_CACHE", "iers") is None
