@@ -19,7 +19,14 @@ from datetime import datetime
 from typing import Annotated, Any, Literal
 
 from fastapi import HTTPException
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StringConstraints,
+    field_validator,
+)
 
 PathText = Annotated[str, StringConstraints(min_length=1, max_length=4096)]
 
@@ -149,7 +156,7 @@ class CalibrationOptions(BaseModel):
     passes: Literal["auto", 1, 2] | None = Field(
         None, description="radiometer weighting passes (auto: 2 only when data weights bias G)"
     )
-    inflate_errors: bool | None = Field(
+    inflate_errors: StrictBool | None = Field(
         None, description="radiometer weights: scale each channel's covariance by chi2/dof > 1"
     )
 
@@ -212,6 +219,10 @@ class JobCreate(DiagnoseOptions, CalibrationOptions):
 
     model_config = ConfigDict(
         json_schema_extra={
+            # what misplaced() refuses, in the schema: the other kind's options only as null
+            "if": {"properties": {"kind": {"const": "diagnose"}}, "required": ["kind"]},
+            "then": {"properties": {name: {"type": "null"} for name in sorted(CALIBRATE_ONLY)}},
+            "else": {"properties": {name: {"type": "null"} for name in sorted(DIAGNOSE_ONLY)}},
             "examples": [
                 {
                     "inputs": [
@@ -231,7 +242,7 @@ class JobCreate(DiagnoseOptions, CalibrationOptions):
                     "trxr_prior_k": 150,
                     "trxr_prior_sigma_k": 10,
                 },
-            ]
+            ],
         }
     )
 
@@ -245,7 +256,7 @@ class JobCreate(DiagnoseOptions, CalibrationOptions):
         description="under the data roots, or upload ids: UVH5 files / Miriad folders "
         "(calibrate), UVH5 files (diagnose)",
     )
-    force: bool = Field(False, description="submit even if an identical job exists")
+    force: StrictBool = Field(False, description="submit even if an identical job exists")
 
     def given(self) -> dict[str, Any]:
         """Return every option that was given (``None`` = default), of either kind."""
@@ -269,7 +280,7 @@ class NightlyCreate(CalibrationOptions):
         None, ge=2_000_000, le=3_000_000, description="integer Julian date of the night"
     )
     folder: PathText | None = Field(None, description="folder under the data roots to scan")
-    force: bool = Field(False, description="resubmit observations that already have a job")
+    force: StrictBool = Field(False, description="resubmit observations that already have a job")
 
 
 # responses ------------------------------------------------------------------------------

@@ -13,6 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
+import jsonschema_rs
 import pytest
 import schemathesis
 import uvicorn
@@ -185,6 +186,27 @@ def test_a_wrong_method_is_405_listing_every_method_of_the_resource(client: Test
         assert response.json()["detail"] == f"method {method} not allowed here; use {allowed}"
 
 
+def test_the_schema_states_which_options_each_kind_takes(client: TestClient) -> None:
+    """The schema's if/then/else and the server refuse the same misplaced options."""
+    spec = client.get("/openapi.json").json()
+    validator = jsonschema_rs.Draft202012Validator(
+        {"$ref": "#/components/schemas/JobCreate", "components": spec["components"]}
+    )
+    for extra, ok in [
+        ({}, True),
+        ({"alpha": 0.01}, False),  # a diagnose option in a calibration
+        ({"alpha": None, "model": "constant"}, True),
+        ({"kind": "diagnose", "alpha": 0.01, "max_steps": 2}, True),
+        ({"kind": "diagnose", "model": "constant"}, False),  # a calibrate option
+        ({"kind": "diagnose", "reference": None}, True),
+        ({"kind": "calibrate", "max_steps": 3}, False),
+    ]:
+        body = {"inputs": [HH], **extra}
+        assert validator.is_valid(body) is ok, extra
+        response = _submit(client, **body)
+        assert response.status_code == (202 if ok else 422), (extra, response.json())
+
+
 def test_every_error_answer_is_documented_as_the_error_body(settings: Settings) -> None:
     """Generated clients parse errors by the schema: it must be the body the API sends."""
     spec = create_app(settings).openapi()
@@ -302,6 +324,8 @@ def test_unknown_fields_and_bad_values_are_422_naming_the_field(client: TestClie
         ({"sky": "gsm2099"}, "gsm2099"),
         ({"lst_range_h": [0, 30]}, "lst_range_h"),
         ({"tgnd_k": -1}, "tgnd_k"),
+        ({"force": 0}, "force"),  # booleans are JSON booleans, as the schema says
+        ({"inflate_errors": "yes"}, "inflate_errors"),
     ]:
         bad = _submit(client, **body_extra)
         assert bad.status_code == 422, body_extra
