@@ -130,7 +130,9 @@ def install_iers_table() -> None:
     try:
         untrusted = _writable_by_others(path)
         if untrusted:
-            raise PermissionError(f"{untrusted} is writable by other users; not loading it")
+            raise PermissionError(
+                f"{untrusted} is owned by another user or writable by everyone; not loading it"
+            )
         data: bytes | None = path.read_bytes()
     except FileNotFoundError:
         data = None
