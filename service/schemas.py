@@ -21,14 +21,40 @@ from typing import Annotated, Any, Literal
 from fastapi import HTTPException
 from pydantic import (
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
+    Strict,
     StrictBool,
     StringConstraints,
     field_validator,
 )
 
 PathText = Annotated[str, StringConstraints(min_length=1, max_length=4096)]
+
+
+def _json_integer(value: Any) -> Any:
+    if isinstance(value, bool | str):
+        raise ValueError("must be a JSON integer, not a boolean or a string")
+    return value
+
+
+def _not_boolean(value: Any) -> Any:
+    if isinstance(value, bool):
+        raise ValueError("must not be a boolean")
+    return value
+
+
+#: Numbers and integers as the schema states them: pydantic's lax mode would read ``false``
+#: as 0 and ``"300"`` as 300; an integral number such as 2.0 stays a valid integer. (The
+#: integer's limits come before the check so that the schema keeps them.)
+Number = Annotated[float, Strict()]
+_INTEGER = BeforeValidator(_json_integer)
+AntennaNumber = Annotated[int, Field(ge=0, le=1_000_000), _INTEGER]
+Order = Annotated[int, Field(ge=0, le=10), _INTEGER]
+EdgesBin = Annotated[int, Field(ge=1, le=65536), _INTEGER]
+MaxSteps = Annotated[int, Field(ge=0, le=50), _INTEGER]
+NightJD = Annotated[int, Field(ge=2_000_000, le=3_000_000), _INTEGER]
 
 #: The job kinds the API accepts.
 JobKind = Literal["calibrate", "diagnose"]
@@ -113,7 +139,7 @@ class ErrorBody(BaseModel):
 #: HEALPix resolutions of Tsky the service takes; the schema lists them as an ``enum`` (so
 #: forms and generated clients offer them) while the validator names a wrong one.
 NSIDES = tuple(2**k for k in range(1, 11))
-Nside = Annotated[int, Field(ge=2, le=1024, json_schema_extra={"enum": list(NSIDES)})]
+Nside = Annotated[int, Field(ge=2, le=1024, json_schema_extra={"enum": list(NSIDES)}), _INTEGER]
 
 
 class CalibrationOptions(BaseModel):
@@ -130,30 +156,26 @@ class CalibrationOptions(BaseModel):
         "or a beam file under the data roots",
     )
     model: Literal["constant", "legendre"] | None = None
-    order: int | None = Field(None, ge=0, le=10, description="Legendre order")
+    order: Order | None = Field(None, description="Legendre order")
     weights: Literal["radiometer", "identity"] | None = None
-    antennas: list[Annotated[int, Field(ge=0, le=1_000_000)]] | None = Field(
-        None, max_length=10_000
-    )
+    antennas: list[AntennaNumber] | None = Field(None, max_length=10_000)
     pols: list[Literal["ee", "nn", "xx", "yy"]] | None = Field(None, max_length=4)
-    freq_range_mhz: tuple[float, float] | None = Field(None, description="(low, high) MHz")
-    lst_range_h: tuple[float, float] | None = Field(None, description="(start, stop) hours")
+    freq_range_mhz: tuple[Number, Number] | None = Field(None, description="(low, high) MHz")
+    lst_range_h: tuple[Number, Number] | None = Field(None, description="(start, stop) hours")
     products: list[Literal["calh5", "calfits", "hdf5", "png"]] | None = Field(
         None, max_length=4, description="the HDF5 product is always written (results need it)"
     )
     reference: list[PathText] | None = Field(
         None, max_length=1000, description="reference gains (calfits/calh5) to compare with"
     )
-    tgnd_k: float | None = Field(None, ge=0.0, le=10_000.0, description="ground temperature K")
+    tgnd_k: Number | None = Field(None, ge=0.0, le=10_000.0, description="ground temperature K")
     nside: Nside | None = Field(None, description="HEALPix nside, a power of two")
     input_format: Literal["auto", "uvh5", "miriad", "edges"] | None = None
     edges_r: Literal["q", "p0"] | None = Field(
         None, description="EDGES: fit Q = (p0 - p1)/(p2 - p1) or the raw antenna power p0"
     )
-    edges_bin: int | None = Field(
-        None, ge=1, le=65536, description="EDGES: native channels averaged per bin"
-    )
-    passes: Literal["auto", 1, 2] | None = Field(
+    edges_bin: EdgesBin | None = Field(None, description="EDGES: native channels averaged per bin")
+    passes: Annotated[Literal["auto", 1, 2], BeforeValidator(_not_boolean)] | None = Field(
         None, description="radiometer weighting passes (auto: 2 only when data weights bias G)"
     )
     inflate_errors: StrictBool | None = Field(
@@ -178,31 +200,43 @@ class DiagnoseOptions(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    trxr_prior_k: float | None = Field(
+    trxr_prior_k: Number | None = Field(
         None,
         gt=0.0,
         le=100_000.0,
         description="diagnose: known receiver temperature K; makes effects constant in time "
         "(sky_offset, ground_temperature, missing_cmb) and sky scalings identifiable",
     )
-    trxr_prior_sigma_k: float | None = Field(
+    trxr_prior_sigma_k: Number | None = Field(
         None, gt=0.0, le=100_000.0, description="diagnose: 1-sigma of the receiver prior K (1)"
     )
-    bic_threshold: float | None = Field(
+    bic_threshold: Number | None = Field(
         None, ge=0.0, le=1e12, description="diagnose: Delta BIC an effect must exceed (10)"
     )
-    alpha: float | None = Field(
+    alpha: Number | None = Field(
         None,
         gt=0.0,
         le=1.0,
         description="diagnose: largest chi^2 probability of an accepted effect (1e-4)",
     )
-    max_steps: int | None = Field(None, ge=0, le=50, description="diagnose: most effects (5)")
+    max_steps: MaxSteps | None = Field(None, description="diagnose: most effects (5)")
 
 
-#: Options of the request body that only ``kind: "calibrate"`` accepts.
+#: Options of the request body that only ``kind: "calibrate"`` accepts (every calibration
+#: option that :class:`autocal.diagnose_run.DiagnoseConfig` does not have; a test checks).
 CALIBRATE_ONLY = frozenset(
-    {"model", "order", "weights", "products", "reference", "input_format", "inflate_errors"}
+    {
+        "model",
+        "order",
+        "weights",
+        "passes",
+        "inflate_errors",
+        "products",
+        "reference",
+        "input_format",
+        "edges_r",
+        "edges_bin",
+    }
 )
 #: Options of the request body that only ``kind: "diagnose"`` accepts.
 DIAGNOSE_ONLY = frozenset(DiagnoseOptions.model_fields)
@@ -276,9 +310,7 @@ class NightlyCreate(CalibrationOptions):
         json_schema_extra={"examples": [{"night": 2458116, "beam": "hera", "antennas": [23]}]}
     )
 
-    night: int | None = Field(
-        None, ge=2_000_000, le=3_000_000, description="integer Julian date of the night"
-    )
+    night: NightJD | None = Field(None, description="integer Julian date of the night")
     folder: PathText | None = Field(None, description="folder under the data roots to scan")
     force: StrictBool = Field(False, description="resubmit observations that already have a job")
 

@@ -37,6 +37,7 @@ from autocal.service.nightly import (
     submit_nightly,
 )
 from autocal.service.paths import job_products_dir
+from autocal.service.schemas import CALIBRATE_ONLY, DIAGNOSE_ONLY, CalibrationOptions
 from autocal.service.settings import Settings
 from autocal.service.store import JobState, JobStore
 
@@ -188,6 +189,11 @@ def test_a_wrong_method_is_405_listing_every_method_of_the_resource(client: Test
 
 def test_the_schema_states_which_options_each_kind_takes(client: TestClient) -> None:
     """The schema's if/then/else and the server refuse the same misplaced options."""
+    from autocal.diagnose_run import DiagnoseConfig
+
+    calibrate_only = set(CalibrationOptions.model_fields) - set(DiagnoseConfig.model_fields)
+    assert calibrate_only == CALIBRATE_ONLY
+    assert set(DiagnoseConfig.model_fields) >= DIAGNOSE_ONLY
     spec = client.get("/openapi.json").json()
     validator = jsonschema_rs.Draft202012Validator(
         {"$ref": "#/components/schemas/JobCreate", "components": spec["components"]}
@@ -200,6 +206,8 @@ def test_the_schema_states_which_options_each_kind_takes(client: TestClient) -> 
         ({"kind": "diagnose", "model": "constant"}, False),  # a calibrate option
         ({"kind": "diagnose", "reference": None}, True),
         ({"kind": "calibrate", "max_steps": 3}, False),
+        ({"kind": "diagnose", "passes": 2}, False),
+        ({"kind": "diagnose", "edges_bin": 4}, False),
     ]:
         body = {"inputs": [HH], **extra}
         assert validator.is_valid(body) is ok, extra
@@ -324,12 +332,21 @@ def test_unknown_fields_and_bad_values_are_422_naming_the_field(client: TestClie
         ({"sky": "gsm2099"}, "gsm2099"),
         ({"lst_range_h": [0, 30]}, "lst_range_h"),
         ({"tgnd_k": -1}, "tgnd_k"),
-        ({"force": 0}, "force"),  # booleans are JSON booleans, as the schema says
+        # types as the schema states them (pydantic's lax mode would coerce these)
+        ({"force": 0}, "force"),
         ({"inflate_errors": "yes"}, "inflate_errors"),
+        ({"tgnd_k": False}, "tgnd_k"),
+        ({"freq_range_mhz": ["110", 190]}, "freq_range_mhz"),
+        ({"antennas": [True]}, "antennas"),
+        ({"order": "2", "model": "legendre"}, "order"),
+        ({"passes": True}, "passes"),
+        ({"kind": "diagnose", "max_steps": "3"}, "max_steps"),
     ]:
         bad = _submit(client, **body_extra)
         assert bad.status_code == 422, body_extra
         assert word in bad.json()["detail"], (body_extra, bad.json())
+    integral = _submit(client, antennas=[23.0], tgnd_k=300, model="legendre", order=1.0)
+    assert integral.status_code == 202, integral.json()  # 23.0 is a JSON integer
     not_json = client.post(
         "/jobs", content=b"{not json", headers={**AUTH, "content-type": "application/json"}
     )
