@@ -56,6 +56,13 @@ ALPHA = 1e-4
 _OUTLIER_ROUNDS = 3
 #: Fraction of a template's Fisher information that must survive the (G, n) projection.
 MIN_IDENTIFIABLE = 1e-6
+#: Fisher fractions below this are rounding error (``h`` is a difference of sums of squares,
+#: :func:`projected_normal_equations`): reported as 0, degenerate with ``(G, n)``.
+IDENTIFIABLE_RESOLUTION = 1e-12
+#: Smallest singular value (relative) of the scaled normal matrix that is inverted ...
+PINV_RTOL = 1e-15
+#: ... or this many times its rounding error, if larger (:func:`projected_normal_equations`).
+ROUNDING_MARGIN = 100.0
 
 
 class DiagnoseError(ValueError):
@@ -107,7 +114,8 @@ class ExtendedFit:
     residuals
         Normalised residuals ``(R - model) sqrt(w)``.
     identifiable
-        ``{effect name: fraction of Fisher information left after the (G, n) projection}``.
+        ``{effect name: fraction of Fisher information left after the (G, n) projection}``
+        (0 below :data:`IDENTIFIABLE_RESOLUTION`: degenerate with ``(G, n)``).
     iterations
         Gauss-Newton iterations used.
     """
@@ -295,53 +303,33 @@ def fit_extended(
         for it in range(1, max_iter + 1):
             if nfree == 0:
                 break
-            g, nn, inv, a1, a2 = st.g, st.nn, st.inv, st.a1, st.a2
-            # Jacobian of the model w.r.t. the free globals: (A, P, F, T, K)
-            jac = np.zeros((*y.shape, nfree))
-            for eff, sl in blocks:
-                if sl.stop == sl.start:
-                    continue
-                v = p[sl]
-                if eff.kind == "tsky":
-                    dj = np.swapaxes(eff.jacobian(v, tpl), 1, 2)[None]  # (1, P, F, T, k)
-                    jac[..., sl] = g[..., None, None] * st.gfac[:, None] * dj
-                elif eff.kind == "gain":
-                    base_model = g[..., None] * st.tt + (nn[..., None] * st.nfac)
-                    jac[..., sl] = base_model[..., None] * bases[eff.basis, eff.order].T
-                else:
-                    jac[..., sl] = (nn[..., None, None] * st.gfac[:, None]) * bases[
-                        eff.basis, eff.order
-                    ].T
-            # sums over time as batched matrix products (BLAS): (A, P, F, K, T) @ (.., T)
-            wa1, wa2 = (w * a1)[..., None, :], (w * a2)[..., None, :]
-            jac_t = np.swapaxes(jac, -1, -2)  # (A, P, F, K, T) view
-            c1 = np.matmul(wa1, jac)[..., 0, :]  # (A, P, F, K)
-            c2 = np.matmul(wa2, jac)[..., 0, :]
-            k1 = inv[0][..., None] * c1 + inv[1][..., None] * c2
-            k2 = inv[1][..., None] * c1 + inv[2][..., None] * c2
-            jp = jac - a1[..., None] * k1[..., None, :] - a2[..., None] * k2[..., None, :]
-            jprior = -(-t0[..., None] * k1 + k2)  # projected prior row (A, P, F, K)
-            jp2 = jp.reshape(-1, nfree)
-            wjp2 = (w[..., None] * jp).reshape(-1, nfree)
-            h = wjp2.T @ jp2
-            h += (wp[..., None] * jprior).reshape(-1, nfree).T @ jprior.reshape(-1, nfree)
-            grad = wjp2.T @ st.r.reshape(-1)
-            grad += (wp[..., None] * jprior).reshape(-1, nfree).T @ st.rp.reshape(-1)
+            factors = _jacobian_factors(blocks, p, tpl, bases, st.g, st.nn, st.tt, st.gfac, st.nfac)
+            # A^T W r per channel (data and prior rows): ~0 at the channel solution
+            q1 = (w * st.a1 * st.r).sum(-1) - wp * t0 * st.rp
+            q2 = (w * st.a2 * st.r).sum(-1) + wp * st.rp
+            h, grad, raw = projected_normal_equations(
+                factors, w, w * st.a1, w * st.a2, st.inv, st.r, q1, q2, nfree
+            )
             if not (np.all(np.isfinite(h)) and np.all(np.isfinite(grad))):
                 raise DiagnoseError("non-finite normal equations for the global parameters")
             if it == 1:
-                raw = np.einsum("apfkt,apfkt->k", w[..., None, :] * jac_t, jac_t)
                 for eff, sl in blocks:
                     if sl.stop > sl.start:
-                        ident[eff.name] = float(
+                        frac = float(
                             np.min(np.diag(h)[sl] / np.where(raw[sl] > 0, raw[sl], np.inf))
                         )
+                        ident[eff.name] = frac if frac >= IDENTIFIABLE_RESOLUTION else 0.0
                 if any(ident.get(e.name, 1.0) < MIN_IDENTIFIABLE for e, _ in blocks):
                     cov = np.full((nfree, nfree), np.inf)
                     break
-            # scale to unit diagonal before the pseudo-inverse (parameters differ by 1e6)
-            dscale = 1.0 / np.sqrt(np.where(np.diag(h) > 0, np.diag(h), 1.0))
-            cov = dscale[:, None] * np.linalg.pinv(dscale[:, None] * h * dscale) * dscale
+            # scale to unit diagonal before the pseudo-inverse (parameters differ by 1e6);
+            # h is J^T W J less the (G, n) part, so its rounding error is ~eps * raw / diag(h)
+            # of the scaled matrix: directions below that are left out, not inverted
+            hdiag = np.diag(h)
+            dscale = 1.0 / np.sqrt(np.where(hdiag > 0, hdiag, 1.0))
+            lost = np.max(np.where(hdiag > 0, raw * dscale**2, 1.0))  # raw / projected
+            rtol = max(PINV_RTOL, ROUNDING_MARGIN * np.finfo(float).eps * lost)
+            cov = dscale[:, None] * np.linalg.pinv(dscale[:, None] * h * dscale, rtol=rtol) * dscale
             step = cov @ grad
             sig = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
             # damped Gauss-Newton: halve the step until chi^2 does not increase
@@ -388,6 +376,134 @@ def fit_extended(
         identifiable=ident,
         iterations=it,
     )
+
+
+# normal equations of the global parameters ------------------------------------------------
+#
+# The model's derivative with respect to each effect's parameters factorises into a part
+# that depends on the antenna and a part that does not: J[a, p, f, t, k] = X[a, p, f, t] *
+# Y[p, f, t, k], with Y = the time basis (gain and noise drifts; no p, f dependence) or the
+# Tsky template's derivative (shared by all antennas). The Gauss-Newton normal matrix with
+# the per-channel (G, n) projected out (variable projection) is
+#     h = J^T W J - sum over channels of (c1 k1^T + c2 k2^T),
+#     c_i = sum_t w a_i J,  (k1, k2) = N^-1 (c1, c2),  N the channel's 2 x 2 normal matrix,
+# so only J^T W J (antennas summed first, then the small bases), the c_i (one matrix product
+# per effect over time) and K x K products are needed: never the (samples x K) Jacobian,
+# which took most of a diagnosis's time and ~8 bytes x samples x K of memory.
+
+
+def _jacobian_factors(
+    blocks: list[tuple[Effect, slice]],
+    p: np.ndarray,
+    tpl: SkyTemplates,
+    bases: dict[tuple[str, int], np.ndarray],
+    g: np.ndarray,
+    nn: np.ndarray,
+    tt: np.ndarray,
+    gfac: np.ndarray,
+    nfac: np.ndarray,
+) -> list[tuple[slice, np.ndarray, np.ndarray]]:
+    """Return ``(slice, X, Y)`` for each block of free parameters (see above).
+
+    ``X`` broadcasts to ``(A, P, F, T)``; ``Y`` is ``(P, F, T, k)`` for Tsky effects and
+    ``(1, 1, T, k)`` for gain and noise drifts. ``g``, ``nn``: ``(A, P, F)``; ``tt``: Tsky
+    ``(1, P, F, T)``; ``gfac``, ``nfac``: the drift factors ``(T,)``.
+    """
+    out = []
+    for eff, sl in blocks:
+        if sl.stop == sl.start:
+            continue
+        if eff.kind == "tsky":
+            x = g[..., None] * gfac
+            ymat = np.swapaxes(eff.jacobian(p[sl], tpl), 1, 2)
+        elif eff.kind == "gain":
+            x = g[..., None] * tt + nn[..., None] * nfac
+            ymat = bases[eff.basis, eff.order].T[None, None]
+        else:
+            x = nn[..., None] * gfac
+            ymat = bases[eff.basis, eff.order].T[None, None]
+        out.append((sl, x, ymat))
+    return out
+
+
+def _sum_time(v: np.ndarray, ymat: np.ndarray) -> np.ndarray:
+    """``sum_t v[a, p, f, t] Y[p, f, t, k]`` -> ``(A, P, F, k)``."""
+    if ymat.shape[:2] == (1, 1):
+        return (v.reshape(-1, v.shape[-1]) @ ymat[0, 0]).reshape(*v.shape[:3], -1)
+    return np.matmul(v[..., None, :], ymat)[..., 0, :]
+
+
+def _sum_all(z: np.ndarray, ymat: np.ndarray) -> np.ndarray:
+    """``sum_{p, f, t} z[p, f, t] Y[p, f, t, k]`` -> ``(k,)``."""
+    if ymat.shape[:2] == (1, 1):
+        return z.sum(axis=(0, 1)) @ ymat[0, 0]
+    return np.einsum("pft,pftk->k", z, ymat)
+
+
+def _sum_pair(z: np.ndarray, y1: np.ndarray, y2: np.ndarray) -> np.ndarray:
+    """``sum_{p, f, t} z Y1[..., k] Y2[..., l]`` -> ``(k, l)``."""
+    if y1.shape[:2] == (1, 1) and y2.shape[:2] == (1, 1):
+        return (y1[0, 0].T * z.sum(axis=(0, 1))) @ y2[0, 0]
+    b1 = np.broadcast_to(y1, (*z.shape, y1.shape[-1])).reshape(-1, y1.shape[-1])
+    b2 = np.broadcast_to(y2, (*z.shape, y2.shape[-1])).reshape(-1, y2.shape[-1])
+    return (z.reshape(-1, 1) * b1).T @ b2
+
+
+def projected_normal_equations(
+    factors: list[tuple[slice, np.ndarray, np.ndarray]],
+    w: np.ndarray,
+    wa1: np.ndarray,
+    wa2: np.ndarray,
+    inv: np.ndarray,
+    r: np.ndarray,
+    q1: np.ndarray,
+    q2: np.ndarray,
+    nfree: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gauss-Newton normal equations of the global parameters, ``(G, n)`` projected out.
+
+    Parameters
+    ----------
+    factors
+        :func:`_jacobian_factors` of the free parameters.
+    w, wa1, wa2
+        ``(A, P, F, T)`` weights and the weighted ``(G, n)`` columns ``w a1``, ``w a2``.
+    inv
+        ``(3, A, P, F)`` inverse of each channel's 2 x 2 normal matrix (``[0, 0]``,
+        ``[0, 1]``, ``[1, 1]``; zero for channels without a solution).
+    r
+        ``(A, P, F, T)`` residuals.
+    q1, q2
+        ``(A, P, F)`` ``A^T W r`` of each channel (data and prior rows).
+    nfree
+        Number of free global parameters.
+
+    Returns
+    -------
+    h, grad, raw
+        ``(K, K)`` normal matrix and ``(K,)`` gradient of the projected problem (those the
+        projected Jacobian ``J - a1 k1 - a2 k2`` gives, with the prior rows), and the
+        diagonal of ``J^T W J`` before the projection (identifiability).
+    """
+    jwj = np.zeros((nfree, nfree))
+    grad = np.zeros(nfree)
+    c1 = np.zeros((*w.shape[:3], nfree))
+    c2 = np.zeros_like(c1)
+    for i, (sl, x, ymat) in enumerate(factors):
+        wx = w * x
+        c1[..., sl] = _sum_time(wa1 * x, ymat)
+        c2[..., sl] = _sum_time(wa2 * x, ymat)
+        grad[sl] = _sum_all((wx * r).sum(axis=0), ymat)
+        for sl2, x2, y2 in factors[i:]:
+            block = _sum_pair(np.broadcast_to(wx * x2, w.shape).sum(axis=0), ymat, y2)
+            jwj[sl, sl2] = block
+            jwj[sl2, sl] = block.T
+    k1 = inv[0][..., None] * c1 + inv[1][..., None] * c2
+    k2 = inv[1][..., None] * c1 + inv[2][..., None] * c2
+    c1, c2, k1, k2 = (a.reshape(-1, nfree) for a in (c1, c2, k1, k2))
+    h = jwj - c1.T @ k1 - c2.T @ k2
+    grad -= k1.T @ q1.reshape(-1) + k2.T @ q2.reshape(-1)
+    return 0.5 * (h + h.T), grad, np.diag(jwj).copy()
 
 
 def flag_outliers(
@@ -753,7 +869,8 @@ class Diagnosis:
     initial_gap, final_gap
         Gap metrics of the starting and final models.
     identifiability
-        ``{effect: fraction of Fisher information not absorbed by (G, n)}`` at the start.
+        ``{effect: fraction of Fisher information not absorbed by (G, n)}`` at the start
+        (0: below :data:`IDENTIFIABLE_RESOLUTION`, degenerate with ``(G, n)``).
     config
         Statistic, threshold, prior and settings.
     residual_snapshots
@@ -1190,7 +1307,8 @@ def summary_text(diag: Diagnosis) -> str:
     lines.append("not identifiable from these data (Fisher fraction after (G, n) projection):")
     for name, frac in sorted(diag.identifiability.items()):
         if frac < MIN_IDENTIFIABLE:
-            lines.append(f"  {name}: {frac:.2e}")
+            shown = f"{frac:.2e}" if frac > 0 else f"< {IDENTIFIABLE_RESOLUTION:.0e} (degenerate)"
+            lines.append(f"  {name}: {shown}")
     fg = diag.final_gap
     lines.append(
         f"final gap: chi2/dof = {fg.get('reduced_chi2', float('nan')):.4f}, "

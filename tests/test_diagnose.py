@@ -200,3 +200,54 @@ def test_hidden_suite(tmp_path: Path):
     assert all(not r["score"]["found"] for r in clean), "an effect was named on clean data"
     assert all(r["score"]["gap_shrinks"] for r in rows)
     assert sum(r["score"]["ok"] for r in rows) / len(rows) >= 0.9
+
+
+@pytest.mark.parametrize("with_prior", [False, True])
+def test_projected_normal_equations_equal_the_dense_projected_jacobian(with_prior):
+    """The factorised sums give what the projected (samples x K) Jacobian gives."""
+    from autocal.diagnose import projected_normal_equations
+
+    rng = np.random.default_rng(7)
+    na, npol, nf, nt = 3, 2, 5, 7
+    shape = (na, npol, nf, nt)
+    w = rng.uniform(0.5, 2.0, shape) * (rng.uniform(size=shape) > 0.1)
+    a1, a2 = rng.normal(size=shape) + 3.0, rng.normal(size=shape) + 1.0
+    r = rng.normal(size=shape)
+    wp = rng.uniform(0.1, 1.0, shape[:3]) if with_prior else np.zeros(shape[:3])
+    t0 = rng.uniform(50.0, 150.0, nf) * with_prior
+    rp = rng.normal(size=shape[:3]) * with_prior
+    n11 = (w * a1 * a1).sum(-1) + wp * t0**2
+    n12 = (w * a1 * a2).sum(-1) - wp * t0
+    n22 = (w * a2 * a2).sum(-1) + wp
+    det = n11 * n22 - n12**2
+    inv = np.stack([n22 / det, -n12 / det, n11 / det])
+    inv[:, 1, 0, 2] = 0.0  # a channel without a (G, n) solution is not projected
+    # a Tsky-like block (shared by antennas, depends on pol and channel), a gain-like and a
+    # noise-like block (time bases only)
+    blocks = [
+        (slice(0, 2), rng.normal(size=shape), rng.normal(size=(npol, nf, nt, 2))),
+        (slice(2, 5), rng.normal(size=shape), rng.normal(size=(1, 1, nt, 3))),
+        (slice(5, 6), rng.normal(size=shape), rng.normal(size=(1, 1, nt, 1))),
+    ]
+    nfree = 6
+    jac = np.concatenate(
+        [x[..., None] * np.broadcast_to(y, (*shape, y.shape[-1])) for _, x, y in blocks], -1
+    )
+    c1 = np.einsum("apft,apftk->apfk", w * a1, jac)
+    c2 = np.einsum("apft,apftk->apfk", w * a2, jac)
+    k1 = inv[0][..., None] * c1 + inv[1][..., None] * c2
+    k2 = inv[1][..., None] * c1 + inv[2][..., None] * c2
+    jp = jac - a1[..., None] * k1[..., None, :] - a2[..., None] * k2[..., None, :]
+    jprior = t0[:, None] * k1 - k2
+    h_dense = np.einsum("apft,apftk,apftl->kl", w, jp, jp) + np.einsum(
+        "apf,apfk,apfl->kl", wp, jprior, jprior
+    )
+    grad_dense = np.einsum("apft,apftk,apft->k", w, jp, r) + np.einsum(
+        "apf,apfk,apf->k", wp, jprior, rp
+    )
+    q1 = (w * a1 * r).sum(-1) - wp * t0 * rp
+    q2 = (w * a2 * r).sum(-1) + wp * rp
+    h, grad, raw = projected_normal_equations(blocks, w, w * a1, w * a2, inv, r, q1, q2, nfree)
+    np.testing.assert_allclose(h, h_dense, rtol=1e-10, atol=1e-10 * np.abs(h_dense).max())
+    np.testing.assert_allclose(grad, grad_dense, rtol=1e-10, atol=1e-10 * np.abs(grad_dense).max())
+    np.testing.assert_allclose(raw, np.einsum("apft,apftk->k", w, jac**2), rtol=1e-12)
