@@ -729,6 +729,7 @@ def test_sequences_of_calls_on_a_job_answer_as_documented(tmp_path: Path, data: 
         settings=hypothesis_settings(
             max_examples=30,
             stateful_step_count=6,
+            derandomize=True,  # the same sequences every run: the coverage asserted below
             deadline=None,
             suppress_health_check=list(HealthCheck),
             database=None,
