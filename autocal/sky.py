@@ -20,9 +20,11 @@ their maps exclude the CMB (pygdsm 1.7 behaviour; see pygdsm issues #12, #17, #1
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 import re
+import threading
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Any
@@ -40,6 +42,12 @@ logger = logging.getLogger(__name__)
 
 #: CMB temperature in kelvin (Fixsen 2009, rounded as in pygdsm).
 T_CMB = 2.725
+#: Skies in low-rank form kept for reuse (the same sky, channels, nside and epoch): a
+#: diagnosis computes Tsky for the model beam and four widened beams per polarisation, a
+#: calibration one per polarisation, all from the same components (~2 MB each at nside 64).
+COMPONENTS_MEMO_SIZE = 4
+_COMPONENTS: dict[tuple[Any, ...], SkyComponents] = {}
+_COMPONENTS_LOCK = threading.Lock()
 
 
 class SkyModelError(ValueError):
@@ -153,6 +161,24 @@ class SkyModel(ABC):
         if nside < 1 or not hp.isnsideok(nside, nest=True):
             raise SkyModelError(f"nside {nside} is not a power of two >= 1")
         time = parse_epoch(epoch)
+        # frozen dataclasses (the models here) are their repr; others are not memoised
+        frozen = dataclasses.is_dataclass(self) and self.__dataclass_params__.frozen
+        if not frozen:
+            return self._components(freqs, nside, time)
+        key = (repr(self), hashlib.sha256(freqs.tobytes()).hexdigest(), nside, float(time.jd))
+        with _COMPONENTS_LOCK:
+            cached = _COMPONENTS.get(key)
+        if cached is not None:
+            return cached
+        comps = self._components(freqs, nside, time)
+        with _COMPONENTS_LOCK:
+            _COMPONENTS[key] = comps
+            while len(_COMPONENTS) > COMPONENTS_MEMO_SIZE:
+                _COMPONENTS.pop(next(iter(_COMPONENTS)))
+        return comps
+
+    def _components(self, freqs: np.ndarray, nside: int, time: Any) -> SkyComponents:
+        """Compute :meth:`components` (arguments checked); the arrays are read-only."""
         maps, spectra, labels = self.galactic(freqs, nside)
         rot = galactic_to_equatorial_matrix(time)
         eq_maps = resample_galactic_to_equatorial(maps, nside, rot)
@@ -160,11 +186,14 @@ class SkyModel(ABC):
             eq_maps = np.vstack([eq_maps, np.ones((1, eq_maps.shape[1]))])
             spectra = np.hstack([spectra, np.full((freqs.size, 1), T_CMB)])
             labels = (*labels, "cmb")
+        arrays = [np.array(a, dtype=np.float64) for a in (eq_maps, spectra, freqs)]
+        for a in arrays:
+            a.flags.writeable = False  # shared by every caller of the memo
         return SkyComponents(
-            maps=eq_maps,
-            spectra=spectra,
+            maps=arrays[0],
+            spectra=arrays[1],
             labels=tuple(labels),
-            freqs=freqs,
+            freqs=arrays[2],
             nside=nside,
             epoch_jd=float(time.jd),
         )

@@ -99,3 +99,32 @@ def test_import_configures_astropy_offline():
     assert iers.conf.auto_download is False
     registry = EarthLocation._site_registry
     assert registry is not None and len(registry.names) > 0
+
+
+def test_sky_components_are_computed_once_per_sky_grid_and_epoch(monkeypatch):
+    from autocal import sky as sky_module
+    from autocal.sky import UniformSky
+
+    monkeypatch.setattr(sky_module, "_COMPONENTS", {})
+    calls = []
+    real = UniformSky.galactic
+
+    def counted(self, freqs, nside):
+        calls.append((freqs.size, nside))
+        return real(self, freqs, nside)
+
+    monkeypatch.setattr(UniformSky, "galactic", counted)
+    freqs = np.linspace(100e6, 200e6, 11)
+    first = UniformSky(40.0).components(freqs, nside=8, epoch="2020-01-01")
+    again = UniformSky(40.0).components(freqs.copy(), nside=8, epoch="2020-01-01")
+    assert again is first and len(calls) == 1  # an equal sky, the same grid and epoch
+    with pytest.raises(ValueError, match="read-only"):
+        first.maps[0, 0] = 1.0  # shared: nobody may change it
+    UniformSky(41.0).components(freqs, nside=8, epoch="2020-01-01")
+    UniformSky(40.0).components(freqs[:5], nside=8, epoch="2020-01-01")
+    UniformSky(40.0).components(freqs, nside=16, epoch="2020-01-01")
+    UniformSky(40.0).components(freqs, nside=8, epoch="2021-01-01")
+    assert len(calls) == 5
+    assert len(sky_module._COMPONENTS) == sky_module.COMPONENTS_MEMO_SIZE  # bounded
+    UniformSky(40.0).components(freqs, nside=8, epoch="2020-01-01")  # evicted: recomputed
+    assert len(calls) == 6
