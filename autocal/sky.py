@@ -155,7 +155,9 @@ class SkyModel(ABC):
         Returns
         -------
         SkyComponents
-            The low-rank sky.
+            The low-rank sky, with read-only arrays: equal (frozen) sky models on the same
+            channels, nside and epoch share one result, the last
+            :data:`COMPONENTS_MEMO_SIZE` of which are kept.
         """
         freqs = _check_freqs(freqs)
         if nside < 1 or not hp.isnsideok(nside, nest=True):
