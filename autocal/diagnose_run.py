@@ -166,6 +166,66 @@ def _beam_pols(pols: tuple[str, ...]) -> tuple[str, ...]:
     return tuple(BEAM_POLS[p] for p in pols)
 
 
+#: Peak memory of a diagnosis: this much plus :data:`BYTES_PER_SAMPLE` per sample (antenna x
+#: pol x channel x integration), measured with ``autocal diagnose`` on files of the HERA-size
+#: night (192 integrations; ``benchmarks/README.md``): 1.22 GB for 10 antennas x 2 pols x 307
+#: channels (1.2 M samples), 4.73 GB for 30 antennas x 2 pols x 1536 channels (17.7 M).
+BASE_BYTES = 1.0e9
+#: See :data:`BASE_BYTES` (the slope between those two runs, 212 bytes, rounded up).
+BYTES_PER_SAMPLE = 220.0
+
+
+def available_memory() -> float | None:
+    """Return the bytes this process can still allocate, or ``None`` when unknown.
+
+    ``MemAvailable`` of ``/proc/meminfo``, lowered to what a cgroup v2 memory limit leaves
+    (containers, systemd units with ``MemoryMax``).
+    """
+    avail: float | None = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                avail = float(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        used = float(Path("/sys/fs/cgroup/memory.current").read_text().strip())
+        if limit != "max" and avail is not None:
+            avail = min(avail, float(limit) - used)
+    except (OSError, ValueError):
+        pass
+    return avail
+
+
+def check_memory(shape: tuple[int, ...]) -> None:
+    """Refuse a diagnosis the machine has no memory for, saying how to make it smaller.
+
+    Parameters
+    ----------
+    shape
+        ``(Nant, Npol, Ntime, Nfreq)`` of the observation.
+
+    Raises
+    ------
+    autocal.diagnose.DiagnoseError
+        When the estimate (:data:`BASE_BYTES` + :data:`BYTES_PER_SAMPLE` per sample) exceeds
+        :func:`available_memory`.
+    """
+    nsamples = math.prod(shape)
+    need = BASE_BYTES + BYTES_PER_SAMPLE * nsamples
+    avail = available_memory()
+    if avail is not None and need > avail:
+        nant, npol, ntime, nfreq = shape
+        raise DiagnoseError(
+            f"diagnosing {nsamples / 1e6:.1f} M samples ({nant} antennas x {npol} pols x "
+            f"{nfreq} channels x {ntime} integrations) needs about {need / 1e9:.1f} GB and "
+            f"{max(avail, 0) / 1e9:.1f} GB are available: select fewer antennas (--antennas, "
+            "API 'antennas'), channels (--freq-range) or LSTs (--lst-range)"
+        )
+    logger.debug("diagnosis of %d samples: about %.1f GB", nsamples, need / 1e9)
+
+
 def run_diagnosis(
     config: DiagnoseConfig,
     out: str | Path,
@@ -234,6 +294,7 @@ def run_diagnosis(
         lst_range=config.lst_range_h,
     )
     timings["read_s"] = time.perf_counter() - t0
+    check_memory(obs.data.shape)
 
     beam_pols = _beam_pols(tuple(p.lower() for p in obs.pols))
     epoch = night_epoch(obs.jds, obs.site.lon_deg)

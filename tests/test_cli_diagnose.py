@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from autocal.cli import main
 
 
@@ -20,3 +22,25 @@ def test_cli_diagnose_names_a_hidden_gain_drift(tmp_path, capsys) -> None:
     assert (out / "summary.txt").is_file()
     assert main(["diagnose", str(mock), "--freq-range", "120", "--out", str(out)]) == 2
     assert "LOW:HIGH" in capsys.readouterr().err
+
+
+def test_cli_diagnose_refuses_what_the_memory_cannot_hold(tmp_path, capsys, monkeypatch) -> None:
+    from autocal import diagnose_run
+
+    mock = tmp_path / "small.uvh5"
+    sim = ["simulate", "--beam", "dipole", "--cadence", "1800", "--channel-width", "4000"]
+    assert main([*sim, "--out", str(mock)]) == 0, capsys.readouterr().err
+    capsys.readouterr()
+    monkeypatch.setattr(diagnose_run, "available_memory", lambda: 0.5e9)
+    out = tmp_path / "diag"
+    assert main(["diagnose", str(mock), "--beam", "dipole", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "GB and 0.5 GB are available" in err and "--antennas" in err
+    assert not out.exists()  # nothing half-written
+    # unknown available memory (no /proc): no refusal
+    monkeypatch.setattr(diagnose_run, "available_memory", lambda: None)
+    diagnose_run.check_memory((350, 2, 8640, 1536))
+    monkeypatch.setattr(diagnose_run, "available_memory", lambda: 24e9)
+    diagnose_run.check_memory((30, 2, 192, 1536))  # 17.7 M samples: the measured 4.7 GB run
+    with pytest.raises(diagnose_run.DiagnoseError, match="350 antennas x 2 pols x 1536 channels"):
+        diagnose_run.check_memory((350, 2, 192, 1536))
