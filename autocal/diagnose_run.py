@@ -167,9 +167,9 @@ def _beam_pols(pols: tuple[str, ...]) -> tuple[str, ...]:
 
 
 #: Peak memory of a diagnosis: this much plus :data:`BYTES_PER_SAMPLE` per sample (antenna x
-#: pol x channel x integration), measured with ``autocal diagnose`` on files of the HERA-size
-#: night (192 integrations; ``benchmarks/README.md``): 1.22 GB for 10 antennas x 2 pols x 307
-#: channels (1.2 M samples), 4.73 GB for 30 antennas x 2 pols x 1536 channels (17.7 M).
+#: pol x channel x integration), measured with ``autocal diagnose`` on a file of the HERA-size
+#: night (192 integrations; README, "Diagnosing", **Size.**): 1.22 GB for 10 antennas x 2
+#: pols x 307 channels (1.2 M samples), 4.73 GB for 30 antennas x 2 pols x 1536 channels.
 BASE_BYTES = 1.0e9
 #: See :data:`BASE_BYTES` (the slope between those two runs, 212 bytes, rounded up).
 BYTES_PER_SAMPLE = 220.0
