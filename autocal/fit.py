@@ -38,13 +38,16 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from numpy.polynomial import legendre
 
 from autocal.observation import Observation
 from autocal.user_cache import user_cache_dir
+
+if TYPE_CHECKING:
+    from autocal.uncertainty import TotalUncertainty
 
 logger = logging.getLogger(__name__)
 
@@ -903,6 +906,7 @@ def solve_sums(
     scale_covariance: bool | Literal["inflate"] = False,
     max_condition: float = MAX_CONDITION,
     block: int = SOLVE_BLOCK,
+    positive_gain: bool = True,
 ) -> dict[str, np.ndarray]:
     """Solve the normal equations of every channel.
 
@@ -922,6 +926,9 @@ def solve_sums(
     block
         Channel systems solved at once (bounds the temporaries; the result does not
         depend on it).
+    positive_gain
+        Flag (reason 3) channels whose first gain coefficient is not positive. ``False``
+        keeps such solutions (refits that only serve an error estimate).
 
     Returns
     -------
@@ -948,7 +955,14 @@ def solve_sums(
     for i0 in range(0, n, block):
         sl = slice(i0, min(i0 + block, n))
         part = _solve_block(
-            ata[sl], aty[sl], yty[sl], count[sl], min_samples, scale_covariance, max_condition
+            ata[sl],
+            aty[sl],
+            yty[sl],
+            count[sl],
+            min_samples,
+            scale_covariance,
+            max_condition,
+            positive_gain,
         )
         for name, value in part.items():
             out[name][sl] = value
@@ -988,6 +1002,7 @@ def _solve_block(
     min_samples: int,
     scale_covariance: bool | Literal["inflate"],
     max_condition: float,
+    positive_gain: bool = True,
 ) -> dict[str, np.ndarray]:
     """Solve ``(n, M, M)`` normal systems (see :func:`solve_sums`)."""
     m = ata.shape[-1]
@@ -1020,7 +1035,8 @@ def _solve_block(
         if scale_covariance == "inflate":
             factor = np.maximum(np.nan_to_num(factor, nan=1.0), 1.0)
         cov = cov * factor[..., None, None]
-    reason[ok & ~(coeffs[..., 0] > 0)] = 3
+    if positive_gain:
+        reason[ok & ~(coeffs[..., 0] > 0)] = 3
     bad = reason != 0
     coeffs = np.where(bad[..., None], np.nan, coeffs)
     cov = np.where(bad[..., None, None], np.nan, cov)
@@ -1065,6 +1081,10 @@ class Solution:
         (identity weights: divided by the fitted residual rms).
     antenna_names
         Names of the antennas.
+    total
+        The total uncertainty (:class:`autocal.uncertainty.TotalUncertainty`): when set,
+        ``sigma_G``, ``sigma_n``, ``sigma_Trxr`` and ``sigma_abs_g`` are total errors and
+        the ``*_stat`` properties the statistical part alone.
     """
 
     model: FitModel
@@ -1083,6 +1103,7 @@ class Solution:
     config: dict[str, Any] = field(default_factory=dict)
     residuals: np.ndarray | None = None
     antenna_names: tuple[str, ...] = ()
+    total: TotalUncertainty | None = None
 
     def __post_init__(self) -> None:
         lead = (len(self.antennas), len(self.pols), len(self.freqs))
@@ -1108,6 +1129,8 @@ class Solution:
             lead[2],
         ):
             raise FitError("Solution.residuals has the wrong shape")
+        if self.total is not None and self.total.cov.shape != (*lead, 2, 2):
+            raise FitError("Solution.total has the wrong shape")
 
     @classmethod
     def from_solved(
@@ -1123,6 +1146,7 @@ class Solution:
         jds: np.ndarray,
         antenna_names: tuple[str, ...] = (),
         config: dict[str, Any] | None = None,
+        total: TotalUncertainty | None = None,
     ) -> Solution:
         """Build a solution from normal sums and their :func:`solve_sums` output."""
         return cls(
@@ -1141,6 +1165,7 @@ class Solution:
             flag_reason=solved["flag_reason"],
             config=config or {},
             antenna_names=antenna_names,
+            total=total,
         )
 
     # basic quantities ------------------------------------------------------------------
@@ -1174,13 +1199,73 @@ class Solution:
 
     @property
     def sigma_G(self) -> np.ndarray:
-        """1-sigma uncertainty of :attr:`G`."""
-        return np.sqrt(self._mean_param(0)[1])
+        """1-sigma uncertainty of :attr:`G`: the total when known, else statistical."""
+        return self._sigmas()["sigma_G"]
 
     @property
     def sigma_n(self) -> np.ndarray:
-        """1-sigma uncertainty of :attr:`n`."""
-        return np.sqrt(self._mean_param(1)[1])
+        """1-sigma uncertainty of :attr:`n`: the total when known, else statistical."""
+        return self._sigmas()["sigma_n"]
+
+    @property
+    def sigma_Trxr(self) -> np.ndarray:
+        """1-sigma uncertainty of :attr:`Trxr`: the total when known, else statistical.
+
+        Linear propagation, ``Var(Trxr) = Trxr^2 [C_GG / G^2 + C_nn / n^2 - 2 C_Gn / (G
+        n)]``, the paper's ``sum_ij (-1)^(i+j) C_ij / (x_i x_j)`` written out (the cross
+        term enters with a minus sign because ``d(n/G)/dG = -n/G^2``).
+        """
+        return self._sigmas()["sigma_Trxr"]
+
+    @property
+    def sigma_abs_g(self) -> np.ndarray:
+        """1-sigma uncertainty of ``|g|``, ``sigma_G / (2 |g|)``: total when known."""
+        return self._sigmas()["sigma_abs_g"]
+
+    @property
+    def sigma_G_stat(self) -> np.ndarray:
+        """Statistical 1-sigma of :attr:`G` (the fit's covariance)."""
+        return self._sigmas(stat=True)["sigma_G"]
+
+    @property
+    def sigma_n_stat(self) -> np.ndarray:
+        """Statistical 1-sigma of :attr:`n`."""
+        return self._sigmas(stat=True)["sigma_n"]
+
+    @property
+    def sigma_Trxr_stat(self) -> np.ndarray:
+        """Statistical 1-sigma of :attr:`Trxr`."""
+        return self._sigmas(stat=True)["sigma_Trxr"]
+
+    @property
+    def sigma_abs_g_stat(self) -> np.ndarray:
+        """Statistical 1-sigma of ``|g|``."""
+        return self._sigmas(stat=True)["sigma_abs_g"]
+
+    @property
+    def cov_mean(self) -> np.ndarray:
+        """Statistical covariance ``(Nant, Npol, Nfreq, 2, 2)`` of the time-averaged ``(G, n)``."""
+        gg, nn = self._mean_param(0)[1], self._mean_param(1)[1]
+        gn = self._mean_cov_gn()
+        return np.stack([np.stack([gg, gn], -1), np.stack([gn, nn], -1)], -2)
+
+    @property
+    def cov_mean_total(self) -> np.ndarray:
+        """Total covariance of the time-averaged ``(G, n)`` (statistical without a total)."""
+        return self.cov_mean if self.total is None else self.total.cov
+
+    def _sigmas(self, stat: bool = False) -> dict[str, np.ndarray]:
+        cov = self.cov_mean if stat or self.total is None else self.total.cov
+        var_g, var_n, cgn = cov[..., 0, 0], cov[..., 1, 1], cov[..., 0, 1]
+        g, n = self.G, self.n
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sg = np.sqrt(var_g)
+            return {
+                "sigma_G": sg,
+                "sigma_n": np.sqrt(var_n),
+                "sigma_Trxr": trxr_sigma(g, n, var_g, var_n, cgn),
+                "sigma_abs_g": sg / (2 * np.sqrt(g)),
+            }
 
     def _mean_cov_gn(self) -> np.ndarray:
         nb = self.model.nbasis
@@ -1197,26 +1282,10 @@ class Solution:
             return self.n / self.G
 
     @property
-    def sigma_Trxr(self) -> np.ndarray:
-        """1-sigma uncertainty of :attr:`Trxr` by linear propagation.
-
-        ``Var(Trxr) = Trxr^2 [C_GG / G^2 + C_nn / n^2 - 2 C_Gn / (G n)]``, the paper's
-        ``sum_ij (-1)^(i+j) C_ij / (x_i x_j)`` written out (the cross term enters with a
-        minus sign because ``d(n/G)/dG = -n/G^2``).
-        """
-        return trxr_sigma(self.G, self.n, self.sigma_G**2, self.sigma_n**2, self._mean_cov_gn())
-
-    @property
     def abs_g(self) -> np.ndarray:
         """Gain amplitude ``|g| = sqrt(G)`` (NaN where flagged)."""
         with np.errstate(invalid="ignore"):
             return np.sqrt(self.G)
-
-    @property
-    def sigma_abs_g(self) -> np.ndarray:
-        """1-sigma uncertainty of ``|g|``: ``sigma_G / (2 |g|)``."""
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return self.sigma_G / (2 * self.abs_g)
 
     @property
     def reduced_chi2(self) -> np.ndarray:
@@ -1318,6 +1387,7 @@ def fit(
     scale_covariance: bool | None = None,
     return_residuals: bool = False,
     config: dict[str, Any] | None = None,
+    uncertainty: Literal["total", "statistical"] = "total",
 ) -> Solution:
     """Fit gain and receiver noise to an observation held in memory.
 
@@ -1345,12 +1415,24 @@ def fit(
         Store normalised residuals in the solution.
     config
         Extra configuration recorded in the solution (sky, beam, inputs).
+    uncertainty
+        ``"total"`` (default): also compute the total uncertainty
+        (:mod:`autocal.uncertainty`: block jackknife and the model with one more time
+        order), so ``sigma_*`` are total errors; ``"statistical"``: the covariance only.
 
     Returns
     -------
     Solution
         The fitted solution.
     """
+    from autocal.uncertainty import (
+        accumulate_blocks,
+        block_edges,
+        extended_model,
+        sums_nbytes,
+        total_uncertainty,
+    )
+
     if isinstance(model, FitModel):
         fit_model = model
     else:
@@ -1374,17 +1456,22 @@ def fit(
         if scale_covariance is None
         else scale_covariance
     )
+    if uncertainty not in ("total", "statistical"):
+        raise FitError(f"uncertainty must be 'total' or 'statistical', got {uncertainty!r}")
+    blocks = None
+    edges = None
+    if uncertainty == "total":
+        nbytes = sums_nbytes(extended_model(fit_model), obs.nant, len(obs.pols), obs.nfreq)
+        edges = block_edges(obs.ntime, bytes_per_block=nbytes)
     for ipass in range(npass):
-        sums = accumulate(
-            fit_model,
-            obs.data,
-            tsky,
-            obs.lsts,
-            flags=obs.flags,
-            weights=weights,
-            bandwidth_time=bt,
-            reference=reference,
-        )
+        kwargs = {"flags": obs.flags, "weights": weights, "bandwidth_time": bt}
+        if edges is None:
+            sums = accumulate(fit_model, obs.data, tsky, obs.lsts, reference=reference, **kwargs)
+        else:
+            blocks = accumulate_blocks(
+                fit_model, obs.data, tsky, obs.lsts, edges, reference=reference, **kwargs
+            )
+            sums = blocks.fitted_total()
         solved = solve_sums(sums, min_samples=min_samples, scale_covariance=scale)
         if ipass + 1 < npass:
             a = design(fit_model, tsky, obs.lsts)
@@ -1411,6 +1498,10 @@ def fit(
         "min_samples": min_samples if min_samples is not None else fit_model.nparam + 1,
         **(config or {}),
     }
+    total = None
+    if blocks is not None:
+        total = total_uncertainty(blocks, solved, scale_covariance=scale)
+        cfg["uncertainty"] = total.describe()
     solution = Solution.from_solved(
         fit_model,
         sums,
@@ -1422,6 +1513,7 @@ def fit(
         jds=obs.jds,
         antenna_names=obs.antenna_names,
         config=cfg,
+        total=total,
     )
     if return_residuals:
         solution = _with_residuals(solution, obs, tsky, weights, reference, bt)

@@ -76,20 +76,26 @@ def test_noiseless_constant_and_legendre_recover_truth() -> None:
 
 
 def test_pulls_are_unit_normal_with_radiometer_weights() -> None:
-    """Over many noise draws, (fit - truth) / sigma has standard deviation 1 +- 0.1."""
+    """Over many noise draws, (fit - truth) / sigma_stat has standard deviation 1 +- 0.1,
+    and with the total errors (jackknife, drift model) 1 +- 0.35 on these clean data."""
     rng = np.random.default_rng(42)
     tsky = toy_tsky()
     clean = (tsky + 150.0)[None, None]
-    pulls_g, pulls_t, pulls_n = [], [], []
+    stat: dict[str, list[np.ndarray]] = {"G": [], "n": [], "Trxr": []}
+    total: dict[str, list[np.ndarray]] = {"G": [], "n": [], "Trxr": []}
+    truth = {"G": 1.0, "n": 150.0, "Trxr": 150.0}
     for _ in range(60):
         sol = fit(make_obs(noisy(clean, rng)), tsky)
-        pulls_g.append((sol.G - 1.0) / sol.sigma_G)
-        pulls_n.append((sol.n - 150.0) / sol.sigma_n)
-        pulls_t.append((sol.Trxr - 150.0) / sol.sigma_Trxr)
-    for pulls in (pulls_g, pulls_n, pulls_t):
-        arr = np.ravel(pulls)
-        assert abs(np.std(arr) - 1.0) < 0.1
-        assert abs(np.mean(arr)) < 0.1
+        assert sol.total is not None
+        for name, value in truth.items():
+            stat[name].append((getattr(sol, name) - value) / getattr(sol, f"sigma_{name}_stat"))
+            total[name].append((getattr(sol, name) - value) / getattr(sol, f"sigma_{name}"))
+    for name in truth:
+        arr, tot = np.ravel(stat[name]), np.ravel(total[name])
+        assert abs(np.std(arr) - 1.0) < 0.1, name
+        assert abs(np.mean(arr)) < 0.1, name
+        assert abs(np.std(tot) - 1.0) < 0.35, name
+        assert np.all(np.abs(tot) <= np.abs(arr) + 1e-12), name  # the total never shrinks
 
 
 def test_model_weights_remove_the_data_weight_bias() -> None:
@@ -159,7 +165,7 @@ def test_identity_weights_scale_covariance_to_residual_variance() -> None:
     for _ in range(40):
         data = clean + rng.normal(0.0, 3.0, clean.shape)  # homoscedastic noise
         sol = fit(make_obs(data), tsky, weights="identity")
-        pulls.append((sol.G - 1.0) / sol.sigma_G)
+        pulls.append((sol.G - 1.0) / sol.sigma_G_stat)
         np.testing.assert_allclose(np.median(sol.reduced_chi2), 9.0, rtol=0.15)
     assert abs(np.std(pulls) - 1.0) < 0.1
 
@@ -183,7 +189,11 @@ def test_trxr_uncertainty_matches_jacobian_propagation() -> None:
     g, n = sol.coeffs[..., 0], sol.coeffs[..., 1]
     jac = np.stack([-n / g**2, 1 / g], axis=-1)
     var = np.einsum("...i,...ij,...j->...", jac, sol.cov, jac)
-    np.testing.assert_allclose(sol.sigma_Trxr, np.sqrt(var), rtol=1e-10)
+    np.testing.assert_allclose(sol.sigma_Trxr_stat, np.sqrt(var), rtol=1e-10)
+    # the total error propagates the total (G, n) covariance the same way
+    assert sol.total is not None
+    var_total = np.einsum("...i,...ij,...j->...", jac, sol.total.cov, jac)
+    np.testing.assert_allclose(sol.sigma_Trxr, np.sqrt(var_total), rtol=1e-10)
     # slope and intercept anticorrelate (Tsky > 0), so the cross term raises the error:
     # dropping it (or adding it with the wrong sign) would understate sigma_Trxr
     assert np.all(sol.cov[..., 0, 1] < 0)
