@@ -1341,7 +1341,8 @@ class Solution:
         ok = ~self.flags
 
         def med(x: np.ndarray) -> float | None:
-            vals = x[ok & np.isfinite(x)]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                vals = x[ok & np.isfinite(x)]
             return float(np.median(vals)) if vals.size else None
 
         return {
@@ -1355,6 +1356,11 @@ class Solution:
             "median_abs_g": med(self.abs_g),
             "median_Trxr_K": med(self.Trxr),
             "median_sigma_Trxr_K": med(self.sigma_Trxr),
+            "median_sigma_Trxr_stat_K": med(self.sigma_Trxr_stat),
+            "median_sigma_G_frac": med(self.sigma_G / self.G),
+            "median_sigma_G_stat_frac": med(self.sigma_G_stat / self.G),
+            "errors": "statistical" if self.total is None else "total",
+            "weak_separation": None if self.total is None else int(np.sum(self.total.separation())),
             "median_reduced_chi2": med(self.reduced_chi2),
         }
 

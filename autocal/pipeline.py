@@ -49,6 +49,14 @@ from autocal.fit import (
     weights_for,
 )
 from autocal.observation import Observation
+from autocal.uncertainty import (
+    BlockSums,
+    block_edges,
+    extended_model,
+    separation_summary,
+    sums_nbytes,
+    total_uncertainty,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -155,6 +163,16 @@ class _Source:
     weights: np.ndarray | None = None  # inverse variances when the format defines them
     scanned: tuple[Any, ...] = ()  # UVH5File per file (uvh5)
     ntimes: tuple[int, ...] = ()  # selected integrations per file (uvh5)
+
+    def nant(self, antennas: list[int] | None) -> int:
+        """Return the number of antennas a selection keeps (before reading)."""
+        if antennas is not None:
+            return len(antennas)
+        if self.observation is not None:
+            return self.observation.nant
+        from autocal.io.uvh5_blocks import _meta_of
+
+        return len(_meta_of(self.scanned[0]).auto_ants) if self.scanned else 1
 
     def tasks(self, tsky_all: np.ndarray) -> list[FileTask]:
         """One task per file (uvh5) or one for the whole in-memory observation."""
@@ -314,6 +332,12 @@ class PartialSpec:
     coeffs
         ``(Nant, Npol, Nfreq, nparam)`` the previous pass's solution: radiometer
         weights then use its model instead of the data (``None`` in the first pass).
+    edges
+        Integration indices (of the whole observation) that split it into the time
+        blocks of the total uncertainty (:func:`autocal.uncertainty.block_edges`): the
+        partial then holds one set of sums of the extended model
+        (:func:`autocal.uncertainty.extended_model`) per block it overlaps. ``None``:
+        one set of sums of ``model``.
     """
 
     model: FitModel
@@ -323,6 +347,7 @@ class PartialSpec:
     bin_size: int
     block_size: int | None = None
     coeffs: np.ndarray | None = None
+    edges: tuple[int, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -365,7 +390,10 @@ class FilePartial:
     index
         The task's index.
     sums
-        The file's normal sums (its blocks added in order).
+        The file's normal sums (its read blocks added in order); ``None`` with time blocks.
+    blocks
+        With ``PartialSpec.edges``: ``{block: sums of the extended model}`` for the time
+        blocks the file overlaps; else ``None``.
     waterfall
         ``(Nshow, Npol, Nbins_file, Nfreq, nparam + 2)`` per waterfall row: the sums
         over its integrations of ``w R``, ``w`` and ``w a_m`` (``a`` the design columns).
@@ -386,7 +414,7 @@ class FilePartial:
     """
 
     index: int
-    sums: NormalSums
+    sums: NormalSums | None
     waterfall: np.ndarray
     bin0: int
     ntime: int
@@ -396,6 +424,7 @@ class FilePartial:
     bt_min: float
     stats: dict[str, int]
     seconds: float
+    blocks: dict[int, NormalSums] | None = None
 
 
 def compute_partial(
@@ -428,7 +457,7 @@ def compute_partial(
     """
     from autocal.io.uvh5_blocks import ReadStats, iter_uvh5_blocks
 
-    start = time.perf_counter()
+    started = time.perf_counter()
     stats = ReadStats()
     sel = spec.selection
     if task.observation is not None:
@@ -444,6 +473,8 @@ def compute_partial(
     bin0 = task.offset // spec.bin_size
     nbins = (task.offset + ntot - 1) // spec.bin_size - bin0 + 1
     sums: NormalSums | None = None
+    blocks: dict[int, NormalSums] = {}
+    acc_model = spec.model if spec.edges is None else extended_model(spec.model)
     waterfall: np.ndarray | None = None
     checksums: dict[str, str] = {}
     antennas: np.ndarray | None = None
@@ -484,17 +515,23 @@ def compute_partial(
             pred = np.einsum("pftm,apfm->aptf", design(spec.model, tsky, chunk.lsts), spec.coeffs)
             reference = np.where(np.isfinite(pred) & (pred > 0), pred, chunk.data)
             del pred
-        sums = accumulate(  # added into the file's running sums, in place
-            spec.model,
-            chunk.data,
-            tsky,
-            chunk.lsts,
-            flags=chunk.flags,
-            weights=weights,
-            bandwidth_time=bt,
-            reference=reference,
-            into=sums,
-        )
+        start = task.offset + offset
+        for b, sl in _block_slices(spec.edges, start, start + nt):
+            part = accumulate(  # added into the running sums of its block, in place
+                acc_model,
+                chunk.data[:, :, sl],
+                tsky[:, sl],
+                chunk.lsts[sl],
+                flags=chunk.flags[:, :, sl],
+                weights=_time_part(weights, sl, nt),
+                bandwidth_time=_time_part(bt, sl, nt),
+                reference=_time_part(reference, sl, nt),
+                into=sums if spec.edges is None else blocks.get(b),
+            )
+            if spec.edges is None:
+                sums = part
+            else:
+                blocks[b] = part
         assert waterfall is not None
         _add_waterfall(
             waterfall,
@@ -510,7 +547,7 @@ def compute_partial(
         del chunk, bt, reference
         if tick is not None:
             tick(nt)
-    if sums is None or antennas is None or waterfall is None:
+    if (sums is None and not blocks) or antennas is None or waterfall is None:
         raise PipelineError(f"file {task.index}: the selection left no data")
     if offset != ntot:
         raise PipelineError(f"file {task.index} yielded {offset} integrations, {ntot} were scanned")
@@ -525,8 +562,40 @@ def compute_partial(
         checksums,
         bt_min,
         stats.as_dict(),
-        time.perf_counter() - start,
+        time.perf_counter() - started,
+        blocks or None,
     )
+
+
+def _block_slices(edges: tuple[int, ...] | None, start: int, stop: int) -> list[tuple[int, slice]]:
+    """Split integrations ``start:stop`` of the observation at the time-block edges.
+
+    Returns ``(block, slice of the chunk)`` pairs; without edges one pair for the whole
+    chunk (block 0).
+    """
+    if edges is None:
+        return [(0, slice(0, stop - start))]
+    out = []
+    for b in range(len(edges) - 1):
+        lo, hi = max(start, edges[b]), min(stop, edges[b + 1])
+        if hi > lo:
+            out.append((b, slice(lo - start, hi - start)))
+    return out
+
+
+def _time_part(value: Any, sl: slice, ntime: int) -> Any:
+    """Slice an array with a time axis of length ``ntime`` (the chunk's) to ``sl``.
+
+    4-d arrays ``(Nant, Npol, Ntime, Nfreq)`` and 2-d ``(Ntime, Nfreq)``; anything else
+    (strings, scalars, ``(Nfreq,)`` rows, ``None``) is returned as it is.
+    """
+    if sl == slice(0, ntime) or not isinstance(value, np.ndarray):
+        return value
+    if value.ndim == 4 and value.shape[2] == ntime:
+        return value[:, :, sl]
+    if value.ndim == 2 and value.shape[0] == ntime:
+        return value[sl]
+    return value
 
 
 def _bandwidth_time(chunk: Observation) -> np.ndarray:
@@ -608,16 +677,27 @@ def _fold(
     waterfall_shape: tuple[int, ...] | None,
     report: Callable[[float, str], None],
     progress_range: tuple[float, float],
-) -> tuple[NormalSums, np.ndarray, list[FilePartial]]:
-    """Add the files' partials in file order (the same order serially and on Dask)."""
+) -> tuple[NormalSums | dict[int, NormalSums], np.ndarray, list[FilePartial]]:
+    """Add the files' partials in file order (the same order serially and on Dask).
+
+    Returns the summed normal sums (or, with time blocks, the sums of each block), the
+    waterfall sums and the partials' other information.
+    """
     sums: NormalSums | None = None
+    blocks: dict[int, NormalSums] = {}
     waterfall: np.ndarray | None = None
     infos: list[FilePartial] = []
     lo, hi = progress_range
     for i, partial in enumerate(partials):
         if partial.index != i:  # pragma: no cover - executors yield in order
             raise PipelineError(f"partial {partial.index} arrived in place of {i}")
-        sums = partial.sums if sums is None else _add_into(sums, partial.sums)
+        if partial.blocks is not None:
+            for b, part in partial.blocks.items():
+                blocks[b] = part if b not in blocks else _add_into(blocks[b], part)
+            partial.blocks = None
+        else:
+            assert partial.sums is not None
+            sums = partial.sums if sums is None else _add_into(sums, partial.sums)
         if waterfall is None:
             waterfall = np.zeros(
                 (*partial.waterfall.shape[:2], waterfall_shape[0], *partial.waterfall.shape[3:])
@@ -630,9 +710,9 @@ def _fold(
         partial.waterfall = None  # type: ignore[assignment]
         infos.append(partial)
         report(lo + (hi - lo) * (i + 1) / ntasks, f"file {i + 1}/{ntasks} summed")
-    if sums is None or waterfall is None:
+    if (sums is None and not blocks) or waterfall is None:
         raise PipelineError("the selection left no data")
-    return sums, waterfall, infos
+    return (sums if sums is not None else blocks), waterfall, infos
 
 
 # the run --------------------------------------------------------------------------------
@@ -767,6 +847,10 @@ def _calibrate(
         scaling = "inflate" if config.inflate_errors else False
     sums = run.sums
     solved = solve_sums(sums, scale_covariance=scaling)
+    total = None
+    if run.blocks is not None:
+        report(0.82, f"total uncertainty ({run.blocks.nblocks} time blocks)")
+        total = total_uncertainty(run.blocks, solved, scale_covariance=scaling)
     provenance = {
         "autocal_version": __version__,
         "inputs": run.checksums,
@@ -784,6 +868,7 @@ def _calibrate(
         "errors": "covariance x max(1, chi2/dof)"
         if (config.weights == "radiometer" and config.inflate_errors)
         else ("covariance x chi2/dof" if config.weights == "identity" else "covariance"),
+        "uncertainty": None if total is None else total.describe(),
         "created_unix": time.time(),
     }
     solution = Solution.from_solved(
@@ -797,6 +882,7 @@ def _calibrate(
         jds=source.jds,
         antenna_names=run.antenna_names,
         config={"calibration": config.model_dump(mode="json"), "provenance": provenance},
+        total=total,
     )
     report(0.85, "writing products")
     t3 = time.perf_counter()
@@ -805,6 +891,7 @@ def _calibrate(
     timings["total_s"] = time.perf_counter() - t0
     summary = {
         "solution": solution.describe(),
+        "separation": separation_summary(solution),
         "comparison": _comparison_summary(Path(out), products),
         "config": config.model_dump(mode="json"),
         "provenance": provenance,
@@ -842,6 +929,7 @@ class _Run:
     """What the passes over the data produced."""
 
     sums: NormalSums
+    blocks: BlockSums | None
     waterfall: np.ndarray  # (S, P, Nbins, F, M + 2)
     bin_size: int
     npass: int
@@ -872,6 +960,10 @@ def _run_passes(
     bin_size = max(1, -(-ntime // MAX_WATERFALL_ROWS))
     nbins = -(-ntime // bin_size)
     nshow = max(1, MAX_PLOTTED // len(pols))
+    nbytes = sums_nbytes(
+        extended_model(model), source.nant(config.antennas), len(pols), source.freqs.size
+    )
+    edges = block_edges(ntime, bytes_per_block=nbytes)
     use_dask = executor is not None and source.kind == "uvh5"
     if executor is not None and not use_dask:
         logger.info("%s input is read whole in this process; Dask is not used", source.kind)
@@ -886,13 +978,21 @@ def _run_passes(
     ipass = 0
     infos: list[FilePartial] = []
     sums: NormalSums | None = None
+    blocks: BlockSums | None = None
     waterfall: np.ndarray | None = None
     client = executor if use_dask else None
     if client is not None:
         execution["dask"] = client.describe()
     while ipass < npass:
         spec = PartialSpec(
-            model, config.weights, _selection(config), nshow, bin_size, block_size, coeffs
+            model,
+            config.weights,
+            _selection(config),
+            nshow,
+            bin_size,
+            block_size,
+            coeffs,
+            tuple(int(e) for e in edges),
         )
         lo = 0.1 + 0.7 * ipass / npass
         hi = 0.1 + 0.7 * (ipass + 1) / npass
@@ -900,7 +1000,10 @@ def _run_passes(
             partials = client.map_ordered(compute_partial, spec, tasks)
         else:
             partials = _serial_partials(spec, tasks, ntime, (lo, hi), progress, should_stop)
-        sums, waterfall, infos = _fold(partials, len(tasks), (nbins,), report, (lo, hi))
+        folded, waterfall, infos = _fold(partials, len(tasks), (nbins,), report, (lo, hi))
+        assert isinstance(folded, dict)
+        blocks = BlockSums([folded[b] for b in range(len(edges) - 1)], model, edges, source.lsts)
+        sums = blocks.fitted_total()
         for info in infos:
             for key, value in info.stats.items():
                 if key == "largest_array":
@@ -933,6 +1036,7 @@ def _run_passes(
     execution["file_seconds"] = [round(info.seconds, 3) for info in infos]
     return _Run(
         sums,
+        blocks,
         waterfall,
         bin_size,
         npass,

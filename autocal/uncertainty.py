@@ -510,9 +510,7 @@ def _profile_grid(theta: np.ndarray) -> np.ndarray:
     return np.arange(lo, hi + 1.0, 50.0)
 
 
-def profile_gain(
-    sums: NormalSums, model: FitModel, vg: np.ndarray, trxr: np.ndarray
-) -> np.ndarray:
+def profile_gain(sums: NormalSums, model: FitModel, vg: np.ndarray, trxr: np.ndarray) -> np.ndarray:
     """Time-averaged ``G`` fitted with ``n(t) = G(t) Trxr`` for each assumed ``Trxr``.
 
     The model ``R = G(t) (Tsky + Trxr)`` is linear in the gain coefficients alone; its
@@ -621,3 +619,96 @@ def accumulate_blocks(
             )
         )
     return BlockSums(blocks, model, np.asarray(edges), np.asarray(lsts, np.float64))
+
+
+def _median(x: np.ndarray) -> float | None:
+    vals = np.asarray(x, np.float64)
+    vals = vals[np.isfinite(vals)]
+    return float(np.median(vals)) if vals.size else None
+
+
+def separation_summary(solution: Any) -> list[dict[str, Any]]:
+    """Per antenna and polarisation: how well ``G`` and ``n`` separate, and the error budget.
+
+    Parameters
+    ----------
+    solution
+        An :class:`autocal.fit.Solution` with a total uncertainty.
+
+    Returns
+    -------
+    list of dict
+        One entry per antenna-pol (medians over the solved channels): ``sky_contrast``,
+        ``corr_G_n``, ``drift_sensitivity``, ``separation`` (``"weak"`` or ``"adequate"``),
+        ``G``, ``sigma_G_frac`` and ``sigma_G_stat_frac`` (total and statistical 1-sigma
+        over ``G``), ``jackknife_factor``, ``drift_weight``, ``G_halves``, ``G_if_trxr_K``
+        (the profile: ``{Trxr: G}``) and ``message``, a sentence for people. Empty without
+        a total uncertainty.
+    """
+    total = solution.total
+    if total is None:
+        return []
+    out = []
+    ok = ~solution.flags
+    weak = total.separation()
+    with np.errstate(all="ignore"):
+        frac_tot = solution.sigma_G / solution.G
+        frac_stat = solution.sigma_G_stat / solution.G
+    for ia, ant in enumerate(np.asarray(solution.antennas).tolist()):
+        for ip, pol in enumerate(solution.pols):
+            sel = ok[ia, ip]
+
+            def med(arr: np.ndarray, ia: int = ia, ip: int = ip, sel: np.ndarray = sel) -> Any:
+                return _median(arr[ia, ip][sel])
+
+            profile = {
+                f"{t:g}": _median(total.profile_G[ia, ip, i][sel])
+                for i, t in enumerate(total.profile_trxr)
+            }
+            entry = {
+                "antenna": int(ant),
+                "pol": pol,
+                "channels": int(sel.sum()),
+                "G": med(solution.G),
+                "Trxr_K": med(solution.Trxr),
+                "sky_contrast": med(total.sky_contrast),
+                "corr_G_n": med(total.corr_G_n),
+                "drift_sensitivity": med(total.drift_sensitivity),
+                "separation": "weak" if weak[ia, ip] else "adequate",
+                "sigma_G_frac": med(frac_tot),
+                "sigma_G_stat_frac": med(frac_stat),
+                "jackknife_factor": med(total.jackknife_factor),
+                "drift_weight": med(total.drift_weight),
+                "G_halves": [_median(total.G_halves[h, ia, ip][sel]) for h in range(2)],
+                "G_if_trxr_K": profile,
+            }
+            entry["message"] = _message(entry)
+            out.append(entry)
+    return out
+
+
+def _message(e: dict[str, Any]) -> str:
+    """One sentence on an antenna-pol's separation and error budget."""
+    head = f"ant {e['antenna']} {e['pol']}: "
+    if e["G"] is None:
+        return head + "no solved channel"
+    sens = e["drift_sensitivity"]
+    text = head + (
+        f"G = {e['G']:.4g} +- {100 * (e['sigma_G_frac'] or np.nan):.3g} % total "
+        f"({100 * (e['sigma_G_stat_frac'] or np.nan):.2g} % statistical)"
+    )
+    if e["separation"] == "weak":
+        trxr = e["Trxr_K"] if e["Trxr_K"] is not None else 150.0
+        near = sorted(e["G_if_trxr_K"], key=lambda k: abs(float(k) - trxr))[:3]
+        near = sorted(near, key=float)
+        prof = ", ".join(
+            f"{e['G_if_trxr_K'][k]:.4g} if Trxr = {k} K"
+            for k in near
+            if e["G_if_trxr_K"][k] is not None
+        )
+        text += (
+            f"; weak separation: the sky varies by {100 * (e['sky_contrast'] or np.nan):.2g} % "
+            f"of Tsys, so a 1 % gain drift over the span moves G by "
+            f"{abs(sens or np.nan):.3g} %; G = {prof}"
+        )
+    return text

@@ -59,8 +59,12 @@ Writing
   ``per_time=True``, the time model ``G(t)`` evaluated at every fitted integration;
 * ``flag_array`` is the solution's channel flags (failed fits, non-positive ``G``);
   flagged gains are written as 1 (never NaN);
-* ``quality_array`` holds ``chi^2 / dof`` per antenna, channel and polarisation (0 where
-  undefined); ``total_quality_array`` the pooled ``sum chi^2 / sum dof`` over antennas;
+* ``quality_array`` holds the total 1-sigma uncertainty of the written gain amplitude
+  ``|g|`` (:attr:`autocal.fit.Solution.sigma_abs_g`: statistical, jackknife and drift
+  terms, :mod:`autocal.uncertainty`; with ``per_time=True`` the statistical error of
+  ``|g(t)|`` scaled by the channel's total-to-statistical ratio of the time-averaged
+  ``|g|``), 0 where undefined; ``total_quality_array`` the pooled ``sum chi^2 / sum dof``
+  over antennas (``chi^2 / dof`` per antenna is in the HDF5 product);
 * the telescope is pyuvdata's known HERA telescope (all antennas and positions) when the
   solution's telescope is HERA (or unknown and every antenna number exists in HERA);
   otherwise a minimal telescope at the solution's site with its antennas at zero
@@ -851,9 +855,7 @@ def solution_to_uvcal(
 
     nant, npol, nfreq = len(solution.antennas), len(solution.pols), freqs.size
     flags = np.asarray(solution.flags, dtype=bool)  # (A, P, F)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rchi2 = np.asarray(solution.reduced_chi2, dtype=np.float64)
-    quality = np.where(np.isfinite(rchi2) & ~flags, rchi2, 0.0)
+    sigma_amp = np.asarray(solution.sigma_abs_g, dtype=np.float64)  # (A, P, F), total
     chi2 = np.where(np.isfinite(solution.chi2) & ~flags, solution.chi2, 0.0)
     dof = np.where(~flags, np.asarray(solution.dof, dtype=np.float64), 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -861,7 +863,8 @@ def solution_to_uvcal(
 
     kwargs: dict[str, Any] = {}
     if per_time:
-        big_g = solution.evaluate()["G"]  # (A, P, T, F)
+        ev = solution.evaluate()
+        big_g = ev["G"]  # (A, P, T, F)
         ntime = jds.size
         if ntime > 1 and np.any(np.diff(jds) <= 0):
             raise CalsolFormatError("per_time needs strictly increasing JDs")
@@ -871,6 +874,9 @@ def solution_to_uvcal(
         kwargs["integration_time"] = tint
         gain_g = big_g
         flag4 = np.broadcast_to(flags[:, :, None, :], big_g.shape)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = sigma_amp / np.asarray(solution.sigma_abs_g_stat, dtype=np.float64)
+            sig4 = ev["sigma_G"] / (2 * np.sqrt(big_g)) * ratio[:, :, None, :]
     else:
         if time_range is None:
             pad = 0.5 * float(np.median(np.diff(np.sort(jds)))) if jds.size > 1 else 0.5 / 86400
@@ -893,6 +899,7 @@ def solution_to_uvcal(
         kwargs["integration_time"] = np.array([(stop - start) * 86400.0])
         gain_g = np.asarray(solution.G, dtype=np.float64)[:, :, None, :]
         flag4 = flags[:, :, None, :]
+        sig4 = sigma_amp[:, :, None, :]
     with np.errstate(invalid="ignore"):
         amp = np.sqrt(gain_g)
     bad = flag4 | ~np.isfinite(amp) | ~(gain_g > 0)
@@ -902,8 +909,9 @@ def solution_to_uvcal(
     to_uvc = (0, 3, 2, 1)
     gain_array = np.ascontiguousarray(amp.transpose(to_uvc)).astype(np.complex128)
     flag_array = np.ascontiguousarray(bad.transpose(to_uvc))
+    quality = np.where(bad | ~np.isfinite(sig4), 0.0, sig4)
     quality_array = np.ascontiguousarray(
-        np.broadcast_to(quality[:, :, None, :], (nant, npol, ntime_out, nfreq)).transpose(to_uvc)
+        np.broadcast_to(quality, (nant, npol, ntime_out, nfreq)).transpose(to_uvc)
     )
     total_quality = np.ascontiguousarray(
         np.broadcast_to(total[:, None, :], (npol, ntime_out, nfreq)).transpose(2, 1, 0)

@@ -19,8 +19,17 @@ Datasets (exactly what :class:`autocal.fit.Solution` holds; read back bit for bi
     Ntime, Nfreq).
 Group ``derived`` (for readers that do not use autocal; recomputed on reading)
     ``G``, ``abs_g`` (``|g| = sqrt(G)``), ``n``, ``Trxr`` (K), ``sigma_G``, ``sigma_abs_g``,
-    ``sigma_n``, ``sigma_Trxr`` (K), ``reduced_chi2``, ``flags`` -- all
+    ``sigma_n``, ``sigma_Trxr`` (K) -- the TOTAL 1-sigma when the solution has one (see
+    ``uncertainty``), ``sigma_G_stat``, ``sigma_abs_g_stat``, ``sigma_n_stat``,
+    ``sigma_Trxr_stat`` (the statistical part alone), ``reduced_chi2``, ``flags`` -- all
     (Nant, Npol, Nfreq); ``G`` and ``n`` are time averages over the fitted integrations.
+Group ``uncertainty`` (when the solution has a total uncertainty; :mod:`autocal.uncertainty`)
+    ``cov`` (Nant, Npol, Nfreq, 2, 2) total covariance of the time-averaged ``(G, n)``;
+    ``jackknife_factor``, ``drift_weight``, ``G_drift``, ``n_drift``, ``sigma_G_drift``,
+    ``sky_contrast``, ``corr_G_n``, ``drift_sensitivity`` (Nant, Npol, Nfreq), ``G_halves``
+    (2, Nant, Npol, Nfreq), the profile ``profile_trxr`` (Ngrid,; K) and ``profile_G``
+    (Nant, Npol, Ngrid, Nfreq): ``G`` if ``Trxr`` were known to be each grid value;
+    attributes ``method``, ``nblocks``, ``notes`` (JSON).
 
 Units: ``G`` is raw correlator units per kelvin, ``n`` raw units, ``Trxr`` kelvin.
 
@@ -53,15 +62,34 @@ logger = logging.getLogger(__name__)
 FORMAT = "autocal-solution-1"
 
 _CORE = ("coeffs", "cov", "chi2", "dof", "count", "nflagged", "flag_reason")
+#: Arrays of :class:`autocal.uncertainty.TotalUncertainty` in the ``uncertainty`` group.
+_UNCERTAINTY = {
+    "cov": "total covariance of the time-averaged (G, n)",
+    "jackknife_factor": "delete-a-block jackknife variance over the statistical variance",
+    "drift_weight": "BIC weight of the model with one more time order (a drift)",
+    "G_drift": "time-averaged G of that model",
+    "n_drift": "time-averaged n of that model",
+    "sigma_G_drift": "its statistical 1-sigma of G",
+    "G_halves": "G from the first and the second half of the time blocks",
+    "sky_contrast": "weighted rms of Tsky over the span / (mean Tsky + Trxr)",
+    "corr_G_n": "statistical correlation coefficient of G and n",
+    "drift_sensitivity": "(dG/G) per unit fractional gain drift over the span",
+    "profile_trxr": "assumed receiver temperatures of the profile (K)",
+    "profile_G": "time-averaged G with n(t) = G(t) Trxr held at each profile_trxr",
+}
 _DERIVED = {
     "G": ("raw/K", "gain G = |g|^2, time average over the fitted integrations"),
     "abs_g": ("sqrt(raw/K)", "gain amplitude |g| = sqrt(G)"),
     "n": ("raw", "noise offset n = G Trxr, time average"),
     "Trxr": ("K", "receiver temperature n / G"),
-    "sigma_G": ("raw/K", "1-sigma uncertainty of G"),
-    "sigma_abs_g": ("sqrt(raw/K)", "1-sigma uncertainty of |g|"),
-    "sigma_n": ("raw", "1-sigma uncertainty of n"),
-    "sigma_Trxr": ("K", "1-sigma uncertainty of Trxr (linear propagation incl. Cov(G, n))"),
+    "sigma_G": ("raw/K", "total 1-sigma uncertainty of G (statistical if no total)"),
+    "sigma_abs_g": ("sqrt(raw/K)", "total 1-sigma uncertainty of |g|"),
+    "sigma_n": ("raw", "total 1-sigma uncertainty of n"),
+    "sigma_Trxr": ("K", "total 1-sigma of Trxr (linear propagation incl. Cov(G, n))"),
+    "sigma_G_stat": ("raw/K", "statistical part of sigma_G"),
+    "sigma_abs_g_stat": ("sqrt(raw/K)", "statistical part of sigma_abs_g"),
+    "sigma_n_stat": ("raw", "statistical part of sigma_n"),
+    "sigma_Trxr_stat": ("K", "statistical part of sigma_Trxr"),
     "reduced_chi2": ("", "chi^2 / dof"),
     "flags": ("", "True where the channel could not be solved"),
 }
@@ -295,6 +323,14 @@ def write_solution(
                 ds = der.create_dataset(name, data=np.asarray(getattr(solution, name)))
                 ds.attrs["units"] = unit
                 ds.attrs["description"] = text
+        if solution.total is not None:
+            unc = h5.create_group("uncertainty")
+            unc.attrs["method"] = solution.total.describe()["method"]
+            unc.attrs["nblocks"] = int(solution.total.nblocks)
+            unc.attrs["notes"] = to_json(list(solution.total.notes))
+            for name, text in _UNCERTAINTY.items():
+                ds = unc.create_dataset(name, data=np.asarray(getattr(solution.total, name)))
+                ds.attrs["description"] = text
     logger.info("wrote solution product %s", path)
     return path
 
@@ -355,6 +391,16 @@ def read_solution(path: str | Path) -> Solution:
             )
             arrays = {name: h5[name][()] for name in _CORE}
             residuals = h5["residuals"][()] if "residuals" in h5 else None
+            total = None
+            if "uncertainty" in h5:
+                from autocal.uncertainty import TotalUncertainty
+
+                unc = h5["uncertainty"]
+                total = TotalUncertainty(
+                    **{name: unc[name][()] for name in _UNCERTAINTY},
+                    nblocks=int(unc.attrs["nblocks"]),
+                    notes=tuple(json.loads(unc.attrs["notes"])),
+                )
             solution = Solution(
                 model=model,
                 antennas=h5["antennas"][()],
@@ -365,6 +411,7 @@ def read_solution(path: str | Path) -> Solution:
                 config=json.loads(h5.attrs["config"]),
                 residuals=residuals,
                 antenna_names=_strings(h5["antenna_names"]),
+                total=total,
                 **arrays,
             )
     except ProductFormatError:

@@ -395,8 +395,20 @@ class AntennaPolResult(BaseModel):
     sigma_abs_g: list[float | None]
     Trxr: list[float | None]
     sigma_Trxr: list[float | None]  # noqa: N815 - the physics symbol
+    sigma_G_stat: list[float | None] = Field(  # noqa: N815 - the physics symbol
+        ..., description="statistical part of sigma_G (sigma_G is the total 1-sigma)"
+    )
+    sigma_abs_g_stat: list[float | None]
+    sigma_Trxr_stat: list[float | None]  # noqa: N815 - the physics symbol
     reduced_chi2: list[float | None]
     flags: list[bool]
+    separation: dict[str, Any] | None = Field(
+        None,
+        description="how well G and n separate over the span and the error budget (medians "
+        "over channels): sky_contrast, corr_G_n, drift_sensitivity, separation (weak or "
+        "adequate), G_if_trxr_K (G if Trxr were known), jackknife_factor, drift_weight, "
+        "G_halves, message",
+    )
 
 
 class JobResults(BaseModel):

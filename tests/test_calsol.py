@@ -243,7 +243,8 @@ def test_round_trip_through_pyuvdata(tmp_path, kind, capsys):
     assert np.all(np.isfinite(uvc.gain_array))
     assert np.all(gains[sol.flags] == 1.0)
     quality = uvc.quality_array[:, :, 0, :].transpose(0, 2, 1)
-    np.testing.assert_allclose(quality[ok], sol.reduced_chi2[ok])
+    ok_q = ok & np.isfinite(sol.sigma_abs_g)
+    np.testing.assert_allclose(quality[ok_q], sol.sigma_abs_g[ok_q])  # total 1-sigma of |g|
     assert np.all(quality[sol.flags] == 0)
     np.testing.assert_allclose(uvc.total_quality_array[:, 0, :][~sol.flags[0].T], 1.1)
 

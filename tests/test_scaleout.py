@@ -167,7 +167,7 @@ def test_data_are_read_once_and_the_waterfall_needs_no_second_read(
 def test_waterfall_rows_are_the_normalised_residuals(night, tmp_path) -> None:
     result = run_calibration(_config(night), tmp_path / "out", block_size=5)
     run = autocal.pipeline._Run(
-        result.solution, None, 1, 1, result.solution.antennas, (), {}, {}
+        result.solution, None, None, 1, 1, result.solution.antennas, (), {}, {}
     )  # only .waterfall and .bin_size are used below
     spec = autocal.pipeline.PartialSpec(
         result.solution.model, "radiometer", autocal.pipeline._selection(_config(night)), 2, 1

@@ -83,6 +83,17 @@ def run(args: argparse.Namespace) -> int:
             block_size=args.block_size,
         )
     print(json.dumps(result.summary["solution"], indent=2))
+    separation = result.summary.get("separation") or []
+    shown = (
+        separation
+        if len(separation) <= 12
+        else [e for e in separation if e["separation"] == "weak"][:12]
+    )
+    if len(separation) > 12:
+        nweak = sum(e["separation"] == "weak" for e in separation)
+        print(f"{nweak} of {len(separation)} antenna-pols separate G and n weakly; the first:")
+    for entry in shown:
+        print(entry["message"])
     for name, path in result.products.items():
         print(f"wrote {name}: {path}")
     return 0

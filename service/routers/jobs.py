@@ -73,6 +73,7 @@ from autocal.service.schemas import (
 from autocal.service.settings import Settings
 from autocal.service.store import FINAL_STATES, JobStore, StoreError
 from autocal.sky import SkyModelError
+from autocal.uncertainty import separation_summary
 
 logger = logging.getLogger(__name__)
 
@@ -109,6 +110,9 @@ UNITS = {
     "sigma_abs_g": "sqrt(raw/K)",
     "Trxr": "K",
     "sigma_Trxr": "K",
+    "sigma_G_stat": "raw/K",
+    "sigma_abs_g_stat": "sqrt(raw/K)",
+    "sigma_Trxr_stat": "K",
     "reduced_chi2": "",
 }
 
@@ -561,14 +565,19 @@ def job_results(
         "sigma_abs_g": sol.sigma_abs_g,
         "Trxr": sol.Trxr,
         "sigma_Trxr": sol.sigma_Trxr,
+        "sigma_G_stat": sol.sigma_G_stat,
+        "sigma_abs_g_stat": sol.sigma_abs_g_stat,
+        "sigma_Trxr_stat": sol.sigma_Trxr_stat,
         "reduced_chi2": sol.reduced_chi2,
     }
     flags = sol.flags
+    separation = {(e["antenna"], e["pol"]): e for e in separation_summary(sol)}
     solutions = [
         AntennaPolResult(
             antenna=ant,
             pol=p,
             flags=[bool(f) for f in flags[ia, ip]],
+            separation=json_safe(separation.get((ant, p))),
             **{name: _values(arr[ia, ip]) for name, arr in arrays.items()},
         )
         for ia, ant in enumerate(antennas)
