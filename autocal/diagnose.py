@@ -177,7 +177,7 @@ def fit_extended(
     *,
     weights: np.ndarray,
     trxr_prior: np.ndarray | float | None = None,
-    trxr_prior_sigma: float = 1.0,
+    trxr_prior_sigma: np.ndarray | float = 1.0,
     gain_ref: np.ndarray | None = None,
     max_iter: int = 30,
     tol: float = 1e-4,
@@ -195,8 +195,9 @@ def fit_extended(
     weights
         ``(Nant, Npol, Ntime, Nfreq)`` inverse variances (hold them fixed to compare fits).
     trxr_prior, trxr_prior_sigma
-        Receiver prior in kelvin (scalar or ``(Nfreq,)``) and its 1-sigma; ``None`` for
-        no prior.
+        Receiver prior in kelvin and its 1-sigma, each a scalar or an array broadcastable
+        to ``(Nant, Npol, Nfreq)`` (:meth:`autocal.priors.TrxrPrior.at`); ``None`` for no
+        prior. Channels whose prior is not finite get no prior term.
     gain_ref
         ``(Nant, Npol, Nfreq)`` gain used to scale the prior's sigma (default: a fit
         without prior).
@@ -224,7 +225,10 @@ def fit_extended(
     fixed = {e.name: np.asarray(e.fixed, float) for e in effects if e.fixed is not None}
     bases = {(e.basis, e.order): e.time_basis(obs.lsts) for e in effects if e.kind != "tsky"}
     prior = trxr_prior is not None
-    t0 = np.broadcast_to(np.asarray(trxr_prior if prior else 0.0, float), (obs.nfreq,))
+    t0 = np.broadcast_to(np.asarray(trxr_prior if prior else 0.0, float), y.shape[:3])
+    sig0 = np.broadcast_to(np.asarray(trxr_prior_sigma, float), y.shape[:3])
+    has_prior = np.isfinite(t0) & np.isfinite(sig0) & (sig0 > 0)
+    t0 = np.where(has_prior, t0, 0.0)
 
     def values(eff: Effect, sl: slice, pv: np.ndarray) -> np.ndarray:
         return fixed[eff.name] if eff.fixed is not None else pv[sl]
@@ -290,7 +294,7 @@ def fit_extended(
             if gain_ref is None:
                 gain_ref = evaluate(p, wp).g
             gain_ref = np.where(np.abs(gain_ref) > 0, np.abs(gain_ref), np.inf)
-            wp = np.where(chan_ok, 1.0 / (gain_ref * trxr_prior_sigma) ** 2, 0.0)
+            wp = np.where(chan_ok & has_prior, 1.0 / (gain_ref * sig0) ** 2, 0.0)
         st = evaluate(p, wp)
         if not np.isfinite(st.chi2):
             raise DiagnoseError(
@@ -924,7 +928,7 @@ def diagnose(
     *,
     candidates: list[Effect] | None = None,
     trxr_prior: np.ndarray | float | None = None,
-    trxr_prior_sigma: float = 1.0,
+    trxr_prior_sigma: np.ndarray | float = 1.0,
     bic_threshold: float = BIC_THRESHOLD,
     alpha: float = ALPHA,
     max_steps: int = 5,
@@ -1019,13 +1023,26 @@ def diagnose(
     return diag
 
 
+def _describe_values(values: np.ndarray | float) -> Any:
+    """Return a prior's value for the report: the number, or a per-channel array's range."""
+    arr = np.asarray(values, dtype=float)
+    if arr.ndim == 0 or np.all(arr == arr.flat[0]):
+        return float(arr.flat[0])
+    ok = arr[np.isfinite(arr)]
+    return {
+        "median": float(np.median(ok)) if ok.size else None,
+        "min": float(ok.min()) if ok.size else None,
+        "max": float(ok.max()) if ok.size else None,
+    }
+
+
 def _diagnose_once(
     obs: Observation,
     tpl: SkyTemplates,
     *,
     candidates: list[Effect] | None = None,
     trxr_prior: np.ndarray | float | None = None,
-    trxr_prior_sigma: float = 1.0,
+    trxr_prior_sigma: np.ndarray | float = 1.0,
     bic_threshold: float = BIC_THRESHOLD,
     alpha: float = ALPHA,
     max_steps: int = 5,
@@ -1054,8 +1071,10 @@ def _diagnose_once(
             "cable_reflection: chi2 of fitted G(nu) vs smooth bandpass, N = Nfreq)",
             "bic_threshold": bic_threshold,
             "alpha": alpha,
-            "trxr_prior_K": None if trxr_prior is None else np.asarray(trxr_prior).tolist(),
-            "trxr_prior_sigma_K": trxr_prior_sigma if trxr_prior is not None else None,
+            "trxr_prior_K": None if trxr_prior is None else _describe_values(trxr_prior),
+            "trxr_prior_sigma_K": None
+            if trxr_prior is None
+            else _describe_values(trxr_prior_sigma),
             "smooth_bandpass_order": smooth_order,
             "min_identifiable": MIN_IDENTIFIABLE,
             "candidates": [c.describe() for c in cands],

@@ -39,7 +39,7 @@ from pydantic import (
 
 from autocal.coords import night_epoch
 from autocal.diagnose import ALPHA, BIC_THRESHOLD, DiagnoseError
-from autocal.pipeline import PipelineError, check_ranges
+from autocal.pipeline import PipelineError, check_prior_spec, check_ranges
 
 logger = logging.getLogger(__name__)
 
@@ -77,13 +77,16 @@ class DiagnoseConfig(BaseModel):
     lst_range_h: tuple[float, float] | None = Field(
         None, description="(start, stop) hours; start > stop wraps through 24 h"
     )
-    trxr_prior_k: float | None = Field(
+    trxr_prior: float | str | None = Field(
         None,
-        gt=0.0,
-        description="known receiver temperature: makes effects that are constant in time "
-        "(sky_offset, ground_temperature, missing_cmb) and sky scalings identifiable",
+        description="known receiver temperature: a number (K), a CSV table "
+        "freq_mhz,trxr_k[,sigma_k] or a previous solution.h5; makes effects that are "
+        "constant in time (sky_offset, ground_temperature, missing_cmb) and sky scalings "
+        "identifiable",
     )
-    trxr_prior_sigma_k: float = Field(1.0, gt=0.0, description="1-sigma of the receiver prior")
+    trxr_prior_sigma_k: float = Field(
+        1.0, gt=0.0, description="1-sigma of a number prior or a table without sigma_k"
+    )
     bic_threshold: float = Field(
         BIC_THRESHOLD, ge=0.0, description="Delta BIC an effect must exceed to be accepted"
     )
@@ -112,6 +115,7 @@ class DiagnoseConfig(BaseModel):
     @model_validator(mode="after")
     def _check(self) -> DiagnoseConfig:
         check_ranges(self.freq_range_mhz, self.lst_range_h)
+        check_prior_spec(self.trxr_prior, self.trxr_prior_sigma_k)
         return self
 
 
@@ -284,6 +288,11 @@ def run_diagnosis(
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     paths = _input_paths(config)
+    prior = None
+    if config.trxr_prior is not None:  # a malformed prior fails before any reading
+        from autocal.priors import parse_trxr_prior
+
+        prior = parse_trxr_prior(config.trxr_prior, sigma_k=config.trxr_prior_sigma_k)
     report(0.0, f"reading {len(paths)} UVH5 file(s)")
     mhz = config.freq_range_mhz
     obs = read_uvh5(
@@ -295,6 +304,9 @@ def run_diagnosis(
     )
     timings["read_s"] = time.perf_counter() - t0
     check_memory(obs.data.shape)
+    prior_mean = prior_sigma = None
+    if prior is not None:
+        prior_mean, prior_sigma = prior.at(obs.freqs, antennas=obs.antennas, pols=obs.pols)
 
     beam_pols = _beam_pols(tuple(p.lower() for p in obs.pols))
     epoch = night_epoch(obs.jds, obs.site.lon_deg)
@@ -325,8 +337,8 @@ def run_diagnosis(
     diag = diagnose(
         obs,
         templates,
-        trxr_prior=config.trxr_prior_k,
-        trxr_prior_sigma=config.trxr_prior_sigma_k,
+        trxr_prior=prior_mean,
+        trxr_prior_sigma=1.0 if prior_sigma is None else prior_sigma,
         bic_threshold=config.bic_threshold,
         alpha=config.alpha,
         max_steps=config.max_steps,

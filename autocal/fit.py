@@ -1027,7 +1027,8 @@ def _solve_block(
     inv = _inv(scaled)
     cov = inv / (d[..., :, None] * d[..., None, :])
     coeffs = (cov @ aty[..., None])[..., 0]
-    chi2 = yty - np.einsum("...m,...m->...", coeffs, aty)
+    # a difference of large sums: rounding can make a (near-)perfect fit's chi2 negative
+    chi2 = np.maximum(yty - np.einsum("...m,...m->...", coeffs, aty), 0.0)
     dof = (count - m).astype(np.float64)
     if scale_covariance:
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -1394,6 +1395,7 @@ def fit(
     return_residuals: bool = False,
     config: dict[str, Any] | None = None,
     uncertainty: Literal["total", "statistical"] = "total",
+    trxr_prior: Any = None,
 ) -> Solution:
     """Fit gain and receiver noise to an observation held in memory.
 
@@ -1425,16 +1427,23 @@ def fit(
         ``"total"`` (default): also compute the total uncertainty
         (:mod:`autocal.uncertainty`: block jackknife and the model with one more time
         order), so ``sigma_*`` are total errors; ``"statistical"``: the covariance only.
+    trxr_prior
+        A receiver prior: an :class:`autocal.priors.TrxrPrior` or ``(trxr_k, sigma_k)``
+        arrays broadcastable to ``(Nant, Npol, Nfreq)``. The time-averaged ``n`` is held
+        near ``G trxr_k`` (:func:`autocal.priors.add_trxr_prior`); the errors include the
+        prior's.
 
     Returns
     -------
     Solution
         The fitted solution.
     """
+    from autocal.priors import add_trxr_prior
     from autocal.uncertainty import (
         accumulate_blocks,
         block_edges,
         extended_model,
+        mean_vectors,
         sums_nbytes,
         total_uncertainty,
     )
@@ -1485,6 +1494,18 @@ def fit(
             # Channels that failed keep data-based weights.
             reference = np.where(np.isfinite(pred) & (pred > 0), pred, obs.data)
     assert sums is not None
+    prior_fn = None
+    if trxr_prior is not None:
+        if hasattr(trxr_prior, "at"):
+            ptrxr, psigma = trxr_prior.at(obs.freqs, antennas=obs.antennas, pols=obs.pols)
+        else:
+            ptrxr, psigma = trxr_prior
+
+        def prior_fn(part: NormalSums, pvg: np.ndarray, pvn: np.ndarray) -> NormalSums:
+            return add_trxr_prior(part, pvg, pvn, ptrxr, psigma, scale_covariance=scale)
+
+        vg, vn = mean_vectors(fit_model, obs.lsts)
+        solved = solve_sums(prior_fn(sums, vg, vn), min_samples=min_samples, scale_covariance=scale)
     nbad = int(np.sum(solved["flag_reason"] != 0))
     if nbad:
         logger.warning(
@@ -1506,7 +1527,7 @@ def fit(
     }
     total = None
     if blocks is not None:
-        total = total_uncertainty(blocks, solved, scale_covariance=scale)
+        total = total_uncertainty(blocks, solved, scale_covariance=scale, prior=prior_fn)
         cfg["uncertainty"] = total.describe()
     solution = Solution.from_solved(
         fit_model,

@@ -146,6 +146,11 @@ class ScenarioResult:
             "median_reduced_chi2": float(np.nanmedian(sol.reduced_chi2[0, 0])),
             "bias_G_sigmas": float(np.nanmedian(np.abs(dg) / sol.sigma_G[0, 0])),
             "bias_Trxr_sigmas": float(np.nanmedian(np.abs(dt) / sol.sigma_Trxr[0, 0])),
+            "median_sigma_G_stat": float(np.nanmedian(sol.sigma_G_stat[0, 0])),
+            "bias_G_stat_sigmas": float(np.nanmedian(np.abs(dg) / sol.sigma_G_stat[0, 0])),
+            "bias_Trxr_stat_sigmas": float(np.nanmedian(np.abs(dt) / sol.sigma_Trxr_stat[0, 0])),
+            "G_within_3_sigma": float(np.mean(np.abs(dg) < 3 * sol.sigma_G[0, 0])),
+            "Trxr_within_3_sigma": float(np.mean(np.abs(dt) < 3 * sol.sigma_Trxr[0, 0])),
         }
         if sol.model.kind == "legendre":
             ev = sol.evaluate()

@@ -49,10 +49,12 @@ from autocal.fit import (
     weights_for,
 )
 from autocal.observation import Observation
+from autocal.priors import add_trxr_prior
 from autocal.uncertainty import (
     BlockSums,
     block_edges,
     extended_model,
+    mean_vectors,
     separation_summary,
     sums_nbytes,
     total_uncertainty,
@@ -69,6 +71,10 @@ MAX_WATERFALL_ROWS = 512
 
 ProductName = Literal["calh5", "calfits", "hdf5", "png"]
 Progress = Callable[[float, str], None]
+
+
+#: Default 1-sigma (K) of a receiver prior given as a number or a table without sigma_k.
+DEFAULT_PRIOR_SIGMA_K = 10.0
 
 
 class PipelineError(ValueError):
@@ -112,13 +118,36 @@ class CalibrationConfig(BaseModel):
         description="radiometer weights: scale each channel's covariance by chi2/dof when it "
         "exceeds 1, so errors cover unmodelled structure (identity weights always scale)",
     )
+    trxr_prior: float | str | None = Field(
+        None,
+        description="receiver-temperature prior: a number (K), a CSV table "
+        "freq_mhz,trxr_k[,sigma_k] or a previous solution.h5 of the same antennas/pols",
+    )
+    trxr_prior_sigma_k: float = Field(
+        DEFAULT_PRIOR_SIGMA_K,
+        gt=0.0,
+        description="1-sigma (K) of a number prior and of a table without sigma_k",
+    )
 
     @model_validator(mode="after")
     def _check(self) -> CalibrationConfig:
         check_ranges(self.freq_range_mhz, self.lst_range_h)
+        check_prior_spec(self.trxr_prior, self.trxr_prior_sigma_k)
         if self.nside & (self.nside - 1):
             raise ValueError(f"nside must be a power of two (got {self.nside})")
         return self
+
+
+def check_prior_spec(spec: float | str | None, sigma_k: float) -> None:
+    """Raise ``ValueError`` for a receiver prior that is not a finite number or a path."""
+    if isinstance(spec, bool):
+        raise ValueError("trxr_prior must be a number (K) or a path, not a boolean")
+    if isinstance(spec, float) and not np.isfinite(spec):
+        raise ValueError("trxr_prior must be a finite temperature in K")
+    if isinstance(spec, str) and not spec.strip():
+        raise ValueError("trxr_prior is empty: give a number in K or a .csv/.h5 path")
+    if not np.isfinite(sigma_k):
+        raise ValueError("trxr_prior_sigma_k must be finite")
 
 
 def check_ranges(
@@ -164,15 +193,15 @@ class _Source:
     scanned: tuple[Any, ...] = ()  # UVH5File per file (uvh5)
     ntimes: tuple[int, ...] = ()  # selected integrations per file (uvh5)
 
-    def nant(self, antennas: list[int] | None) -> int:
-        """Return the number of antennas a selection keeps (before reading)."""
+    def antenna_numbers(self, antennas: list[int] | None) -> list[int]:
+        """Return the antennas a selection keeps, in the order they are read."""
         if antennas is not None:
-            return len(antennas)
+            return [int(a) for a in antennas]
         if self.observation is not None:
-            return self.observation.nant
+            return [int(a) for a in self.observation.antennas]
         from autocal.io.uvh5_blocks import _meta_of
 
-        return len(_meta_of(self.scanned[0]).auto_ants) if self.scanned else 1
+        return [int(a) for a in _meta_of(self.scanned[0]).auto_ants] if self.scanned else []
 
     def tasks(self, tsky_all: np.ndarray) -> list[FileTask]:
         """One task per file (uvh5) or one for the whole in-memory observation."""
@@ -795,6 +824,12 @@ def _calibrate(
     timings["scan_s"] = time.perf_counter() - t0
 
     pols = tuple(p.lower() for p in (config.pols or source.pols))
+    prior = None
+    if config.trxr_prior is not None:  # read and checked before any work is done
+        from autocal.priors import parse_trxr_prior
+
+        prior = parse_trxr_prior(config.trxr_prior, sigma_k=config.trxr_prior_sigma_k)
+        prior.at(source.freqs, antennas=source.antenna_numbers(config.antennas), pols=pols)
     site = source.site
     epoch = night_epoch(source.jds, site.lon_deg)
     report(
@@ -846,11 +881,19 @@ def _calibrate(
     else:
         scaling = "inflate" if config.inflate_errors else False
     sums = run.sums
+    prior_fn = None
+    if prior is not None:
+        ptrxr, psigma = prior.at(source.freqs, antennas=run.antennas, pols=pols)
+
+        def prior_fn(part: NormalSums, pvg: np.ndarray, pvn: np.ndarray) -> NormalSums:
+            return add_trxr_prior(part, pvg, pvn, ptrxr, psigma, scale_covariance=scaling)
+
+        sums = prior_fn(sums, *mean_vectors(model, source.lsts))
     solved = solve_sums(sums, scale_covariance=scaling)
     total = None
     if run.blocks is not None:
         report(0.82, f"total uncertainty ({run.blocks.nblocks} time blocks)")
-        total = total_uncertainty(run.blocks, solved, scale_covariance=scaling)
+        total = total_uncertainty(run.blocks, solved, scale_covariance=scaling, prior=prior_fn)
     provenance = {
         "autocal_version": __version__,
         "inputs": run.checksums,
@@ -869,6 +912,7 @@ def _calibrate(
         if (config.weights == "radiometer" and config.inflate_errors)
         else ("covariance x chi2/dof" if config.weights == "identity" else "covariance"),
         "uncertainty": None if total is None else total.describe(),
+        "trxr_prior": None if prior is None else prior.describe(),
         "created_unix": time.time(),
     }
     solution = Solution.from_solved(
@@ -961,7 +1005,10 @@ def _run_passes(
     nbins = -(-ntime // bin_size)
     nshow = max(1, MAX_PLOTTED // len(pols))
     nbytes = sums_nbytes(
-        extended_model(model), source.nant(config.antennas), len(pols), source.freqs.size
+        extended_model(model),
+        max(1, len(source.antenna_numbers(config.antennas))),
+        len(pols),
+        source.freqs.size,
     )
     edges = block_edges(ntime, bytes_per_block=nbytes)
     use_dask = executor is not None and source.kind == "uvh5"

@@ -261,8 +261,12 @@ class TotalUncertainty:
         }
 
 
-def _mean_vectors(model: FitModel, lsts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Time-average projection vectors ``(vG, vn)`` of a model's parameters."""
+def mean_vectors(model: FitModel, lsts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return the vectors ``(vg, vn)`` that give the time-averaged ``G`` and ``n``.
+
+    ``G = vg . x`` and ``n = vn . x`` for the parameters ``x`` of ``model``, averaged over
+    the integrations at ``lsts``.
+    """
     tavg = model.basis(lsts).mean(axis=1)
     nb = model.nbasis
     vg = np.zeros(model.nparam)
@@ -348,8 +352,8 @@ def total_uncertainty(
     model = blocks.model
     ext_model = extended_model(model)
     lsts = blocks.lsts
-    vg, vn = _mean_vectors(model, lsts)
-    evg, evn = _mean_vectors(ext_model, lsts)
+    vg, vn = mean_vectors(model, lsts)
+    evg, evn = mean_vectors(ext_model, lsts)
     total = blocks.total()
     notes: list[str] = []
 

@@ -89,6 +89,20 @@ def checked_options(
     beam = opts.get("beam")
     if beam is not None and str(beam).strip().lower() not in NAMED_BEAMS:
         opts["beam"] = str(resolve_input(str(beam), settings, what="beam"))
+    prior = opts.get("trxr_prior")
+    if isinstance(prior, str):  # a table or solution under the roots, read and checked now
+        from autocal.commands.options import prior_value
+        from autocal.priors import parse_trxr_prior
+
+        value = prior_value(prior)
+        if isinstance(value, str):
+            value = str(resolve_input(value, settings, what="trxr prior"))
+        opts["trxr_prior"] = value
+        sigma = (
+            opts.get("trxr_prior_sigma_k")
+            or config_type.model_fields["trxr_prior_sigma_k"].get_default()
+        )
+        parse_trxr_prior(value, sigma_k=float(sigma))
     return opts
 
 

@@ -181,6 +181,20 @@ class CalibrationOptions(BaseModel):
     inflate_errors: StrictBool | None = Field(
         None, description="radiometer weights: scale each channel's covariance by chi2/dof > 1"
     )
+    trxr_prior: Annotated[Number, Field(ge=-100_000.0, le=100_000.0)] | PathText | None = Field(
+        None,
+        description="receiver-temperature prior: a number (K), or a CSV table "
+        "freq_mhz,trxr_k[,sigma_k] or a previous solution.h5 under the data roots; calibrate: "
+        "G's errors include it; diagnose: makes effects constant in time (sky_offset, "
+        "ground_temperature, missing_cmb) and sky scalings identifiable",
+    )
+    trxr_prior_sigma_k: Number | None = Field(
+        None,
+        gt=0.0,
+        le=100_000.0,
+        description="1-sigma K of a number prior or a table without sigma_k "
+        "(calibrate 10, diagnose 1)",
+    )
 
     @field_validator("nside")
     @classmethod
@@ -200,16 +214,6 @@ class DiagnoseOptions(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    trxr_prior_k: Number | None = Field(
-        None,
-        gt=0.0,
-        le=100_000.0,
-        description="diagnose: known receiver temperature K; makes effects constant in time "
-        "(sky_offset, ground_temperature, missing_cmb) and sky scalings identifiable",
-    )
-    trxr_prior_sigma_k: Number | None = Field(
-        None, gt=0.0, le=100_000.0, description="diagnose: 1-sigma of the receiver prior K (1)"
-    )
     bic_threshold: Number | None = Field(
         None, ge=0.0, le=1e12, description="diagnose: Delta BIC an effect must exceed (10)"
     )
@@ -273,7 +277,7 @@ class JobCreate(DiagnoseOptions, CalibrationOptions):
                     "beam": "hera",
                     "antennas": [23],
                     "freq_range_mhz": [110, 190],
-                    "trxr_prior_k": 150,
+                    "trxr_prior": 150,
                     "trxr_prior_sigma_k": 10,
                 },
             ],

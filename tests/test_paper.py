@@ -25,7 +25,7 @@ def test_reference_scatter_matches_the_paper(runs, beam: str) -> None:
     paper = PAPER_VALUES[("reference", beam)]
     assert m["rms_Trxr_K"] == pytest.approx(paper["rms_Trxr_K"], rel=0.3)
     # The scatter of G is what the fit's own covariance predicts ...
-    predicted = float(np.sqrt(np.mean(res.solution.sigma_G**2)))
+    predicted = float(np.sqrt(np.mean(res.solution.sigma_G_stat**2)))
     assert m["rms_G"] == pytest.approx(predicted, rel=0.3)
     # ... and within 50 % of the paper's "~0.002" (we measure 0.0027-0.0028: see README).
     assert m["rms_G"] == pytest.approx(paper["rms_G"], rel=0.5)
@@ -38,15 +38,18 @@ def test_gain_drifts_bias_a_constant_fit_and_order_one_fixes_drift_a(runs, beam:
     reference = run.run(BY_NAME["reference"]).metrics()
     for profile in "abc":
         m = run.run(BY_NAME[f"drift_{profile}"]).metrics()
-        assert m["bias_G_sigmas"] > 3, profile
-        assert m["bias_Trxr_sigmas"] > 3, profile
+        # far outside the statistical errors, covered by the total (its drift term)
+        assert m["bias_G_stat_sigmas"] > 3, profile
+        assert m["bias_Trxr_stat_sigmas"] > 3, profile
+        assert m["G_within_3_sigma"] > 0.9, profile
+        assert m["Trxr_within_3_sigma"] > 0.9, profile
     res = run.run(BY_NAME["drift_a_t1"])
     m = res.metrics()
     sol = res.solution
     nf = sol.freqs.size
-    assert abs(m["bias_G"]) < 2 * np.sqrt(np.mean(sol.sigma_G**2)) / np.sqrt(nf)
-    assert abs(m["bias_Trxr_K"]) < 2 * np.sqrt(np.mean(sol.sigma_Trxr**2)) / np.sqrt(nf)
-    assert np.mean(np.abs(res.gain_error) < 2 * sol.sigma_G[0, 0]) > 0.9
+    assert abs(m["bias_G"]) < 2 * np.sqrt(np.mean(sol.sigma_G_stat**2)) / np.sqrt(nf)
+    assert abs(m["bias_Trxr_K"]) < 2 * np.sqrt(np.mean(sol.sigma_Trxr_stat**2)) / np.sqrt(nf)
+    assert np.mean(np.abs(res.gain_error) < 2 * sol.sigma_G_stat[0, 0]) > 0.9
     assert m["rms_G"] > 1.3 * reference["rms_G"]
     assert m["rms_Trxr_K"] > 1.3 * reference["rms_Trxr_K"]
     paper = PAPER_VALUES[("drift_a_t1", beam)]
@@ -57,19 +60,24 @@ def test_gain_drifts_bias_a_constant_fit_and_order_one_fixes_drift_a(runs, beam:
 @pytest.mark.slow
 @pytest.mark.parametrize("scenario", ["reference", "drift_a_t1"])
 def test_fitted_uncertainties_are_calibrated(scenario: str) -> None:
-    """Pulls over 60 noise draws x 321 channels have standard deviation 1 +- 0.1."""
+    """Pulls over 60 noise draws x 321 channels have standard deviation 1 +- 0.1 with the
+    statistical errors, 1 +- 0.35 with the total errors (24 h of clean data: the jackknife
+    and drift terms must not inflate them)."""
     run = PaperRun("dipole", cache=False)
     pulls: dict[str, list[np.ndarray]] = {"G": [], "n": [], "Trxr": []}
+    total: dict[str, list[np.ndarray]] = {"G": [], "n": [], "Trxr": []}
     for seed in range(60):
         res = run.run(BY_NAME[scenario], seed=seed)
         sol = res.solution
-        pulls["G"].append(res.gain_error / sol.sigma_G[0, 0])
-        pulls["n"].append((sol.n[0, 0] - 150.0 * res.true_gain.mean(0)) / sol.sigma_n[0, 0])
-        pulls["Trxr"].append(res.trxr_error / sol.sigma_Trxr[0, 0])
+        dn = sol.n[0, 0] - 150.0 * res.true_gain.mean(0)
+        for name, err in (("G", res.gain_error), ("n", dn), ("Trxr", res.trxr_error)):
+            pulls[name].append(err / getattr(sol, f"sigma_{name}_stat")[0, 0])
+            total[name].append(err / getattr(sol, f"sigma_{name}")[0, 0])
     for name, values in pulls.items():
         arr = np.ravel(values)
         assert abs(np.std(arr) - 1) < 0.1, name
         assert abs(np.mean(arr)) < 0.1, name
+        assert abs(np.std(np.ravel(total[name])) - 1) < 0.35, name
 
 
 @pytest.mark.parametrize("beam", ["hera", "dipole"])
@@ -101,8 +109,8 @@ def test_beam_model_incompleteness_biases_g_low_and_trxr_high(runs, beam: str) -
     noisy = runs[beam].run(BY_NAME["beam_model"]).solution
     bias_g, bias_t = res.gain_error, res.trxr_error
     assert np.all(bias_g < 0) and np.all(bias_t > 0)
-    assert np.ptp(bias_g) > 2 * np.median(noisy.sigma_G)
-    assert np.mean(bias_t) > 5 * np.median(noisy.sigma_Trxr)
+    assert np.ptp(bias_g) > 2 * np.median(noisy.sigma_G_stat)
+    assert np.mean(bias_t) > 5 * np.median(noisy.sigma_Trxr_stat)
 
 
 def test_run_paper_writes_table_results_and_figures(tmp_path, data_root) -> None:

@@ -56,7 +56,7 @@ def _in_memory(paths: list[Path], model: str, order: int) -> object:
             for p in obs.pols
         ]
     )
-    return fit(obs, tsky, model=model, order=order)
+    return fit(obs, tsky, model=model, order=order, scale_covariance="inflate")
 
 
 @pytest.mark.parametrize(("model", "order"), [("constant", 0), ("legendre", 1)])
@@ -68,6 +68,11 @@ def test_streamed_pipeline_equals_in_memory_fit(night, tmp_path, model, order) -
     expected = _in_memory(night, model, order)
     sol = result.solution
     np.testing.assert_allclose(sol.coeffs, expected.coeffs, rtol=1e-8, atol=1e-10)
+    # the total uncertainty from the streamed block sums equals the in-memory one
+    assert sol.total is not None and expected.total is not None
+    assert sol.total.nblocks == expected.total.nblocks == 10
+    np.testing.assert_allclose(sol.total.cov, expected.total.cov, rtol=1e-4)
+    np.testing.assert_allclose(sol.sigma_G, expected.sigma_G, rtol=1e-4)
     assert result.summary["provenance"]["passes"] == 2  # dnu dt = 5e3: reweighting matters
     assert sol.pols == ("ee", "nn") and sol.antennas.tolist() == [0, 1]
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
@@ -321,3 +326,50 @@ def test_radiometer_weights_need_positive_bandwidth_time_where_data_are_used(tmp
     with pytest.raises(PipelineError, match="positive channel width, integration time"):
         run_calibration(CalibrationConfig(inputs=[str(bad)], products=["hdf5"]), tmp_path / "b")
     assert not (tmp_path / "b" / "solution.h5").exists()
+
+
+BAD_PRIORS = [
+    ("freq,trxr\n100,150\n200,150\n", "header 'freq,trxr' is not"),
+    ("freq_mhz,trxr_k\n100,150\n150,nan\n", "trxr_k is 'nan'"),
+    ("freq_mhz,trxr_k\n100,150\n150,150\n140,150\n", "does not increase"),
+    ("freq_mhz,trxr_k\n120,150\n180,150\n", "give a table that covers the data band"),
+]
+
+
+@pytest.mark.parametrize(("text", "message"), BAD_PRIORS)
+def test_cli_refuses_a_bad_prior_table_and_writes_nothing(
+    night, tmp_path, capsys, text, message
+) -> None:
+    table = tmp_path / "prior.csv"
+    table.write_text(text)
+    out = tmp_path / "out"
+    args = ["calibrate", *map(str, night), "--beam", "dipole", "--out", str(out)]
+    assert main([*args, "--trxr-prior", str(table)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_a_prior_table_reaches_the_fit(night, tmp_path, capsys) -> None:
+    """A per-frequency table is interpolated onto the channels and tightens Trxr to it."""
+    table = tmp_path / "prior.csv"
+    table.write_text("# the simulated receiver\nfreq_mhz,trxr_k,sigma_k\n100,150,2\n200,150,2\n")
+    out = tmp_path / "with"
+    # the night's gain drifts linearly: the order-1 model fits it, so data and prior agree
+    args = ["calibrate", *map(str, night), "--beam", "dipole", "--products", "hdf5"]
+    args += ["--model", "legendre", "--order", "1"]
+    assert main([*args, "--trxr-prior", str(table), "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["provenance"]["trxr_prior"]["kind"] == "table"
+    free = run_calibration(
+        CalibrationConfig(
+            inputs=[str(p) for p in night], beam="dipole", model="legendre", products=["hdf5"]
+        ),
+        tmp_path / "free",
+    ).solution
+    from autocal.io.products import read_solution
+
+    held = read_solution(out / "solution.h5")
+    # the prior pulls Trxr towards 150 K and shrinks its error below the prior's 2 K
+    assert np.nanmedian(np.abs(held.Trxr - 150)) < np.nanmedian(np.abs(free.Trxr - 150)) + 0.5
+    assert np.nanmedian(held.sigma_Trxr_stat) < 2.0

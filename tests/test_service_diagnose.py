@@ -368,7 +368,7 @@ def test_diagnose_config_and_command(data: Path, tmp_path: Path, capsys) -> None
         ({"inputs": []}, "inputs"),
         ({"alpha": 0}, "alpha"),
         ({"nside": 100}, "nside"),
-        ({"trxr_prior_k": float("nan")}, "trxr_prior_k"),
+        ({"trxr_prior": float("nan")}, "trxr_prior"),
         ({"model": "legendre"}, "model"),
     ]:
         with pytest.raises(ValidationError, match=field):

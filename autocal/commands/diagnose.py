@@ -13,6 +13,7 @@ from autocal.commands import (
     parse_str_list,
     validation_message,
 )
+from autocal.commands.options import prior_value
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -39,11 +40,17 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--lst-range", help="START:STOP in hours (START > STOP wraps)")
     p.add_argument(
         "--trxr-prior",
-        type=float,
-        help="known receiver temperature K: makes effects that are constant in time "
-        "(sky_offset, ground_temperature, missing_cmb) and sky scalings identifiable",
+        metavar="K|CSV|H5",
+        help="known receiver temperature: a number in K, a CSV table freq_mhz,trxr_k[,sigma_k] "
+        "or a previous solution.h5; makes effects that are constant in time (sky_offset, "
+        "ground_temperature, missing_cmb) and sky scalings identifiable",
     )
-    p.add_argument("--trxr-prior-sigma", type=float, default=1.0, help="its 1-sigma, K (1)")
+    p.add_argument(
+        "--trxr-prior-sigma",
+        type=float,
+        default=1.0,
+        help="1-sigma K of a number prior or a table without sigma_k (1)",
+    )
     p.add_argument(
         "--bic-threshold",
         type=float,
@@ -82,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
             pols=parse_str_list(args.pols, "pols") if args.pols else None,
             freq_range_mhz=parse_pair(args.freq_range, "freq-range", "MHz"),
             lst_range_h=parse_pair(args.lst_range, "lst-range", "hours"),
-            trxr_prior_k=args.trxr_prior,
+            trxr_prior=None if args.trxr_prior is None else prior_value(args.trxr_prior),
             trxr_prior_sigma_k=args.trxr_prior_sigma,
             **{k: v for k, v in optional.items() if v is not None},
         )

@@ -85,6 +85,21 @@ def add_calibration_arguments(group: argparse._ActionsContainer) -> None:
         help="radiometer weights: scale each channel's covariance by chi2/dof when it exceeds "
         f"1 (identity weights always scale) ({d('inflate_errors')})",
     )
+    group.add_argument(
+        "--trxr-prior",
+        metavar="K|CSV|H5",
+        help="receiver-temperature prior: a number in K, a CSV table with the header "
+        "freq_mhz,trxr_k[,sigma_k] (MHz, K; interpolated in frequency, must cover the data "
+        "band) or a previous solution.h5 of the same antennas and pols; the errors of G "
+        "then include the prior's (default: none)",
+    )
+    group.add_argument(
+        "--trxr-prior-sigma",
+        dest="trxr_prior_sigma_k",
+        type=float,
+        metavar="K",
+        help=f"1-sigma of a number prior or a table without sigma_k ({d('trxr_prior_sigma_k')})",
+    )
     group.add_argument("--antennas", help=f"comma-separated antenna numbers ({d('antennas')})")
     group.add_argument("--pols", help="comma-separated polarisations (default: all in the data)")
     group.add_argument(
@@ -157,6 +172,7 @@ def calibration_settings(args: argparse.Namespace) -> dict[str, Any]:
         "lst_range_h": lambda v: parse_pair(v, "lst-range", "hours"),
         "passes": lambda v: v if v == "auto" else int(v),
         "reference": lambda v: [str(p) for p in v],
+        "trxr_prior": prior_value,
     }
     settings: dict[str, Any] = {}
     for name in calibration_dests():
@@ -168,6 +184,14 @@ def calibration_settings(args: argparse.Namespace) -> dict[str, Any]:
     except ValidationError as err:
         raise CliError(validation_message(err, "options")) from None
     return settings
+
+
+def prior_value(text: str) -> float | str:
+    """Return a ``--trxr-prior`` value: a number in K as a float, else the path as given."""
+    try:
+        return float(text)
+    except ValueError:
+        return text
 
 
 def calibration_dests() -> list[str]:

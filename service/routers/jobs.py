@@ -35,6 +35,7 @@ from pydantic import ValidationError
 from autocal.diagnose import DiagnoseError
 from autocal.diagnose_run import DiagnoseConfig
 from autocal.pipeline import PipelineError
+from autocal.priors import PriorError
 from autocal.service.auth import app_settings, require_token
 from autocal.service.nightly import (
     NightlyError,
@@ -266,7 +267,7 @@ def build_diagnose_config(
     inputs
         UVH5 files (absolute, relative to a data root) or upload ids.
     options
-        Further :class:`DiagnoseConfig` fields (``sky``, ``beam``, ``trxr_prior_k``...).
+        Further :class:`DiagnoseConfig` fields (``sky``, ``beam``, ``trxr_prior``...).
 
     Returns
     -------
@@ -439,6 +440,7 @@ def create_job(
         SkyModelError,
         PipelineError,
         DiagnoseError,
+        PriorError,
     )
     try:
         if body.kind == "diagnose":
