@@ -101,10 +101,24 @@ def _lognorm(values: np.ndarray) -> Any:
     return LogNorm(vmin=positive.min(), vmax=positive.max())
 
 
-def band(ax: Any, x: np.ndarray, y: np.ndarray, sigma: np.ndarray, label: str, **kw: Any) -> None:
-    """Plot ``y`` with a shaded 2-sigma band."""
+def band(
+    ax: Any,
+    x: np.ndarray,
+    y: np.ndarray,
+    sigma: np.ndarray,
+    label: str,
+    inner: np.ndarray | None = None,
+    **kw: Any,
+) -> None:
+    """Plot ``y`` with a shaded 2-sigma band (and a darker ``inner`` 2-sigma band).
+
+    ``inner``: e.g. the statistical part of a total error drawn inside it.
+    """
     (line,) = ax.plot(x, y, label=label, lw=1, **kw)
-    ax.fill_between(x, y - 2 * sigma, y + 2 * sigma, color=line.get_color(), alpha=0.25, lw=0)
+    color = line.get_color()
+    ax.fill_between(x, y - 2 * sigma, y + 2 * sigma, color=color, alpha=0.18, lw=0)
+    if inner is not None:
+        ax.fill_between(x, y - 2 * inner, y + 2 * inner, color=color, alpha=0.35, lw=0)
 
 
 def robust_limits(
@@ -175,7 +189,12 @@ def plot_solution(solution: Any, path: str | Path, title: str | None = None) -> 
     """
     kind = solution.model.kind
     if solution.antennas.size * len(solution.pols) <= MAX_SOLUTION_CURVES:
-        fig, default = _solution_lines(solution), f"{kind} fit, 2-sigma bands"
+        bands = (
+            "2-sigma bands: total (light), statistical (dark)"
+            if solution.total is not None
+            else "2-sigma bands (statistical)"
+        )
+        fig, default = _solution_lines(solution), f"{kind} fit, {bands}"
     else:
         nant = solution.antennas.size
         fig, default = _solution_array(solution), f"{kind} fit of {nant} antennas"
@@ -186,15 +205,21 @@ def plot_solution(solution: Any, path: str | Path, title: str | None = None) -> 
 def _solution_lines(solution: Any) -> Any:
     fmhz = solution.freqs / 1e6
     fig, axes = _figure(3, 1, (9, 9))
+    stat = solution.total is not None
     values = (
-        (solution.abs_g, solution.sigma_abs_g, "|g|"),
-        (solution.G, solution.sigma_G, "G"),
-        (solution.Trxr, solution.sigma_Trxr, "Trxr [K]"),
+        (solution.abs_g, solution.sigma_abs_g, solution.sigma_abs_g_stat, "|g|"),
+        (solution.G, solution.sigma_G, solution.sigma_G_stat, "G"),
+        (solution.Trxr, solution.sigma_Trxr, solution.sigma_Trxr_stat, "Trxr [K]"),
     )
-    for ax, (val, sig, name) in zip(axes, values, strict=True):
+    weak = solution.total.separation() if stat else np.zeros((0, 0), bool)
+    for ax, (val, sig, sig_stat, name) in zip(axes, values, strict=True):
         for ia, ant in enumerate(solution.antennas):
             for ip, pol in enumerate(solution.pols):
-                band(ax, fmhz, val[ia, ip], sig[ia, ip], f"ant {ant} {pol}")
+                label = f"ant {ant} {pol}" + (
+                    " (weak G-n separation)" if stat and weak[ia, ip] else ""
+                )
+                inner = sig_stat[ia, ip] if stat else None
+                band(ax, fmhz, val[ia, ip], sig[ia, ip], label, inner=inner)
         ax.set(ylabel=name)
         robust_ylim(ax, val[~solution.flags])
     axes[-1].set(xlabel="frequency [MHz]")
