@@ -408,6 +408,11 @@ def total_uncertainty(
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         phi = np.maximum(np.where(dof1 > 0, ext["chi2"] / dof1, np.nan), 1.0)
         stat = (solved["chi2"] - ext["chi2"]) / phi - 2.0 * np.log(np.maximum(count, 1.0))
+    # a gain is positive: each model's estimate is the Gaussian restricted to G > 0, and
+    # its evidence is scaled by the probability it gives to G > 0
+    theta1, c1, logp1 = positive_gain(theta1, c1)
+    logp0 = positive_gain(theta0, c0)[2]
+    stat = stat + 2.0 * (logp1 - logp0)
     good = np.isfinite(stat) & np.all(np.isfinite(theta1), axis=-1)
     good &= np.all(np.isfinite(c1), axis=(-2, -1))
     # per channel, and for each antenna-pol as a whole (a drifting gain drifts at every
@@ -554,6 +559,48 @@ def profile_gain(sums: NormalSums, model: FitModel, vg: np.ndarray, trxr: np.nda
             coef = np.where(ok[..., None], coef, np.nan)
         out[:, :, i] = np.where(sums.count > nb, coef @ vg[:nb], np.nan)
     return out
+
+
+def positive_gain(
+    theta: np.ndarray, cov: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Restrict a Gaussian estimate of ``(G, n)`` to ``G > 0``.
+
+    Parameters
+    ----------
+    theta
+        ``(..., 2)`` means of ``(G, n)``.
+    cov
+        ``(..., 2, 2)`` covariances.
+
+    Returns
+    -------
+    theta, cov, logp
+        Mean and covariance of the Gaussian conditioned on ``G > 0`` (a truncated normal in
+        ``G``; ``n`` follows through its regression on ``G``) and ``log P(G > 0)``.
+        Unchanged where the variance of ``G`` is zero or not finite (``logp`` 0).
+    """
+    from scipy.special import erfcx, log_ndtr
+
+    mg, vg = theta[..., 0], cov[..., 0, 0]
+    ok = np.isfinite(mg) & np.isfinite(vg) & (vg > 0)
+    sg = np.sqrt(np.where(ok, vg, 1.0))
+    alpha = np.where(ok, -mg / sg, 0.0)
+    logp = np.where(ok, log_ndtr(-alpha), 0.0)
+    lam = np.sqrt(2.0 / np.pi) / erfcx(alpha / np.sqrt(2.0))  # phi(a) / (1 - Phi(a)), stable
+    mean_g = mg + sg * lam
+    var_g = vg * np.maximum(1.0 + alpha * lam - lam * lam, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        beta = np.where(ok, cov[..., 0, 1] / np.where(ok, vg, 1.0), 0.0)
+    out_t = theta.copy()
+    out_c = cov.copy()
+    out_t[..., 0] = np.where(ok, mean_g, mg)
+    out_t[..., 1] = np.where(ok, theta[..., 1] + beta * (mean_g - mg), theta[..., 1])
+    cond_n = cov[..., 1, 1] - beta * cov[..., 0, 1]
+    out_c[..., 0, 0] = np.where(ok, var_g, vg)
+    out_c[..., 0, 1] = out_c[..., 1, 0] = np.where(ok, beta * var_g, cov[..., 0, 1])
+    out_c[..., 1, 1] = np.where(ok, cond_n + beta * beta * var_g, cov[..., 1, 1])
+    return out_t, out_c, logp
 
 
 def _logistic(x: np.ndarray) -> np.ndarray:
