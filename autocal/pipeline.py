@@ -52,6 +52,7 @@ from autocal.observation import Observation
 from autocal.priors import add_trxr_prior
 from autocal.uncertainty import (
     BlockSums,
+    base_sums,
     block_edges,
     extended_model,
     mean_vectors,
@@ -928,9 +929,18 @@ def _calibrate(
         config={"calibration": config.model_dump(mode="json"), "provenance": provenance},
         total=total,
     )
+    comparison_inputs: dict[str, Any] = {}
+    if config.reference:
+        report(0.84, "alternative sky models for the comparison's systematics budget")
+        comparison_inputs = {
+            **_block_trend(run, source, tsky_all, pols),
+            "alternatives": _alternative_solutions(
+                config, source, pols, model, epoch, scaling, block_size
+            ),
+        }
     report(0.85, "writing products")
     t3 = time.perf_counter()
-    products = _write_products(config, solution, source, run, Path(out))
+    products = _write_products(config, solution, source, run, Path(out), comparison_inputs)
     timings["products_s"] = time.perf_counter() - t3
     timings["total_s"] = time.perf_counter() - t0
     summary = {
@@ -1142,12 +1152,110 @@ def _waterfall_residuals(
     return labels, resid.reshape(-1, *resid.shape[2:]), lsts[centre]
 
 
+#: Sky models whose fits the comparison's systematics budget sets beside the main one.
+ALTERNATIVE_SKIES = (
+    "gsm2008",
+    "powerlaw:gsm2008@408:-2.5",
+    "powerlaw:gsm2008@408:-2.55",
+)
+
+
+def _alternative_solutions(
+    config: CalibrationConfig,
+    source: _Source,
+    pols: tuple[str, ...],
+    model: FitModel,
+    epoch: float,
+    scaling: bool | str,
+    block_size: int | None,
+) -> dict[str, Solution]:
+    """Fit the data again with the other sky models of :data:`ALTERNATIVE_SKIES`.
+
+    One pass over the data each (data-derived weights); only for a comparison with
+    reference gains, whose systematics budget reports the spread of the ratio over them.
+    """
+    from autocal.tsky import compute_tsky
+
+    out: dict[str, Solution] = {}
+    for sky in ALTERNATIVE_SKIES:
+        if sky == config.sky:
+            continue
+        tsky = np.stack(
+            [
+                compute_tsky(
+                    sky,
+                    config.beam,
+                    source.site,
+                    source.freqs,
+                    source.lsts,
+                    tgnd=config.tgnd_k,
+                    nside=config.nside,
+                    epoch=epoch,
+                    pol=_beam_pol(pol),
+                ).tsky
+                for pol in pols
+            ]
+        )
+        alt = config.model_copy(update={"sky": sky, "passes": 1})
+        run = _run_passes(
+            alt, source, pols, tsky, model, lambda f, m: None, None, None, None, block_size
+        )
+        solved = solve_sums(run.sums, scale_covariance=scaling)
+        out[sky] = Solution.from_solved(
+            model,
+            run.sums,
+            solved,
+            antennas=run.antennas,
+            pols=pols,
+            freqs=source.freqs,
+            lsts=source.lsts,
+            jds=source.jds,
+            antenna_names=run.antenna_names,
+            config={"calibration": alt.model_dump(mode="json")},
+        )
+    return out
+
+
+def _block_trend(
+    run: _Run, source: _Source, tsky_all: np.ndarray, pols: tuple[str, ...]
+) -> dict[str, Any]:
+    """Return the raw autos' trend over the span from the time blocks' sums.
+
+    A block's weighted mean power is its sums' ``sum w R / sum w``; the first and the last
+    block are the ends of :func:`autocal.compare.auto_trend` (10 blocks: 10 % each).
+    """
+    from autocal.compare import auto_trend
+
+    blocks = run.blocks
+    if blocks is None or blocks.nblocks < 2:
+        return {}
+    nb = blocks.model.nbasis
+    power = []
+    for part in blocks.blocks:
+        base = base_sums(part, blocks.model)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            power.append(base.aty[..., nb] / base.ata[..., nb, nb])
+    edges = blocks.edges
+    spans = [slice(int(edges[b]), int(edges[b + 1])) for b in range(blocks.nblocks)]
+    jds = np.array([source.jds[sl].mean() for sl in spans])
+    tsky = np.stack([tsky_all[:, sl].mean(axis=1) for sl in spans], axis=1)  # (P, B, F)
+    return auto_trend(
+        np.stack(power, axis=2),  # (A, P, B, F)
+        jds,
+        run.antennas,
+        list(pols),
+        tsky=tsky,
+        end_fraction=1.0 / blocks.nblocks,
+    )
+
+
 def _write_products(
     config: CalibrationConfig,
     solution: Solution,
     source: _Source,
     run: _Run,
     out: Path,
+    comparison_inputs: dict[str, Any] | None = None,
 ) -> dict[str, str]:
     """Write every product into a staging folder, then move them into ``out``."""
     out.mkdir(parents=True, exist_ok=True)
@@ -1185,7 +1293,7 @@ def _write_products(
             from autocal.io.calsol import read_reference_gains
 
             reference = read_reference_gains(config.reference)
-            comparison = compare(solution, reference)
+            comparison = compare(solution, reference, **(comparison_inputs or {}))
             paths = write_comparison(comparison, staging)
             names.update({f"compare_{k}": Path(v).name for k, v in paths.items()})
         for item in sorted(staging.iterdir()):

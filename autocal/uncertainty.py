@@ -561,9 +561,7 @@ def profile_gain(sums: NormalSums, model: FitModel, vg: np.ndarray, trxr: np.nda
     return out
 
 
-def positive_gain(
-    theta: np.ndarray, cov: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def positive_gain(theta: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Restrict a Gaussian estimate of ``(G, n)`` to ``G > 0``.
 
     Parameters

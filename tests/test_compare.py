@@ -15,17 +15,29 @@ from autocal.commands import CliError
 from autocal.commands import compare as compare_cmd
 from autocal.compare import (
     C_LIGHT,
+    HERA_SIM_BEAM_INTEGRALS,
     K_B,
+    REFERENCE_DRIFT_ALLOWANCE,
+    REFERENCE_DRIFT_FACTOR,
     CompareError,
+    auto_trend,
     beam_solid_angle,
+    block_bootstrap_error,
     compare,
+    fractional_end_change,
     interpolate_frequency,
     jy_per_kelvin,
     smooth_frequency,
+    time_average,
     uvbeam_solid_angle,
     write_comparison,
 )
-from autocal.io.calsol import ReferenceGains, read_reference_gains, write_calh5
+from autocal.io.calsol import (
+    ReferenceGains,
+    read_reference_gains,
+    solution_to_uvcal,
+    write_calh5,
+)
 from autocal.io.products import write_solution
 from tests.test_calsol import H1C_ABS, REF, make_solution
 
@@ -246,7 +258,8 @@ def test_smoothing_in_compare_reduces_reference_noise():
     smooth = compare(sol, noisy, smooth_mhz=10.0)
     inner = slice(5, -5)
     assert np.std(smooth.ratio[..., inner]) < 0.5 * np.std(raw.ratio[..., inner])
-    assert smooth.summary["smoothing"] == {"kernel": "gaussian", "fwhm_MHz": 10.0}
+    assert smooth.summary["smoothing"]["kernel"] == "gaussian"
+    assert smooth.summary["smoothing"]["fwhm_MHz"] == 10.0
 
 
 def test_frequency_mismatch_interpolates_or_fails_clearly():
@@ -433,3 +446,331 @@ def test_beam_defaults_to_the_one_recorded_in_the_solution():
     sol = replace(make_solution(pols=("ee",), antennas=(0,), flagged=()), config={"beam": "dipole"})
     result = compare(sol, reference_for(sol, 0.1), nside=32)
     assert result.summary["conversion"]["beam"]["beam"] == "gaussian_dipole"
+
+
+# ---------------------------------------------------------------------------------------
+# reference drift and stability
+# ---------------------------------------------------------------------------------------
+def drifting(ref: ReferenceGains, rise: float) -> ReferenceGains:
+    """Scale the reference so that |g|^2 rises linearly by ``rise`` over its times."""
+    power = 1.0 + rise * np.linspace(0.0, 1.0, ref.ntime)
+    return replace(ref, gains=ref.gains * np.sqrt(power)[None, None, :, None])
+
+
+def end_change(rise: float, ntime: int, k: int) -> float:
+    """The drift statistic of a linear |g|^2 ramp with ``k`` integrations per end."""
+    power = 1.0 + rise * np.linspace(0.0, 1.0, ntime)
+    return power[-k:].mean() / power[:k].mean() - 1.0
+
+
+def test_fractional_end_change_of_a_ramp_with_flags():
+    values = np.outer(1.0 + 0.5 * np.linspace(0, 1, 30), np.ones(8))
+    values[0] = np.nan  # a fully flagged integration is not an end
+    values[5, 2] = np.nan
+    stats = fractional_end_change(values)
+    ramp = 1.0 + 0.5 * np.linspace(0, 1, 30)[1:]
+    assert stats["n_valid"] == 29 and stats["n_end"] == 3
+    assert stats["change"] == pytest.approx(ramp[-3:].mean() / ramp[:3].mean() - 1.0)
+    assert stats["rms"] == pytest.approx(np.std(ramp / ramp.mean()), rel=1e-9)
+    assert np.isnan(stats["series"][0])
+    np.testing.assert_allclose(stats["series"][1:], ramp / ramp.mean())
+    single = fractional_end_change(values[:2])
+    assert np.isnan(single["change"]) and single["n_valid"] == 1
+
+
+def test_drifting_reference_is_unstable_and_a_flat_one_stable():
+    sol = make_solution(ntime=20)
+    flat = reference_for(sol, 0.5, gain_scale="K", ntime=20)
+    rising = drifting(flat, 0.5)  # |g_ref|^2 +50 % while the autos are flat
+    result = compare(sol, rising, auto_drift=0.0)
+    expected = end_change(0.5, 20, 2)
+    for row in result.summary["per_antenna_pol"]:
+        assert row["reference_drift"] == pytest.approx(expected, rel=1e-9)
+        assert row["reference_drift_rms"] > 0.1
+        assert row["auto_drift"] == 0.0
+        assert row["reference_stable"] is False
+        assert row["reference_stability"]["failed"] == ["drift"]
+        assert row["reference_stability"]["drift_limit"] == pytest.approx(REFERENCE_DRIFT_ALLOWANCE)
+    np.testing.assert_allclose(
+        result.reference_series[0, 0], (1 + 0.5 * np.linspace(0, 1, 20)) / 1.25, rtol=1e-9
+    )
+    stable = compare(sol, flat, auto_drift=0.0)
+    for row in stable.summary["per_antenna_pol"]:
+        assert row["reference_drift"] == pytest.approx(0.0, abs=1e-12)
+        assert row["reference_stable"] is True
+    # a reference drift the autos share is allowed (3x the auto's change + 5 %)
+    auto = {(0, "ee"): 0.2, (0, "nn"): 0.2, (23, "ee"): 0.1, (23, "nn"): 0.1}
+    shared = compare(sol, rising, auto_drift=auto)
+    verdict = {
+        (r["antenna"], r["pol"]): r["reference_stable"] for r in shared.summary["per_antenna_pol"]
+    }
+    assert verdict[(0, "ee")] is True and verdict[(23, "nn")] is False  # 0.47 > 0.35
+    assert expected > REFERENCE_DRIFT_FACTOR * 0.1 + REFERENCE_DRIFT_ALLOWANCE
+    # without the auto's change the drift clause is skipped, the verdict unknown
+    unknown = compare(sol, rising)
+    row = unknown.summary["per_antenna_pol"][0]
+    assert row["auto_drift"] is None and row["reference_stable"] is None
+    assert set(row["reference_stability"]["skipped"]) == {"drift", "negative_trxr"}
+    assert row["reference_drift"] == pytest.approx(expected)
+    # one reference time: no drift, no verdict
+    one = compare(sol, reference_for(sol, 0.5, gain_scale="K", ntime=1), auto_drift=0.0)
+    assert one.summary["per_antenna_pol"][0]["reference_drift"] is None
+    assert one.summary["per_antenna_pol"][0]["reference_stable"] is None
+
+
+def test_negative_receiver_temperature_implied_by_the_reference():
+    sol = make_solution(antennas=(0,), pols=("ee",), ntime=20, flagged=())
+    ref = drifting(reference_for(sol, 1.0, gain_scale="K", ntime=20), 0.5)
+    g2 = sol.G[0, 0]
+    first, last = (
+        (1 + 0.5 * np.linspace(0, 1, 20)[:2]).mean(),
+        (1 + 0.5 * np.linspace(0, 1, 20)[-2:]).mean(),
+    )
+    power = np.stack([g2 * 150.0, g2 * 150.0])  # the raw autos do not move
+    for tsky, verdict in ((20.0, True), (120.0, False)):
+        result = compare(
+            sol,
+            ref,
+            auto_power_ends={(0, "ee"): power},
+            tsky_ends={"ee": np.full((2, sol.freqs.size), tsky)},
+        )
+        row = result.summary["per_antenna_pol"][0]
+        implied = row["reference_stability"]["implied_trxr_K"]
+        assert implied["first"] == pytest.approx(150.0 / first - tsky, rel=1e-6)
+        assert implied["last"] == pytest.approx(150.0 / last - tsky, rel=1e-6)
+        assert row["reference_stability"]["tested"] == ["negative_trxr"]
+        assert row["reference_stable"] is verdict
+
+
+def test_auto_trend_feeds_compare():
+    sol = make_solution(antennas=(0,), pols=("ee", "nn"), ntime=20, flagged=())
+    power = np.ones((1, 2, 20, sol.freqs.size)) * sol.G[:, :, None, :] * 150.0
+    power = power * (1 - 0.036 * np.linspace(0, 1, 20))[None, None, :, None]
+    flags = np.zeros(power.shape, bool)
+    flags[0, 0, 7, :] = True
+    tsky = np.full((2, 20, sol.freqs.size), 100.0)
+    trend = auto_trend(power, sol.jds, [0], ["ee", "nn"], flags=flags, tsky=tsky)
+    assert trend["auto_drift"][(0, "nn")] == pytest.approx(end_change(-0.036, 20, 2))
+    assert trend["tsky_ends"][(0, "ee")].shape == (2, sol.freqs.size)
+    ref = drifting(reference_for(sol, 1.0, gain_scale="K", ntime=20), 0.5)
+    result = compare(sol, ref, **trend)
+    for row in result.summary["per_antenna_pol"]:
+        assert row["auto_drift"] == pytest.approx(-0.035, abs=2e-3)
+        assert row["reference_stable"] is False
+        assert row["reference_stability"]["tested"] == ["drift", "negative_trxr"]
+    assert result.auto_series is not None and (0, "ee") in result.auto_series
+
+
+def test_drift_through_a_written_calfits_file(tmp_path):
+    sol = make_solution(ntime=12)
+    omega = np.full(sol.freqs.size, 0.04)
+    jpk = jy_per_kelvin(sol.freqs, omega)
+
+    def written(rise: float, pol_convention: str | None) -> ReferenceGains:
+        uvc = solution_to_uvcal(sol, per_time=True)
+        power = 1.0 + rise * np.linspace(0.0, 1.0, sol.jds.size)
+        # pyuvdata (A, F, T, J): a Jy-referenced |g| = |g_auto| sqrt(power) / sqrt(J)
+        uvc.gain_array = (
+            uvc.gain_array * np.sqrt(power)[None, None, :, None] / np.sqrt(jpk)[None, :, None, None]
+        )
+        uvc.gain_scale = "Jy"
+        uvc.pol_convention = pol_convention
+        path = tmp_path / f"ref_{rise}_{pol_convention}.calfits"
+        uvc.write_calfits(str(path))
+        return read_reference_gains(path)
+
+    rising = compare(sol, written(0.5, None), omega=omega, auto_drift=0.0)
+    flat = compare(sol, written(0.0, None), omega=omega, auto_drift=0.0)
+    for row in rising.summary["per_antenna_pol"]:
+        assert row["reference_drift"] == pytest.approx(end_change(0.5, 12, 1), rel=1e-6)
+        assert row["reference_stable"] is False
+    for row in flat.summary["per_antenna_pol"]:
+        assert row["reference_stable"] is True
+        assert row["ratio_mean"] == pytest.approx(1.0, rel=1e-6)
+        pol = row["systematics"]["pol_convention"]
+        assert pol["source"] == "assumed" and pol["used"] == "avg" and pol["stated"] is None
+        assert pol["ratio_mean"] == pytest.approx(np.sqrt(2) * row["ratio_mean"])
+    # a file stating the 'sum' convention: half the Jy per raw unit, ratio sqrt(2) larger
+    summed = compare(sol, written(0.0, "sum"), omega=omega, auto_drift=0.0)
+    np.testing.assert_allclose(summed.ratio[summed.valid], np.sqrt(2), rtol=1e-6)
+    assert summed.summary["conversion"]["pol_convention"] == "sum"
+    for row in summed.summary["per_antenna_pol"]:
+        pol = row["systematics"]["pol_convention"]
+        assert pol["source"] == "file" and pol["used"] == "sum"
+        assert pol["alternative"] == "avg"
+        assert pol["ratio_mean"] == pytest.approx(1.0, rel=1e-6)
+    stated = compare(sol, written(0.0, "avg"), omega=omega)
+    assert stated.summary["systematics"]["pol_convention"]["source"] == "file"
+
+
+# ---------------------------------------------------------------------------------------
+# reference uncertainty and the offset's error
+# ---------------------------------------------------------------------------------------
+def test_sigma_reference_is_the_scatter_over_time():
+    sol = make_solution(rel_sigma=1e-4, flagged=())
+    ref = reference_for(sol, 0.5, gain_scale="K", ntime=40, scatter=0.05, seed=3)
+    result = compare(sol, ref)
+    amp = ref.abs_g  # (A, P, T, F), the same channels: no interpolation
+    expected = np.std(amp, axis=2, ddof=1)
+    ok = result.valid
+    np.testing.assert_allclose(result.sigma_reference[ok], expected[ok], rtol=1e-9)
+    rel = result.sigma_reference[ok] / result.reference[ok]
+    assert np.median(rel) == pytest.approx(0.05, rel=0.15)  # not 0.05 / sqrt(40)
+    assert result.summary["per_antenna_pol"][0]["sigma_reference_rel_median"] == pytest.approx(
+        np.median(rel[: ok[0, 0].sum()]), rel=1e-9
+    )
+    _, sem, count = time_average(amp, error="sem")
+    np.testing.assert_allclose(sem, expected / np.sqrt(count))
+    with pytest.raises(CompareError, match="scatter"):
+        time_average(amp, error="bogus")
+
+
+def test_block_bootstrap_of_white_noise_matches_the_standard_error():
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal(2000)
+    freqs = 100e6 + 0.1e6 * np.arange(2000)
+    err, info = block_bootstrap_error(x, freqs)
+    assert info["block_channels"] == 50 and info["resamples"] == 1000
+    assert err == pytest.approx(1 / np.sqrt(2000), rel=0.15)
+    again, _ = block_bootstrap_error(x, freqs)
+    assert again == err  # seeded
+    assert np.isnan(block_bootstrap_error(x[:1], freqs[:1])[0])
+
+
+def test_offset_error_respects_correlations_across_channels():
+    from scipy.ndimage import gaussian_filter1d
+
+    freqs = np.linspace(110e6, 190e6, 401)  # 0.2 MHz channels
+    eps = 0.004  # per-channel noise of |g|
+    base = make_solution(antennas=(0,), pols=("ee",), freqs=freqs, flagged=(), rel_sigma=2 * eps)
+    ref = reference_for(base, 1.0, gain_scale="K", ntime=3)
+    g_ref = np.sqrt(base.G[0, 0])
+    true = 0.05
+    s = 2.0 / 0.2 / 2.355  # a smooth perturbation with a 2 MHz FWHM correlation
+    covered, ratio_boot = [], []
+    for seed in range(200):
+        rng = np.random.default_rng(seed)
+        smooth = gaussian_filter1d(rng.standard_normal(freqs.size), s)
+        smooth *= 0.02 * np.sqrt(2 * np.sqrt(np.pi) * s)  # 2 % rms
+        r = (1 + true) * (1 + smooth) + eps * rng.standard_normal(freqs.size)
+        sol = make_solution(
+            antennas=(0,),
+            pols=("ee",),
+            freqs=freqs,
+            flagged=(),
+            rel_sigma=2 * eps,
+            gain=(r * g_ref) ** 2,
+        )
+        row = compare(sol, ref).summary["per_antenna_pol"][0]
+        assert row["offset"] == pytest.approx(row["ratio_mean"] - 1)
+        assert row["offset_error_reference_common"] == 0.0
+        covered.append(abs(row["offset"] - true) < 2 * row["offset_error"])
+        ratio_boot.append(row["offset_error"] / row["offset_error_independent"])
+    assert np.median(ratio_boot) > 3  # correlated channels: far above sqrt(sum s^2) / N
+    assert 0.9 <= np.mean(covered) <= 0.99
+
+
+def test_reference_scatter_common_to_all_channels_enters_the_offset_error():
+    sol = make_solution(rel_sigma=1e-4, flagged=(), ntime=20)
+    ref = drifting(reference_for(sol, 1.0, gain_scale="K", ntime=20), 0.5)
+    row = compare(sol, ref).summary["per_antenna_pol"][0]
+    amp = np.sqrt(1 + 0.5 * np.linspace(0, 1, 20))
+    level = amp / np.sqrt(np.mean(amp**2))
+    assert row["offset_error_reference_common"] == pytest.approx(
+        row["ratio_mean"] * np.std(level, ddof=1), rel=1e-6
+    )
+    assert row["offset_error"] >= row["offset_error_reference_common"]
+
+
+# ---------------------------------------------------------------------------------------
+# systematics budget
+# ---------------------------------------------------------------------------------------
+def test_sky_model_alternatives_spread():
+    sol = make_solution(flagged=())
+    omega = np.full(sol.freqs.size, 0.04)
+    ref = reference_for(sol, 1.0 / np.sqrt(jy_per_kelvin(sol.freqs, omega)))
+    alts = {
+        "beta -2.5": replace(sol, coeffs=sol.coeffs * 1.1**2, cov=sol.cov * 1.1**4),
+        "beta -2.55": replace(sol, coeffs=sol.coeffs * 0.95**2, cov=sol.cov * 0.95**4),
+    }
+    result = compare(sol, ref, omega=omega, alternatives=alts)
+    for row in result.summary["per_antenna_pol"]:
+        sky = row["systematics"]["sky_model"]
+        assert sky["alternatives"]["beta -2.5"]["shift"] == pytest.approx(0.1, rel=1e-6)
+        assert sky["alternatives"]["beta -2.55"]["ratio_mean"] == pytest.approx(0.95, rel=1e-3)
+        assert sky["spread_fraction"] == pytest.approx(0.15, rel=1e-6)
+    plain = compare(sol, ref, omega=omega)
+    assert plain.summary["per_antenna_pol"][0]["systematics"]["sky_model"] is None
+    assert compare(sol, reference_for(sol, 1.0, absolute=False)).summary["systematics"] is None
+
+
+def test_figure_and_outputs_carry_the_drift(tmp_path):
+    sol = make_solution(ntime=20)
+    ref = drifting(reference_for(sol, 0.5, gain_scale="K", ntime=20), 0.5)
+    power = np.ones((2, 2, 20, sol.freqs.size))
+    result = compare(sol, ref, **auto_trend(power, sol.jds, sol.antennas, sol.pols))
+    paths = write_comparison(result, tmp_path / "cmp")
+    summary = json.loads(paths["json"].read_text())
+    row = summary["per_antenna_pol"][0]
+    for key in ("offset", "offset_error", "offset_sigma", "reference_drift", "reference_stable"):
+        assert key in row
+    assert "bootstrap" in summary["offset_method"]
+    assert (
+        str(REFERENCE_DRIFT_FACTOR).rstrip("0").rstrip(".") in summary["reference_stability_rule"]
+    )
+    import h5py
+
+    with h5py.File(paths["h5"]) as h5:
+        assert h5["reference_series"].shape == (2, 2, 20)
+        assert "auto_series/0_ee/power_over_mean" in h5
+    assert paths["png"].stat().st_size > 10_000
+
+
+@pytest.mark.data
+def test_budget_and_drift_from_the_real_files(data_root):
+    """omega_source from hera_sim's table, pol_convention from the calfits, drift of ant 23."""
+    from pyuvdata import UVCal
+
+    files = [data_root / REF / n for n in H1C_ABS]
+    ref = read_reference_gains(files, antennas=[23], freq_range=(140e6, 160e6))
+    amp = ref.abs_g
+    finite = np.isfinite(amp)
+    with np.errstate(invalid="ignore"):
+        mean_sq = np.where(finite, amp**2, 0).sum(axis=2) / finite.sum(axis=2)
+    omega = beam_solid_angle("hera", ref.freqs)
+    gain = mean_sq * jy_per_kelvin(ref.freqs, omega)
+    flagged = tuple(int(i) for i in np.flatnonzero(np.all(~np.isfinite(gain), axis=(0, 1))))
+    sol = make_solution(
+        antennas=(23,),
+        freqs=ref.freqs,
+        ntime=36,
+        gain=np.nan_to_num(gain, nan=1.0),
+        flagged=flagged,
+    )
+    sol = replace(sol, jds=ref.jds.copy())
+    result = compare(sol, ref, auto_drift=-0.036)
+    # omega_source: hera_sim's omega_p, read here independently of autocal
+    table = np.load(data_root / HERA_SIM_BEAM_INTEGRALS)
+    om_hs = np.interp(ref.freqs, table["freqs"] * 1e9, table["omega_p"])
+    # pol_convention: what pyuvdata reads from the files
+    stated = {UVCal.from_file(str(f), read_data=False).pol_convention for f in files}
+    for ip, row in enumerate(result.summary["per_antenna_pol"]):
+        ok = result.valid[0, ip]
+        scale = np.sqrt(result.omega[ip] / om_hs)
+        r = result.ratio[0, ip]
+        om_entry = row["systematics"]["omega_source"]
+        assert om_entry["shift"] == pytest.approx(
+            np.mean(r[ok] * scale[ok]) / np.mean(r[ok]) - 1, rel=1e-9
+        )
+        assert 0.015 < om_entry["shift"] < 0.035  # hera_sim's Omega is ~5 % smaller
+        pol = row["systematics"]["pol_convention"]
+        if stated == {None}:
+            assert pol["source"] == "assumed" and pol["used"] == "avg"
+            assert pol["shift"] == pytest.approx(np.sqrt(2) - 1)
+        else:
+            assert pol["source"] == "file" and pol["used"] in stated
+        # abscal's |g|^2 of antenna 23 rises by ~50 % over the 31 minutes
+        assert 0.4 < row["reference_drift"] < 0.6
+        assert row["reference_stable"] is False
+    at150 = result.summary["systematics"]["per_pol"]["ee"]
+    assert at150["omega_ratio_hera_sim_over_autocal"] == pytest.approx(0.95, abs=0.01)
