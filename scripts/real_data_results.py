@@ -29,7 +29,14 @@ COMMON_LST = (0.905, 1.305)
 
 
 def per_pol(compare_json: Path) -> list[dict]:
-    """Comparison statistics per antenna and polarisation."""
+    """Comparison statistics per antenna and polarisation.
+
+    Besides compare.json's entries, ``ratio_single_reference`` is the range of the mean
+    ratio against each single reference integration (compare.h5 ``reference_series``:
+    ``|g_ref(t)|^2`` over its time mean, median over channels).
+    """
+    import h5py
+
     keys = (
         "antenna",
         "pol",
@@ -37,12 +44,39 @@ def per_pol(compare_json: Path) -> list[dict]:
         "ratio_mean",
         "ratio_rms",
         "sigma_ratio_median",
+        "offset",
+        "offset_error",
         "offset_sigma",
+        "offset_error_without_auto_systematic",
+        "offset_sigma_without_auto_systematic",
+        "sigma_auto_rel_median",
+        "sigma_auto_stat_rel_median",
+        "sigma_reference_rel_median",
+        "reference_drift",
+        "reference_drift_rms",
+        "auto_drift",
+        "reference_stable",
+        "reference_stability",
+        "systematics",
         "shape_pull_rms",
         "fraction_within_2sigma",
     )
     summary = json.loads(compare_json.read_text())
-    return [{k: p.get(k) for k in keys} for p in summary["per_antenna_pol"]]
+    rows = [{k: p.get(k) for k in keys} for p in summary["per_antenna_pol"]]
+    h5path = compare_json.with_name("compare.h5")
+    if h5path.is_file():
+        with h5py.File(h5path, "r") as h5:
+            if "reference_series" in h5:
+                series = h5["reference_series"][()]  # (A, P, T)
+                ants = [int(a) for a in h5["antennas"][()]]
+                pols = [p.decode() if isinstance(p, bytes) else str(p) for p in h5["pols"][()]]
+                for row in rows:
+                    s = series[ants.index(row["antenna"]), pols.index(row["pol"])]
+                    s = s[np.isfinite(s) & (s > 0)]
+                    if s.size and row["ratio_mean"] is not None:
+                        single = row["ratio_mean"] / np.sqrt(s)
+                        row["ratio_single_reference"] = [float(single.min()), float(single.max())]
+    return rows
 
 
 def hera_2458116(root: Path, out: Path) -> dict:
@@ -63,6 +97,7 @@ def hera_2458116(root: Path, out: Path) -> dict:
     )
     return {
         "solution": result.summary["solution"],
+        "separation": result.summary["separation"],
         "comparison": per_pol(Path(result.products["compare_json"])),
     }
 
@@ -76,24 +111,38 @@ def hera_repeatability(root: Path, out: Path) -> dict:
         sols.append(run_calibration(cfg, out / f"hera_{night}").solution)
     g = np.array([s.G[:, 0] for s in sols])  # (night, ant, freq)
     sg = np.array([s.sigma_G[:, 0] for s in sols])
+    sg_stat = np.array([s.sigma_G_stat[:, 0] for s in sols])
     t = np.array([s.Trxr[:, 0] for s in sols])
     st = np.array([s.sigma_Trxr[:, 0] for s in sols])
+    st_stat = np.array([s.sigma_Trxr_stat[:, 0] for s in sols])
+    from autocal.uncertainty import separation_summary
+
+    seps = [{e["antenna"]: e for e in separation_summary(s)} for s in sols]
     ok = np.all(np.array([~s.flags[:, 0] for s in sols]), axis=0)
     rows = []
     for ia, ant in enumerate(sols[0].antennas):
         m = ok[ia]
         spread = np.std(g[:, ia, m], axis=0) / np.mean(g[:, ia, m], axis=0)
-        diff_sig = np.abs(g[1:, ia, m] - g[0, ia, m]) / np.hypot(sg[1:, ia, m], sg[0, ia, m])
+        diff = np.abs(g[1:, ia, m] - g[0, ia, m])
+        diff_sig = diff / np.hypot(sg[1:, ia, m], sg[0, ia, m])
+        diff_sig_stat = diff / np.hypot(sg_stat[1:, ia, m], sg_stat[0, ia, m])
+        nights = range(len(NIGHTS))
         rows.append(
             {
                 "antenna": int(ant),
                 "channels": int(m.sum()),
                 "G_night_spread_pct": float(100 * np.median(spread)),
                 "G_sigma_pct": float(100 * np.median(sg[:, ia, m] / g[:, ia, m])),
+                "G_sigma_stat_pct": float(100 * np.median(sg_stat[:, ia, m] / g[:, ia, m])),
                 "G_diff_in_sigma": float(np.median(diff_sig)),
-                "Trxr_median_K": [float(np.median(t[n, ia, m])) for n in range(len(NIGHTS))],
-                "Trxr_sigma_K": [float(np.median(st[n, ia, m])) for n in range(len(NIGHTS))],
+                "G_diff_in_stat_sigma": float(np.median(diff_sig_stat)),
+                "Trxr_median_K": [float(np.median(t[n, ia, m])) for n in nights],
+                "Trxr_sigma_K": [float(np.median(st[n, ia, m])) for n in nights],
+                "Trxr_sigma_stat_K": [float(np.median(st_stat[n, ia, m])) for n in nights],
                 "reduced_chi2": [float(np.nanmedian(s.reduced_chi2[ia, 0])) for s in sols],
+                "sky_contrast": [seps[n][int(ant)]["sky_contrast"] for n in nights],
+                "drift_sensitivity": [seps[n][int(ant)]["drift_sensitivity"] for n in nights],
+                "separation": [seps[n][int(ant)]["separation"] for n in nights],
             }
         )
     fig, axes = _figure(2, 1, (10, 7))
@@ -152,8 +201,10 @@ def edges(out: Path) -> dict:
     expected = expected_auto_model(receiver, 0.0, "q")
     exp_g = np.interp(sol.freqs, expected.freqs, expected.G)
     exp_t = np.interp(sol.freqs, expected.freqs, expected.trxr)
-    pull_g = (sol.G[0, 0] - exp_g) / sol.sigma_G[0, 0]
+    pull_g = (sol.G[0, 0] - exp_g) / sol.sigma_G[0, 0]  # total errors
     pull_t = (sol.Trxr[0, 0] - exp_t) / sol.sigma_Trxr[0, 0]
+    stat_g = (sol.G[0, 0] - exp_g) / sol.sigma_G_stat[0, 0]
+    stat_t = (sol.Trxr[0, 0] - exp_t) / sol.sigma_Trxr_stat[0, 0]
     return {
         "lab_loads": loads,
         "edges_day": {
@@ -163,6 +214,8 @@ def edges(out: Path) -> dict:
             "G_pull_std": float(np.std(pull_g)),
             "Trxr_pull_mean": float(np.mean(pull_t)),
             "Trxr_pull_std": float(np.std(pull_t)),
+            "G_stat_pull_std": float(np.std(stat_g)),
+            "Trxr_stat_pull_std": float(np.std(stat_t)),
             "Trxr_expected_median_K": float(np.median(exp_t)),
             "median_reduced_chi2": float(np.nanmedian(sol.reduced_chi2)),
         },
