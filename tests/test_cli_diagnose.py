@@ -44,3 +44,26 @@ def test_cli_diagnose_refuses_what_the_memory_cannot_hold(tmp_path, capsys, monk
     diagnose_run.check_memory((30, 2, 192, 1536))  # 17.7 M samples: the measured 4.7 GB run
     with pytest.raises(diagnose_run.DiagnoseError, match="350 antennas x 2 pols x 1536 channels"):
         diagnose_run.check_memory((350, 2, 192, 1536))
+
+
+def test_cli_diagnose_takes_a_prior_table_and_refuses_a_bad_one(tmp_path, capsys) -> None:
+    """A receiver that varies with frequency, given as a table: the diagnosis records its
+    range; a table that does not cover the band is refused before anything is read."""
+    mock = tmp_path / "clean.uvh5"
+    sim = ["simulate", "--beam", "dipole", "--cadence", "1800", "--channel-width", "4000"]
+    assert main([*sim, "--out", str(mock)]) == 0, capsys.readouterr().err
+    table = tmp_path / "trxr.csv"
+    table.write_text("freq_mhz,trxr_k,sigma_k\n100,140,2\n200,160,2\n")
+    out = tmp_path / "diag"
+    args = ["diagnose", str(mock), "--beam", "dipole", "--trxr-prior", str(table)]
+    assert main([*args, "--out", str(out)]) == 0, capsys.readouterr().err
+    config = json.loads((out / "diagnosis.json").read_text())["config"]
+    prior = config["trxr_prior_K"]
+    assert 140 <= prior["min"] < prior["median"] < prior["max"] <= 160
+    assert config["trxr_prior_sigma_K"] == 2.0
+    narrow = tmp_path / "narrow.csv"
+    narrow.write_text("freq_mhz,trxr_k\n150,150\n160,150\n")
+    bad = tmp_path / "bad"
+    assert main(["diagnose", str(mock), "--trxr-prior", str(narrow), "--out", str(bad)]) == 2
+    assert "covers the data band" in capsys.readouterr().err
+    assert not bad.exists()

@@ -355,6 +355,36 @@ def test_unknown_fields_and_bad_values_are_422_naming_the_field(client: TestClie
         assert client.get("/jobs", params=params).status_code == 422, params
 
 
+@pytest.mark.parametrize("kind", ["calibrate", "diagnose"])
+def test_receiver_priors_are_read_and_checked_at_submission(
+    client: TestClient, data: Path, tmp_path: Path, kind: str
+) -> None:
+    """A prior table under the data roots is resolved and validated when the job is
+    submitted: a malformed one is a 422 saying what is wrong, a file outside the roots a
+    403, and a good one (or a number) is accepted with its absolute path recorded."""
+    (data / "good.csv").write_text("freq_mhz,trxr_k,sigma_k\n100,150,5\n200,160,5\n")
+    bad = {
+        "header.csv": ("freq,trxr\n100,150\n200,150\n", "header 'freq,trxr' is not"),
+        "nan.csv": ("freq_mhz,trxr_k\n100,150\n150,nan\n", "trxr_k is 'nan'"),
+        "order.csv": ("freq_mhz,trxr_k\n100,150\n150,1\n140,1\n", "does not increase"),
+    }
+    for name, (text, _) in bad.items():
+        (data / name).write_text(text)
+    for name, (_, message) in bad.items():
+        response = _submit(client, kind=kind, trxr_prior=name)
+        assert response.status_code == 422, response.text
+        assert message in response.json()["detail"]
+    (tmp_path / "outside.csv").write_text("freq_mhz,trxr_k\n100,150\n200,150\n")
+    assert _submit(client, kind=kind, trxr_prior=str(tmp_path / "outside.csv")).status_code == 403
+    assert _submit(client, kind=kind, trxr_prior=True).status_code == 422
+    good = _submit(client, kind=kind, trxr_prior="good.csv", trxr_prior_sigma_k=3)
+    assert good.status_code == 202, good.text
+    config = client.get(f"/jobs/{good.json()['id']}").json()["config"]
+    assert config["trxr_prior"] == str((data / "good.csv").resolve())
+    number = _submit(client, kind=kind, trxr_prior=150, force=True)
+    assert number.status_code == 202, number.text
+
+
 def test_unexpected_errors_are_a_generic_500(client: TestClient, store: JobStore, monkeypatch):
     def boom(_job_id: str) -> None:
         raise RuntimeError("secret internal detail")
