@@ -540,6 +540,14 @@ def test_results_and_products_of_a_completed_job(
     assert all(abs(g - 1.0) < 5 * s for g, s in zip(sol["G"], sol["sigma_G"], strict=True))
     pulls = [(t - 150.0) / s for t, s in zip(sol["Trxr"], sol["sigma_Trxr"], strict=True)]
     assert all(abs(p) < 5 for p in pulls)
+    # total errors, their statistical parts and the separation of G and n over the span
+    for name in ("sigma_G", "sigma_abs_g", "sigma_Trxr"):
+        assert all(t >= s * (1 - 1e-9) for t, s in zip(sol[name], sol[f"{name}_stat"], strict=True))
+    separation = sol["separation"]
+    assert separation["antenna"] == 0 and separation["pol"] == "ee"
+    assert separation["separation"] in ("weak", "adequate") and separation["message"]
+    assert 0 < separation["sky_contrast"] < 1 and "150" in separation["G_if_trxr_K"]
+    assert body["units"]["sigma_G_stat"] == "raw/K"
     assert body["comparison"] == {"ratio_mean": None, "n": 3}  # NaN -> null
     assert isinstance(body["summary"], dict) and body["summary"]
     assert client.get(f"/jobs/{job_id}/results", params={"antenna": 0, "pol": "ee"}).json()[
