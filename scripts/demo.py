@@ -140,10 +140,16 @@ def main() -> int:
             return 1
         results = httpx.get(f"{base}/jobs/{job_id}/results", timeout=30).json()
         print(json.dumps(results.get("summary", results.get("solution", {})), indent=2)[:2000])
+        for sol in results.get("solutions", []):
+            if sol.get("separation"):
+                print(sol["separation"]["message"])
         for row in (results.get("comparison") or {}).get("per_antenna_pol", []):
+            stable = {True: "stable", False: "UNSTABLE", None: "untested"}[row["reference_stable"]]
             print(
                 f"|g| / abscal, ant {row['antenna']} {row['pol']}: mean {row['ratio_mean']:.3f}, "
-                f"offset {row['offset_sigma']:.0f} combined sigma"
+                f"offset {row['offset']:+.3f} +- {row['offset_error']:.3f} "
+                f"({row['offset_sigma']:+.1f} sigma); reference {stable} "
+                f"(drift {100 * (row['reference_drift'] or 0):+.0f} %)"
             )
         folder = OUT / "jobs" / job_id / f"attempt-{job['attempts']}"
         print(f"products in {folder}:")
