@@ -219,6 +219,20 @@ class NormalSums:
             np.zeros(lead, np.int64),
         )
 
+    def __iadd__(self, other: NormalSums) -> NormalSums:
+        """Add ``other`` into these sums in place (the same values as ``self + other``)."""
+        if self.model != other.model or self.ata.shape != other.ata.shape:
+            return self + other  # raises the FitError that explains the mismatch
+        self.ata += other.ata
+        self.aty += other.aty
+        self.yty += other.yty
+        self.count += other.count
+        self.nflagged += other.nflagged
+        self.lst_min = min(self.lst_min, other.lst_min)
+        self.lst_max = max(self.lst_max, other.lst_max)
+        self.info.update(other.info)
+        return self
+
     def __add__(self, other: NormalSums) -> NormalSums:
         if self.model != other.model:
             raise FitError("cannot add normal sums of different models")

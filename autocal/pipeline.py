@@ -646,16 +646,7 @@ def _add_into(total: NormalSums, part: NormalSums) -> NormalSums:
 
     Saves a new set of arrays per file; ``total`` must be owned by the caller.
     """
-    if total.model != part.model or total.ata.shape != part.ata.shape:
-        return total + part  # raises the FitError that explains the mismatch
-    total.ata += part.ata
-    total.aty += part.aty
-    total.yty += part.yty
-    total.count += part.count
-    total.nflagged += part.nflagged
-    total.lst_min = min(total.lst_min, part.lst_min)
-    total.lst_max = max(total.lst_max, part.lst_max)
-    total.info.update(part.info)
+    total += part
     return total
 
 
@@ -916,18 +907,14 @@ def _calibrate(
         "trxr_prior": None if prior is None else prior.describe(),
         "created_unix": time.time(),
     }
-    solution = Solution.from_solved(
+    solution = _solution(
         model,
-        sums,
+        run,
         solved,
-        antennas=run.antennas,
-        pols=pols,
-        freqs=source.freqs,
-        lsts=source.lsts,
-        jds=source.jds,
-        antenna_names=run.antenna_names,
-        config={"calibration": config.model_dump(mode="json"), "provenance": provenance},
-        total=total,
+        source,
+        pols,
+        {"calibration": config.model_dump(mode="json"), "provenance": provenance},
+        total,
     )
     comparison_inputs: dict[str, Any] = {}
     if config.reference:
@@ -1152,6 +1139,31 @@ def _waterfall_residuals(
     return labels, resid.reshape(-1, *resid.shape[2:]), lsts[centre]
 
 
+def _solution(
+    model: FitModel,
+    run: _Run,
+    solved: dict[str, np.ndarray],
+    source: _Source,
+    pols: tuple[str, ...],
+    config: dict[str, Any],
+    total: Any = None,
+) -> Solution:
+    """Build the solution of a run's sums and their solve on the observation's axes."""
+    return Solution.from_solved(
+        model,
+        run.sums,
+        solved,
+        antennas=run.antennas,
+        pols=pols,
+        freqs=source.freqs,
+        lsts=source.lsts,
+        jds=source.jds,
+        antenna_names=run.antenna_names,
+        config=config,
+        total=total,
+    )
+
+
 #: Sky models whose fits the comparison's systematics budget sets beside the main one.
 ALTERNATIVE_SKIES = (
     "gsm2008",
@@ -1201,17 +1213,8 @@ def _alternative_solutions(
             alt, source, pols, tsky, model, lambda f, m: None, None, None, None, block_size
         )
         solved = solve_sums(run.sums, scale_covariance=scaling)
-        out[sky] = Solution.from_solved(
-            model,
-            run.sums,
-            solved,
-            antennas=run.antennas,
-            pols=pols,
-            freqs=source.freqs,
-            lsts=source.lsts,
-            jds=source.jds,
-            antenna_names=run.antenna_names,
-            config={"calibration": alt.model_dump(mode="json")},
+        out[sky] = _solution(
+            model, run, solved, source, pols, {"calibration": alt.model_dump(mode="json")}
         )
     return out
 

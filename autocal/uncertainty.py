@@ -162,13 +162,7 @@ class BlockSums:
         if self._total is None:
             total = NormalSums.zeros(self.blocks[0].model, *self.blocks[0].count.shape)
             for part in self.blocks:
-                total.ata += part.ata
-                total.aty += part.aty
-                total.yty += part.yty
-                total.count += part.count
-                total.nflagged += part.nflagged
-                total.lst_min = min(total.lst_min, part.lst_min)
-                total.lst_max = max(total.lst_max, part.lst_max)
+                total += part
             self._total = total
         return self._total
 
