@@ -1310,7 +1310,10 @@ class Solution:
 
     # the time model --------------------------------------------------------------------
     def evaluate(self, lsts: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """Evaluate ``G(t)``, ``n(t)``, ``Trxr(t)`` and their 1-sigma errors.
+        """Evaluate ``G(t)``, ``n(t)``, ``Trxr(t)`` and their statistical 1-sigma errors.
+
+        The total uncertainty (:attr:`total`) is that of the time averages; these errors
+        are the time model's covariance propagated to each LST.
 
         Parameters
         ----------
