@@ -236,8 +236,10 @@ def sky_templates(
             nodes = beam_width_step * np.array([-1.0, -0.5, 0.5, 1.0])
             deltas = np.stack(
                 [
+                    # the widened beams' harmonics come from the Tsky cache (every
+                    # diagnosis of the night and the calibration share them)
                     compute_tsky(
-                        sky, ScaledBeam(base=b, factor=1 + w), site, freqs, lsts, cache=False, **kw
+                        sky, ScaledBeam(base=b, factor=1 + w), site, freqs, lsts, **kw
                     ).tsky
                     - res.tsky
                     for w in nodes
