@@ -879,6 +879,9 @@ class Diagnosis:
         Statistic, threshold, prior and settings.
     residual_snapshots
         ``[(label, (Ntime, Nfreq) normalised residuals of antenna 0, pol 0)]``.
+    product_change
+        How the calibration products change from the starting model to the diagnosed one
+        (:func:`product_impact`); each step has its own under ``product_impact``.
     """
 
     steps: list[dict[str, Any]] = field(default_factory=list)
@@ -890,6 +893,7 @@ class Diagnosis:
     residual_snapshots: list[tuple[str, np.ndarray]] = field(default_factory=list, repr=False)
     final_fit: ExtendedFit | None = field(default=None, repr=False)
     final_parameters: dict[str, dict[str, Any]] = field(default_factory=dict)
+    product_change: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form (without residual arrays)."""
@@ -900,8 +904,62 @@ class Diagnosis:
             "final_gap": self.final_gap,
             "identifiability": self.identifiability,
             "final_parameters": self.final_parameters,
+            "product_change": self.product_change,
             "config": self.config,
         }
+
+
+def product_sigmas(obs: Observation, tpl: SkyTemplates) -> tuple[np.ndarray, np.ndarray]:
+    """Return the total 1-sigma of ``G`` and ``Trxr`` of the ordinary calibration.
+
+    The constant-model fit of :func:`autocal.fit.fit` against the model Tsky, with
+    radiometer weights, errors inflated by ``max(1, chi^2/dof)`` and the total uncertainty
+    (:mod:`autocal.uncertainty`): the yardstick of :func:`product_impact`.
+    """
+    from autocal.fit import fit
+
+    sol = fit(obs, tpl.total, scale_covariance="inflate")
+    return sol.sigma_G, sol.sigma_Trxr
+
+
+def product_impact(
+    before: ExtendedFit, after: ExtendedFit, sigma_g: np.ndarray, sigma_t: np.ndarray
+) -> dict[str, Any]:
+    """Return how ``G`` and ``Trxr`` move between two models, against the total errors.
+
+    Parameters
+    ----------
+    before, after
+        Fits without and with the effect(s).
+    sigma_g, sigma_t
+        ``(Nant, Npol, Nfreq)`` total 1-sigma of ``G`` and ``Trxr`` (:func:`product_sigmas`).
+
+    Returns
+    -------
+    dict
+        For ``G`` and ``Trxr``: the median and largest ``|change| / sigma`` over channels,
+        the median change (relative for ``G``, kelvin for ``Trxr``) and the channels
+        compared; ``significant`` when the median change exceeds one total sigma.
+    """
+    out: dict[str, Any] = {}
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pairs = {
+            "G": (after.G - before.G, sigma_g, (after.G - before.G) / np.abs(before.G)),
+            "Trxr": (after.Trxr - before.Trxr, sigma_t, after.Trxr - before.Trxr),
+        }
+        for name, (diff, sig, change) in pairs.items():
+            z = np.abs(diff) / sig
+            ok = np.isfinite(z) & np.isfinite(change)
+            entry: dict[str, Any] = {"channels": int(ok.sum())}
+            if ok.any():
+                entry["median_change_over_sigma"] = float(np.median(z[ok]))
+                entry["max_change_over_sigma"] = float(np.max(z[ok]))
+                key = "median_relative_change" if name == "G" else "median_change_K"
+                entry[key] = float(np.median(change[ok]))
+            out[name] = entry
+    medians = [e.get("median_change_over_sigma", 0.0) for e in out.values()]
+    out["significant"] = bool(max(medians) > 1.0)
+    return out
 
 
 def _params_dict(eff: Effect, fit: ExtendedFit) -> dict[str, dict[str, float]]:
@@ -1086,6 +1144,8 @@ def _diagnose_once(
     current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
     w = radiometer_weights(obs, current.model)
     current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
+    base_fit = current
+    sigma_g, sigma_t = product_sigmas(obs, tpl)
     diag.config["failed_candidates"] = {}
     bp_null, _ = fit_cable_reflection(
         obs.freqs, current.G, current.sigma_G, smooth_order=smooth_order
@@ -1202,6 +1262,7 @@ def _diagnose_once(
                 active.append(eff)
             new = fit_extended(obs, tpl, active, weights=w, **prior_kw)
             gap_after = gap_metrics(new, obs, tpl, bp_null)
+            step_extra["product_impact"] = product_impact(current, new, sigma_g, sigma_t)
             # re-weight with the improved model for the next step
             w = radiometer_weights(obs, new.model)
             current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
@@ -1260,6 +1321,12 @@ def _diagnose_once(
                 break
     diag.final_gap = gap_metrics(current, obs, tpl, bp_null)
     diag.final_fit = current
+    diag.product_change = product_impact(base_fit, current, sigma_g, sigma_t)
+    diag.product_change["note"] = (
+        "G and Trxr of the starting model against the diagnosed model (time-domain effects; "
+        "a cable reflection is a bandpass feature, its G is unchanged); changes in units of "
+        "the total 1-sigma of the ordinary calibration"
+    )
     # every accepted effect's parameters from the final joint fit (a step's parameters
     # are those of the model at that step, before later effects were added)
     for st in diag.steps:
@@ -1316,6 +1383,8 @@ def summary_text(diag: Diagnosis) -> str:
             f"Delta chi2 = {st['delta']:.1f}; chi2/dof {st['gap_before']['reduced_chi2']:.4f} "
             f"-> {st['gap_after']['reduced_chi2']:.4f}"
         )
+        if st.get("product_impact"):
+            lines.append("  " + _impact_text(st["product_impact"]))
     rej = diag.config.get("last_rejected")
     if rej:
         lines.append(
@@ -1333,7 +1402,26 @@ def summary_text(diag: Diagnosis) -> str:
         f"final gap: chi2/dof = {fg.get('reduced_chi2', float('nan')):.4f}, "
         f"rms residual = {fg.get('rms_normalised_residual', float('nan')):.3f}"
     )
+    if diag.steps and diag.product_change:
+        lines.append("calibration products, starting model -> diagnosed model: ")
+        lines.append("  " + _impact_text(diag.product_change))
     return "\n".join(lines) + "\n"
+
+
+def _impact_text(impact: dict[str, Any]) -> str:
+    """One line on how G and Trxr moved (see :func:`product_impact`)."""
+    g, t = impact.get("G", {}), impact.get("Trxr", {})
+    nan = float("nan")
+    if "median_change_over_sigma" not in g:
+        return "no channel to compare"
+    verdict = "significant" if impact.get("significant") else "within the errors"
+    return (
+        f"G changes by {100 * g['median_relative_change']:+.2g} % (median; "
+        f"{g['median_change_over_sigma']:.2g} total sigma, worst channel "
+        f"{g['max_change_over_sigma']:.2g}); Trxr by {t.get('median_change_K', nan):+.3g} K "
+        f"({t.get('median_change_over_sigma', nan):.2g} sigma, worst "
+        f"{t.get('max_change_over_sigma', nan):.2g}): {verdict}"
+    )
 
 
 def write_diagnosis(diag: Diagnosis, out_dir: str | Path, obs: Observation | None = None) -> Path:

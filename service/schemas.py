@@ -471,6 +471,12 @@ class DiagnosisResults(BaseModel):
         ..., description="per effect: Fisher fraction left after the (G, n) projection"
     )
     config: dict[str, Any] = Field(..., description="statistic, thresholds, prior, candidates")
+    product_change: dict[str, Any] = Field(
+        default_factory=dict,
+        description="how G and Trxr change from the starting model to the diagnosed one, in "
+        "units of the total 1-sigma (median and worst channel); each step's own change is "
+        "in its details.product_impact",
+    )
     summary: dict[str, Any] | None = Field(
         None, description="the job's summary: observation, config, timings"
     )

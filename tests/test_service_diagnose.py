@@ -178,6 +178,10 @@ def test_diagnose_job_end_to_end(
     assert step["delta"] > 0
     assert step["gap_after"]["reduced_chi2"] < step["gap_before"]["reduced_chi2"]
     assert body["final_gap"]["reduced_chi2"] < body["initial_gap"]["reduced_chi2"]
+    # what the accepted effect does to the calibration products, against the total errors
+    impact = step["details"]["product_impact"]
+    assert impact["G"]["median_change_over_sigma"] > 0 and "Trxr" in impact
+    assert body["product_change"]["G"]["channels"] == impact["G"]["channels"]
     # the drift coefficients are the projection of the true gain on the effect's basis
     obs = read_uvh5(data / SIM)
     order = int(step["parameters"]["order"]["value"])

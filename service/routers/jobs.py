@@ -377,6 +377,7 @@ def _diagnosis_results(settings: Settings, job: dict[str, Any]) -> DiagnosisResu
             final_gap=doc.get("final_gap") or {},
             identifiability=doc.get("identifiability") or {},
             config=doc.get("config") or {},
+            product_change=doc.get("product_change") or {},
             summary=json_safe(job.get("result")),
         )
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
