@@ -39,9 +39,17 @@ Model
   0.8-1.4e-4 whatever the spacing (30-300 s), always at the lowest frequency: the hard
   horizon makes the exact Tsky step by up to ~1e-4 each time a pixel centre crosses it,
   which no interpolation in time reproduces. Hence the exact default.
-* Data: ``R = G(nu, t) (Tsky(nu, t) + Trxr(nu)) (1 + N(0, 1) / sqrt(dnu_dt))`` with
-  ``G(nu, t) = G0(nu) (1 + drift(t))`` and independent seeded noise per antenna,
-  polarisation, time and channel.
+* Data: ``R = G(nu, t) (Tsky(nu, t) + Trxr(nu) (1 + e_1 s(t))) (1 + N(0, 1) / sqrt(dnu_dt))``
+  with ``G(nu, t) = G0(nu) (1 + drift(t))``, ``s`` the time mapped linearly onto
+  ``[-1, 1]`` over the span (``e_1 = noise_drift``, default 0) and independent seeded
+  noise per antenna, polarisation, time and channel.
+* A different true sky or beam (the "hidden effects" of the diagnosis tests, see
+  ``tests/independent_effects.py``): :class:`SkyChange` replaces the sky above the horizon
+  by ``(1 + scale) S (nu / nu0)^dbeta + T_cmb' + offset`` (``S`` the GSM2008 map without
+  the CMB, ``T_cmb'`` 2.725 K or 0), and ``beam_width = w`` makes the beam wider
+  (``w > 0``) or narrower: the Gaussian dipole's FWHM is multiplied by ``1 + w`` (its
+  azimuthal factor is kept), the HERA beam is evaluated at ``za / (1 + w)`` (clipped to
+  ``pi``). The ground temperature is ``tgnd_k``.
 
 Everything expensive (GSM maps, AltAz coordinates, Tsky) is cached in memory
 (:func:`functools.lru_cache`), so the tests of one session share it.
@@ -49,6 +57,7 @@ Everything expensive (GSM maps, AltAz coordinates, Tsky) is cached in memory
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import math
@@ -90,6 +99,44 @@ ANTENNA_SPACING_M = 14.6
 HERA_BEAM_FILE = Path("hera/beams/HERA_NF_dipole_power.beamfits")
 
 _POL_CODES = {"ee": -5, "nn": -6}
+
+
+@dataclass(frozen=True)
+class SkyChange:
+    """A true sky that differs from GSM2008 + CMB (hashable: part of the Tsky cache key).
+
+    Above the horizon the sky is ``(1 + scale) S (nu / nu0_hz)^dbeta + cmb_k + offset_k``
+    with ``S`` the GSM2008 map (which has no CMB). The default is GSM2008 + 2.725 K.
+
+    Attributes
+    ----------
+    scale
+        Fractional scale error ``s`` of the Galactic part.
+    dbeta
+        Spectral-index error of the Galactic part.
+    nu0_hz
+        Reference frequency of ``dbeta``, Hz.
+    offset_k
+        Constant added to every pixel above the horizon, kelvin.
+    cmb_k
+        CMB temperature of the true sky, kelvin (0: a sky without CMB).
+    """
+
+    scale: float = 0.0
+    dbeta: float = 0.0
+    nu0_hz: float = 150e6
+    offset_k: float = 0.0
+    cmb_k: float = T_CMB_K
+
+    @property
+    def is_default(self) -> bool:
+        """True for GSM2008 + 2.725 K (no change)."""
+        return (
+            self.scale == 0.0
+            and self.dbeta == 0.0
+            and self.offset_k == 0.0
+            and self.cmb_k == T_CMB_K
+        )
 
 
 # ---------------------------------------------------------------------------------------
@@ -154,6 +201,23 @@ def _sky_maps(freqs_key: tuple[float, ...]) -> np.ndarray:
     low = np.ascontiguousarray(low + T_CMB_K)
     low.setflags(write=False)
     return low
+
+
+@functools.lru_cache(maxsize=4)
+def _galactic_maps(freqs_key: tuple[float, ...]) -> np.ndarray:
+    """GSM2008 without the CMB at ``freqs_key`` (Hz): ``(Nfreq, Npix)``, nside 32."""
+    low = np.ascontiguousarray(_sky_maps(freqs_key) - T_CMB_K)
+    low.setflags(write=False)
+    return low
+
+
+def _true_sky(freqs_key: tuple[float, ...], change: SkyChange | None) -> np.ndarray:
+    """The sky above the horizon: GSM2008 + CMB, or as ``change`` makes it."""
+    if change is None or change.is_default:
+        return _sky_maps(freqs_key)
+    freqs = np.asarray(freqs_key)
+    factor = (1.0 + change.scale) * (freqs / change.nu0_hz) ** change.dbeta
+    return _galactic_maps(freqs_key) * factor[:, None] + (change.cmb_k + change.offset_k)
 
 
 def sky_maps(freqs_hz: np.ndarray) -> np.ndarray:
@@ -240,9 +304,9 @@ def dipole_beam(
     return radial * _dipole_azimuthal(za, phi)[None]
 
 
-def _dipole_theta0(freqs_hz: np.ndarray) -> np.ndarray:
+def _dipole_theta0(freqs_hz: np.ndarray, width: float = 0.0) -> np.ndarray:
     fwhm = np.radians(DIPOLE_FWHM_DEG) * (np.asarray(freqs_hz, np.float64) / DIPOLE_NU_REF_HZ) ** -1
-    return fwhm / (2.0 * math.sqrt(math.log(2.0)))
+    return (1.0 + width) * fwhm / (2.0 * math.sqrt(math.log(2.0)))
 
 
 def _dipole_phi(az: np.ndarray, pol: str) -> np.ndarray:
@@ -337,16 +401,22 @@ def _freq_spline_matrix(native: tuple[float, ...], freqs: tuple[float, ...]) -> 
 # Tsky
 # ---------------------------------------------------------------------------------------
 def _exact_tsky(
-    freqs_key: tuple[float, ...], jds_key: tuple[float, ...], pol: str, beam: str, tgnd_k: float
+    freqs_key: tuple[float, ...],
+    jds_key: tuple[float, ...],
+    pol: str,
+    beam: str,
+    tgnd_k: float,
+    change: SkyChange | None = None,
+    beam_width: float = 0.0,
 ) -> np.ndarray:
     """Beam-weighted Tsky evaluated exactly at every time: ``(Ntime, Nfreq)``."""
     freqs = np.asarray(freqs_key)
-    sky = _sky_maps(freqs_key)
+    sky = _true_sky(freqs_key, change)
     alt, az = _altaz(jds_key)
     out = np.empty((alt.shape[0], freqs.size))
     if beam == "dipole":
-        inv_theta0_sq = -1.0 / _dipole_theta0(freqs) ** 2
-        norm = 1.0 / (math.sqrt(math.pi) * _dipole_theta0(freqs))
+        inv_theta0_sq = -1.0 / _dipole_theta0(freqs, beam_width) ** 2
+        norm = 1.0 / (math.sqrt(math.pi) * _dipole_theta0(freqs, beam_width))
         for it in range(alt.shape[0]):
             za = np.pi / 2 - alt[it]
             weight = np.exp(np.multiply.outer(inv_theta0_sq, za * za))
@@ -358,6 +428,8 @@ def _exact_tsky(
         for start in range(0, alt.shape[0], 4):
             stop = min(start + 4, alt.shape[0])
             za = np.pi / 2 - alt[start:stop]
+            if beam_width:
+                za = np.minimum(za / (1.0 + beam_width), np.pi)
             weight = hera_beam(freqs, za.ravel(), az[start:stop].ravel(), pol)
             weight = weight.reshape(freqs.size, stop - start, -1)
             for k in range(stop - start):
@@ -403,12 +475,16 @@ def _tsky_cached(
     beam: str,
     tgnd_k: float,
     node_spacing_s: float | None,
+    change: SkyChange | None = None,
+    beam_width: float = 0.0,
 ) -> np.ndarray:
     from scipy.interpolate import CubicSpline
 
     jds = np.asarray(jds_key)
     nodes = node_times(jds, node_spacing_s)
-    exact = _exact_tsky(freqs_key, tuple(float(t) for t in nodes), pol, beam, tgnd_k)
+    exact = _exact_tsky(
+        freqs_key, tuple(float(t) for t in nodes), pol, beam, tgnd_k, change, beam_width
+    )
     if nodes.size == jds.size:
         result = exact
     else:
@@ -426,6 +502,8 @@ def independent_tsky(
     tgnd_k: float = 300.0,
     *,
     node_spacing_s: float | None = None,
+    sky: SkyChange | None = None,
+    beam_width: float = 0.0,
 ) -> np.ndarray:
     """Beam-weighted sky temperature at HERA, computed independently of autocal.
 
@@ -445,6 +523,11 @@ def independent_tsky(
         ``None`` (default): evaluate exactly at every time. Otherwise the largest spacing
         (seconds) of exact evaluations interpolated by a cubic spline in time
         (:func:`node_times`; relative error up to ~1.4e-4, see the module notes).
+    sky
+        A true sky other than GSM2008 + CMB (:class:`SkyChange`; ``None``: the default).
+    beam_width
+        Fractional change ``w`` of the beam width (the dipole's FWHM times ``1 + w``; the
+        HERA beam evaluated at ``za / (1 + w)``).
 
     Returns
     -------
@@ -457,7 +540,10 @@ def independent_tsky(
         raise ValueError("jds must be strictly increasing")
     if pol not in _POL_CODES:
         raise ValueError(f"unknown polarisation {pol!r}: use 'ee' or 'nn'")
+    if not 1.0 + beam_width > 0.0:
+        raise ValueError(f"beam_width {beam_width} must be > -1")
     spacing = float(node_spacing_s) if node_spacing_s else None
+    change = None if sky is None or sky.is_default else sky
     return _tsky_cached(
         tuple(float(f) for f in freqs),
         tuple(float(t) for t in times),
@@ -465,6 +551,8 @@ def independent_tsky(
         beam,
         float(tgnd_k),
         spacing,
+        change,
+        float(beam_width),
     ).copy()
 
 
@@ -534,6 +622,9 @@ class Truth:
         Channel width x integration time x nsamples of every sample (radiometer product).
     settings
         The arguments of :func:`simulate_autos` (scalars and strings).
+    trxr_drift
+        ``(Ntime,)`` fractional receiver-noise change ``e_1 s(t)`` (``None``: none), so
+        that the receiver temperature at integration ``i`` is ``Trxr (1 + trxr_drift[i])``.
     """
 
     path: Path
@@ -550,6 +641,7 @@ class Truth:
     drift: np.ndarray
     dnu_dt: float
     settings: dict[str, Any] = field(default_factory=dict)
+    trxr_drift: np.ndarray | None = None
 
     @property
     def noise_offset(self) -> np.ndarray:
@@ -558,7 +650,10 @@ class Truth:
 
     def expected(self) -> np.ndarray:
         """Noise-free data ``G (Tsky + Trxr)``: ``(Npol, Ntime, Nfreq)`` (every antenna)."""
-        return self.G[None] * (self.tsky + self.Trxr[None, None, :])
+        trxr = self.Trxr[None, None, :]
+        if self.trxr_drift is not None:
+            trxr = trxr * (1.0 + self.trxr_drift[None, :, None])
+        return self.G[None] * (self.tsky + trxr)
 
 
 def _drift_values(
@@ -668,6 +763,9 @@ def simulate_autos(
     seed: int = 0,
     jd_night: float = 2458116,
     node_spacing_s: float | None = None,
+    noise_drift: float = 0.0,
+    sky: SkyChange | None = None,
+    beam_width: float = 0.0,
 ) -> Truth:
     """Simulate HERA auto-correlations and write them as a UVH5 file.
 
@@ -712,6 +810,13 @@ def simulate_autos(
     node_spacing_s
         Time sampling of Tsky (:func:`independent_tsky`; default exact at every
         integration).
+    noise_drift
+        ``e_1``: the receiver temperature is ``Trxr (1 + e_1 s)`` with ``s`` the time
+        mapped linearly from -1 (first integration) to +1 (last); 0 for none.
+    sky
+        The true sky, if not GSM2008 + CMB (:class:`SkyChange`).
+    beam_width
+        Fractional change of the true beam's width (:func:`independent_tsky`).
 
     Returns
     -------
@@ -747,23 +852,39 @@ def simulate_autos(
         raise ValueError("G0 must be positive")
     fractional = _drift_values(jds, drift_total, drift)
     gain = gain0[None, :] * (1.0 + fractional[:, None])
+    s_time = 2.0 * _drift_values(jds, 1.0, None)  # -1 .. +1 (linear in time)
+    trxr_drift = float(noise_drift) * s_time if noise_drift else None
+    if trxr_drift is not None and np.any(1.0 + trxr_drift <= 0):
+        raise ValueError("noise_drift must keep the receiver temperature positive")
+    change = None if sky is None or sky.is_default else sky
 
     tsky = np.stack(
         [
-            independent_tsky(freqs, jds, pol, beam, tgnd_k, node_spacing_s=node_spacing_s)
+            independent_tsky(
+                freqs,
+                jds,
+                pol,
+                beam,
+                tgnd_k,
+                node_spacing_s=node_spacing_s,
+                sky=change,
+                beam_width=beam_width,
+            )
             for pol in pols
         ]
     )
     rng = np.random.default_rng(seed)
     noise = rng.standard_normal((len(antennas), len(pols), ntime, freqs.size))
-    model = gain[None, None] * (tsky[None] + trxr[None, None, None, :])
+    trxr_t = trxr[None, :] if trxr_drift is None else trxr[None, :] * (1 + trxr_drift[:, None])
+    model = gain[None, None] * (tsky[None] + trxr_t[None, None])
     data = model * (1.0 + noise / math.sqrt(dnu_dt))
 
     nsample = dnu_dt / (channel_width * integration_s)
+    sky_text = "GSM2008+CMB" if change is None else f"GSM2008 changed ({change})"
     history = (
         "Simulated by tests/independent_sim.py (independent of autocal's Tsky engine): "
-        f"GSM2008+CMB nside {SIM_NSIDE}, {beam} beam, hard horizon, Tgnd {tgnd_k} K, "
-        f"seed {seed}."
+        f"{sky_text} nside {SIM_NSIDE}, {beam} beam (width x {1 + beam_width:g}), hard "
+        f"horizon, Tgnd {tgnd_k} K, receiver drift e_1 {noise_drift:g}, seed {seed}."
     )
     lsts = _write_uvh5(
         path, data, freqs, jds, antennas, pols, integration_s, channel_width, nsample, history
@@ -791,6 +912,9 @@ def simulate_autos(
         "nsample": float(nsample),
         "sim_nside": SIM_NSIDE,
         "node_spacing_s": float(node_spacing_s) if node_spacing_s else 0.0,
+        "noise_drift": float(noise_drift),
+        "beam_width": float(beam_width),
+        "sky": None if change is None else dataclasses.asdict(change),
     }
     return Truth(
         path=path,
@@ -807,4 +931,5 @@ def simulate_autos(
         drift=_readonly(fractional),
         dnu_dt=float(dnu_dt),
         settings=settings,
+        trxr_drift=None if trxr_drift is None else _readonly(trxr_drift),
     )
