@@ -1113,7 +1113,11 @@ def _diagnose_once(
     cands = (
         list(candidates)
         if candidates is not None
-        else catalogue(include_beam_width=tpl.beam_dwidth is not None, ntime=obs.ntime)
+        else catalogue(
+            include_beam_width=tpl.beam_dwidth is not None,
+            ntime=obs.ntime,
+            include_timing=tpl.lst_derivative is not None,
+        )
     )
     if smooth_order is None:
         smooth_order = auto_smooth_order(obs.freqs, 90.0)

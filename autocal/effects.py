@@ -46,6 +46,9 @@ from autocal.tsky import compute_tsky
 
 logger = logging.getLogger(__name__)
 
+#: Sidereal seconds per solar second (LST advances this much faster than UTC).
+SIDEREAL_RATE = 1.002737909
+
 #: The catalogue's identifiers.
 EFFECT_NAMES = (
     "gain_drift",
@@ -58,7 +61,10 @@ EFFECT_NAMES = (
     "beam_width",
     "missing_cmb",
     "cable_reflection",
+    "timing_offset",
 )
+#: Step (hours) of the central difference of Tsky in LST behind ``timing_offset``.
+LST_STEP_H = 2.0 / 60.0
 
 
 class EffectError(ValueError):
@@ -130,6 +136,9 @@ class SkyTemplates:
         5-15 % width errors of real beam models.
     nu0
         Reference frequency (Hz) of the spectral-index error ``(nu / nu0)^dbeta``.
+    lst_derivative
+        ``(Npol, Ntime, Nfreq)`` ``dTsky / dt`` in kelvin per second of time (central
+        difference over :data:`LST_STEP_H`), the template of ``timing_offset``, or ``None``.
     meta
         Provenance.
     """
@@ -146,6 +155,7 @@ class SkyTemplates:
     beam_width_poly: np.ndarray | None = None
     nu0: float = 150e6
     meta: dict[str, Any] = field(default_factory=dict)
+    lst_derivative: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         shape = self.total.shape
@@ -158,6 +168,8 @@ class SkyTemplates:
             raise EffectError("template beam_dwidth has the wrong shape")
         if self.beam_width_poly is not None and self.beam_width_poly.shape[1:] != shape:
             raise EffectError("template beam_width_poly has the wrong shape")
+        if self.lst_derivative is not None and self.lst_derivative.shape != shape:
+            raise EffectError("template lst_derivative has the wrong shape")
 
 
 def sky_templates(
@@ -173,6 +185,7 @@ def sky_templates(
     epoch: Any = None,
     beam_width_step: float | None = 0.2,
     nu0: float | None = None,
+    timing: bool = True,
 ) -> SkyTemplates:
     """Compute the model Tsky and its effect templates (one FFT Tsky pass per beam).
 
@@ -203,6 +216,8 @@ def sky_templates(
     nu0
         Reference of the spectral-index error; default the sky's ``nu0`` for a power-law
         sky, else the band centre.
+    timing
+        Compute the ``timing_offset`` template (Tsky's derivative in time).
 
     Returns
     -------
@@ -211,7 +226,7 @@ def sky_templates(
     """
     freqs = np.asarray(freqs, np.float64)
     lsts = np.asarray(lsts, np.float64)
-    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("tot", "gal", "cmb", "gnd", "bw")}
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("tot", "gal", "cmb", "gnd", "bw", "dt")}
     fa, fb = [], []
     meta: dict[str, Any] = {}
     for pol in pols:
@@ -232,6 +247,15 @@ def sky_templates(
         fa.append(res.f_above)
         fb.append(res.f_below)
         meta = res.meta
+        if timing:
+            # Tsky one LST step either side (cached harmonics, any LST grid): per second
+            # of time, a sidereal second being 1/1.0027379 of a solar one
+            ahead, behind = (
+                compute_tsky(sky, b, site, freqs, (lsts + d) % 24.0, **kw).tsky
+                for d in (LST_STEP_H, -LST_STEP_H)
+            )
+            per_hour = (ahead - behind) / (2 * LST_STEP_H)
+            parts["dt"].append(per_hour * SIDEREAL_RATE / 3600.0)
         if beam_width_step:
             nodes = beam_width_step * np.array([-1.0, -0.5, 0.5, 1.0])
             deltas = np.stack(
@@ -262,6 +286,7 @@ def sky_templates(
         f_below=np.stack(fb),
         beam_dwidth=np.stack([c[0] for c in parts["bw"]]) if parts["bw"] else None,
         beam_width_poly=np.stack(parts["bw"], axis=1) if parts["bw"] else None,
+        lst_derivative=np.stack(parts["dt"]) if parts["dt"] else None,
         nu0=nu0,
         meta={"tsky": meta, "tgnd_K": tgnd, "beam_width_step": beam_width_step},
     )
@@ -373,6 +398,10 @@ class Effect:
         elif self.name == "sky_spectral_index":
             ratio = tpl.freqs / tpl.nu0
             t = tpl.galactic * (np.log(ratio) * ratio ** float(p[0]))[None, None, :]
+        elif self.name == "timing_offset":
+            if tpl.lst_derivative is None:
+                raise EffectError("timing_offset needs templates built with timing=True")
+            t = tpl.lst_derivative
         else:
             raise EffectError(f"{self.name} is not a Tsky effect")
         return np.asarray(t)[..., None]
@@ -392,7 +421,10 @@ class Effect:
 
 
 def catalogue(
-    max_drift_order: int = 2, include_beam_width: bool = True, ntime: int | None = None
+    max_drift_order: int = 2,
+    include_beam_width: bool = True,
+    ntime: int | None = None,
+    include_timing: bool = False,
 ) -> list[Effect]:
     """Return the candidate effects (drifts in every order ``1..max_drift_order``).
 
@@ -402,6 +434,8 @@ def catalogue(
         Highest Legendre order of ``gain_drift`` and ``noise_drift``.
     include_beam_width
         Include ``beam_width`` (needs :attr:`SkyTemplates.beam_dwidth`).
+    include_timing
+        Include ``timing_offset`` (needs :attr:`SkyTemplates.lst_derivative`).
     ntime
         Number of integrations: with 3 or more, include ``gain_jitter`` (one broadband
         gain factor per integration, the first one the reference).
@@ -482,6 +516,17 @@ def catalogue(
             signature="G(nu) smooth x (1 + a cos(2 pi nu tau + phi))",
         ),
     ]
+    if include_timing:
+        out.append(
+            Effect(
+                "timing_offset",
+                "tsky",
+                ("dt_s",),
+                ("s",),
+                signature="Tsky(t + dt): a clock or LST error, or a sky in a frame rotated in "
+                "right ascension (e.g. J2000 instead of the frame of date)",
+            )
+        )
     if include_beam_width:
         out.append(
             Effect(

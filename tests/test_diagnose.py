@@ -283,3 +283,26 @@ def test_beam_width_templates_come_from_the_tsky_cache(tmp_cache, monkeypatch) -
     monkeypatch.setattr(autocal.tsky, "tsky_harmonics", no_widened_beams)
     second = sky_templates("uniform:300", "dipole", HERA, freqs, lsts, **kw)
     np.testing.assert_allclose(second.beam_width_poly, first.beam_width_poly, rtol=1e-12)
+
+
+def test_timing_offset(setup):
+    """Data whose clock runs 90 s ahead (the sky seen at LST + 90 s): named timing_offset,
+    its dt recovered; computed from Tsky at shifted LSTs, not from the template."""
+    from autocal.tsky import compute_tsky
+
+    obs, tpl = setup
+    dt = 90.0
+    shift = dt * 1.002737909 / 3600.0  # hours of LST
+    truth = compute_tsky(
+        SKY,
+        "dipole",
+        "hera",
+        obs.freqs,
+        (obs.lsts + shift) % 24,
+        nside=32,
+        epoch=night_epoch(obs.jds, obs.site.lon_deg),
+        pol="ee",
+    ).tsky[None]
+    diag = diagnose(hidden(obs, truth), tpl)
+    assert diag.effects == ["timing_offset"]
+    check(diag, "timing_offset", {"dt_s": dt})
