@@ -882,6 +882,9 @@ class Diagnosis:
     product_change
         How the calibration products change from the starting model to the diagnosed one
         (:func:`product_impact`); each step has its own under ``product_impact``.
+    unexplained
+        ``None`` when the final model fits to within the noise; else what remains and its
+        structure (:func:`describe_unexplained`): no catalogue entry explains it.
     """
 
     steps: list[dict[str, Any]] = field(default_factory=list)
@@ -894,11 +897,13 @@ class Diagnosis:
     final_fit: ExtendedFit | None = field(default=None, repr=False)
     final_parameters: dict[str, dict[str, Any]] = field(default_factory=dict)
     product_change: dict[str, Any] = field(default_factory=dict)
+    unexplained: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form (without residual arrays)."""
         return {
             "effects": self.effects,
+            "unexplained": self.unexplained,
             "steps": self.steps,
             "initial_gap": self.initial_gap,
             "final_gap": self.final_gap,
@@ -907,6 +912,85 @@ class Diagnosis:
             "product_change": self.product_change,
             "config": self.config,
         }
+
+
+#: The final model's chi-square may exceed its degrees of freedom by this many standard
+#: deviations (``sqrt(2 dof)``) before the remainder is reported as unexplained.
+UNEXPLAINED_SIGMAS = 5.0
+
+
+def describe_unexplained(
+    fit: ExtendedFit, obs: Observation, gap: dict[str, Any]
+) -> dict[str, Any] | None:
+    """Describe the residual no catalogue entry explained, or ``None`` if there is none.
+
+    Parameters
+    ----------
+    fit
+        The final model's fit.
+    obs
+        The observation.
+    gap
+        The final model's :func:`gap_metrics`.
+
+    Returns
+    -------
+    dict or None
+        ``reduced_chi2``, ``excess_sigma`` (``(chi2 - dof) / sqrt(2 dof)``), the
+        structure: ``time`` (``smooth`` when the low Legendre modes of LST carry most of
+        it, ``integration to integration`` when whole integrations move together, else
+        ``unstructured``), ``frequency`` (the delay of the residual's largest delay power
+        and that power over white), ``antennas`` (reduced chi2 per antenna-pol, worst
+        first) and ``message``.
+    """
+    dof = max(int(gap["dof"]), 1)
+    excess = (gap["chi2"] - dof) / math.sqrt(2.0 * dof)
+    if excess <= UNEXPLAINED_SIGMAS:
+        return None
+    modes = gap["time_mode_power"]
+    jitter = gap["integration_jitter"]
+    smooth = max(modes[1:], default=1.0)
+    if smooth > max(4.0, jitter**2):
+        time_kind = "smooth in time"
+    elif jitter > 2.0:
+        time_kind = "integration to integration (whole integrations move together)"
+    else:
+        time_kind = "unstructured in time"
+    delay = gap["residual_delay_power"]
+    freq_kind = (
+        f"structured in frequency (delay power {delay['max']:.3g} x white at "
+        f"{delay['delay_ns']:.0f} ns)"
+        if delay["max"] > 4.0
+        else "white in frequency"
+    )
+    res = np.where(np.isfinite(fit.residuals), fit.residuals, 0.0)
+    per_feed = (res**2).sum(axis=(2, 3)) / np.maximum(
+        np.isfinite(fit.residuals).sum(axis=(2, 3)), 1
+    )
+    feeds = sorted(
+        (
+            (float(per_feed[ia, ip]), int(a), str(p))
+            for ia, a in enumerate(obs.antennas)
+            for ip, p in enumerate(obs.pols)
+        ),
+        reverse=True,
+    )
+    antennas = [{"antenna": a, "pol": p, "reduced_chi2": v} for v, a, p in feeds]
+    worst = ", ".join(f"{e['antenna']} {e['pol']} ({e['reduced_chi2']:.3g})" for e in antennas[:3])
+    return {
+        "reduced_chi2": float(gap["reduced_chi2"]),
+        "excess_sigma": float(excess),
+        "time": time_kind,
+        "time_mode_power": modes,
+        "integration_jitter": jitter,
+        "frequency": freq_kind,
+        "antennas": antennas,
+        "message": (
+            f"unexplained: chi2/dof {gap['reduced_chi2']:.4g} remains ({excess:.3g} sigma above "
+            f"the noise) with no catalogue entry significant; the residual is {time_kind}, "
+            f"{freq_kind}; largest in {worst}"
+        ),
+    }
 
 
 def product_sigmas(obs: Observation, tpl: SkyTemplates) -> tuple[np.ndarray, np.ndarray]:
@@ -1325,6 +1409,7 @@ def _diagnose_once(
                 break
     diag.final_gap = gap_metrics(current, obs, tpl, bp_null)
     diag.final_fit = current
+    diag.unexplained = describe_unexplained(current, obs, diag.final_gap)
     diag.product_change = product_impact(base_fit, current, sigma_g, sigma_t)
     diag.product_change["note"] = (
         "G and Trxr of the starting model against the diagnosed model (time-domain effects; "
@@ -1376,8 +1461,10 @@ def summary_text(diag: Diagnosis) -> str:
         f"rms residual = {g0.get('rms_normalised_residual', float('nan')):.3f}",
         "",
     ]
-    if not diag.steps:
+    if not diag.steps and not diag.unexplained:
         lines.append("no significant effect found: the model is consistent with the data")
+    elif not diag.steps:
+        lines.append("no catalogue entry explains the gap (see 'unexplained' below)")
     for i, st in enumerate(diag.steps, 1):
         pars = ", ".join(
             f"{k} = {v['value']:.5g} +- {v['sigma']:.2g}" for k, v in st["parameters"].items()
@@ -1406,6 +1493,8 @@ def summary_text(diag: Diagnosis) -> str:
         f"final gap: chi2/dof = {fg.get('reduced_chi2', float('nan')):.4f}, "
         f"rms residual = {fg.get('rms_normalised_residual', float('nan')):.3f}"
     )
+    if diag.unexplained:
+        lines.append(diag.unexplained["message"])
     if diag.steps and diag.product_change:
         lines.append("calibration products, starting model -> diagnosed model: ")
         lines.append("  " + _impact_text(diag.product_change))

@@ -471,6 +471,11 @@ class DiagnosisResults(BaseModel):
         ..., description="per effect: Fisher fraction left after the (G, n) projection"
     )
     config: dict[str, Any] = Field(..., description="statistic, thresholds, prior, candidates")
+    unexplained: dict[str, Any] | None = Field(
+        None,
+        description="null when the final model fits within the noise; else the remaining "
+        "gap's size and structure (time, frequency, antennas) that no catalogue entry explains",
+    )
     product_change: dict[str, Any] = Field(
         default_factory=dict,
         description="how G and Trxr change from the starting model to the diagnosed one, in "

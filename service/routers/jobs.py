@@ -378,6 +378,7 @@ def _diagnosis_results(settings: Settings, job: dict[str, Any]) -> DiagnosisResu
             identifiability=doc.get("identifiability") or {},
             config=doc.get("config") or {},
             product_change=doc.get("product_change") or {},
+            unexplained=doc.get("unexplained"),
             summary=json_safe(job.get("result")),
         )
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
