@@ -914,6 +914,66 @@ class Diagnosis:
         }
 
 
+#: Legendre order of the smooth part removed from a ``gain_jitter`` series before its
+#: remainder is tested for whiteness (:func:`jitter_is_white`).
+JITTER_SMOOTH_ORDER = 3
+#: Largest lag-1 autocorrelation of that remainder for the series to count as jitter.
+JITTER_MAX_LAG1 = 0.5
+
+
+def jitter_is_white(
+    eps: np.ndarray, sigma: np.ndarray, lsts: np.ndarray
+) -> tuple[bool, dict[str, float]]:
+    """Test whether a per-integration gain series is jitter rather than a smooth change.
+
+    A ``gain_jitter`` fit absorbs any achromatic time structure, including a smooth one
+    (a drift, or a sky model slightly wrong in time). The series counts as jitter only if,
+    after removing a Legendre polynomial of order :data:`JITTER_SMOOTH_ORDER` in LST, the
+    remainder is significant (its chi-square exceeds its degrees of freedom by more than
+    3 sigma) and white (lag-1 autocorrelation below :data:`JITTER_MAX_LAG1`).
+
+    Parameters
+    ----------
+    eps
+        ``(Ntime,)`` fractional gain factors (0 for the reference integration).
+    sigma
+        ``(Ntime,)`` their 1-sigma (0 for the reference: it gets the median).
+    lsts
+        ``(Ntime,)`` hours.
+
+    Returns
+    -------
+    bool, dict
+        The verdict and the numbers behind it (``rough_reduced_chi2``, ``lag1``,
+        ``smooth_fraction``: the share of the series' power the smooth part holds).
+    """
+    eps = np.asarray(eps, float)
+    sig = np.asarray(sigma, float)
+    good = np.isfinite(eps) & np.isfinite(sig)
+    sig = np.where(sig > 0, sig, np.median(sig[sig > 0]) if np.any(sig > 0) else 1.0)
+    order = min(JITTER_SMOOTH_ORDER, max(int(good.sum()) - 3, 0))
+    basis = (
+        np.vstack([np.ones(eps.size), time_basis(lsts, order)]) if order else np.ones((1, eps.size))
+    )
+    w = good / sig**2
+    coef = np.linalg.lstsq((basis * np.sqrt(w)).T, eps * np.sqrt(w), rcond=None)[0]
+    smooth = coef @ basis
+    rough = np.where(good, eps - smooth, 0.0)
+    dof = max(int(good.sum()) - basis.shape[0], 1)
+    chi2 = float(np.sum(w * rough**2))
+    z = rough[good] / sig[good]
+    lag1 = float(np.sum(z[1:] * z[:-1]) / np.sum(z * z)) if z.size > 2 and np.any(z) else 0.0
+    centred = np.where(good, eps - np.sum(w * eps) / np.sum(w), 0.0)
+    total_power = float(np.sum(w * centred**2))
+    info = {
+        "rough_reduced_chi2": chi2 / dof,
+        "lag1": lag1,
+        "smooth_fraction": 1.0 - chi2 / total_power if total_power > 0 else 0.0,
+    }
+    significant = chi2 - dof > 3.0 * math.sqrt(2.0 * dof)
+    return bool(significant and lag1 < JITTER_MAX_LAG1), info
+
+
 #: The final model's chi-square may exceed its degrees of freedom by this many standard
 #: deviations (``sqrt(2 dof)``) before the remainder is reported as unexplained.
 UNEXPLAINED_SIGMAS = 5.0
@@ -1178,6 +1238,48 @@ def _describe_values(values: np.ndarray | float) -> Any:
     }
 
 
+def _retest_accepted(
+    obs: Observation,
+    tpl: SkyTemplates,
+    active: list[Effect],
+    current: ExtendedFit,
+    w: np.ndarray,
+    prior_kw: dict[str, Any],
+    bic_threshold: float,
+    diag: Diagnosis,
+    when: str,
+) -> tuple[list[Effect], ExtendedFit]:
+    """Drop accepted effects that the others now explain (backward elimination).
+
+    An effect accepted early may be explained away by later ones (a per-integration gain
+    soaking up part of a sky error, say): any whose removal from the current model no
+    longer costs Delta BIC > ``bic_threshold`` is dropped, one at a time, the model refitted
+    after each.
+    """
+    changed = True
+    while changed and len(active) > 1:
+        changed = False
+        chat_f = max(1.0, current.reduced_chi2)
+        for eff in list(active):
+            rest = [a for a in active if a is not eff]
+            try:
+                without = fit_extended(obs, tpl, rest, weights=w, **prior_kw)
+            except (DiagnoseError, np.linalg.LinAlgError):
+                continue
+            stat = (without.chi2 - current.chi2) / chat_f - eff.nfree * math.log(current.ndata)
+            if stat < bic_threshold:
+                logger.info("re-test at %s: %s dropped (Delta BIC %.1f)", when, eff.name, stat)
+                active = rest
+                diag.effects.remove(eff.name)
+                for st in diag.steps:
+                    if st["name"] == eff.name and "dropped_in_backward_pass" not in st:
+                        st["dropped_in_backward_pass"] = {"statistic": float(stat), "at": when}
+                current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
+                changed = True
+                break
+    return active, current
+
+
 def _diagnose_once(
     obs: Observation,
     tpl: SkyTemplates,
@@ -1282,6 +1384,19 @@ def _diagnose_once(
                 diag.identifiability[eff.name] = trial.identifiable.get(eff.name, 0.0)
             if trial.identifiable.get(eff.name, 0.0) < MIN_IDENTIFIABLE:
                 continue
+            if eff.basis == "integration":
+                eps = np.concatenate([[0.0], trial.params[eff.name]])
+                sig = np.concatenate([[0.0], trial.sigmas[eff.name]])
+                white, info = jitter_is_white(eps, sig, obs.lsts)
+                diag.config.setdefault("jitter_tests", []).append({"step": step + 1, **info})
+                if not white:
+                    diag.config["failed_candidates"]["gain_jitter"] = (
+                        "its per-integration series is smooth or correlated in time, not "
+                        f"white jitter (after a smooth order-{JITTER_SMOOTH_ORDER} part: "
+                        f"chi2/dof {info['rough_reduced_chi2']:.3g}, lag-1 "
+                        f"{info['lag1']:.2f}): a smooth effect or a model error"
+                    )
+                    continue
             k, stat_fit = eff.nfree, trial
             if eff.name == "missing_cmb":
                 # a discrete hypothesis: m = +-1, no free parameter
@@ -1354,6 +1469,11 @@ def _diagnose_once(
             # re-weight with the improved model for the next step
             w = radiometer_weights(obs, new.model)
             current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
+            # the effects accepted before are re-tested against the refit: one that the
+            # new effect explains away is dropped now, before the search goes on
+            active, current = _retest_accepted(
+                obs, tpl, active, current, w, prior_kw, bic_threshold, diag, f"step {step + 1}"
+            )
             diag.residual_snapshots.append((f"after {eff.name}", current.residuals[0, 0]))
             if not isinstance(payload, tuple):
                 params = _params_dict(eff, current)
@@ -1383,30 +1503,10 @@ def _diagnose_once(
             }
         )
         diag.effects.append(eff.name)
-    # backward pass: an effect accepted early may be explained away by later ones
-    # (a per-integration gain soaking up part of a sky error, say); drop any whose
-    # removal from the final model no longer costs Delta BIC > threshold
-    changed = True
-    while changed and len(active) > 1:
-        changed = False
-        chat_f = max(1.0, current.reduced_chi2)
-        for eff in list(active):
-            rest = [a for a in active if a is not eff]
-            try:
-                without = fit_extended(obs, tpl, rest, weights=w, **prior_kw)
-            except (DiagnoseError, np.linalg.LinAlgError):
-                continue
-            stat = (without.chi2 - current.chi2) / chat_f - eff.nfree * math.log(current.ndata)
-            if stat < bic_threshold:
-                logger.info("backward pass: %s dropped (Delta BIC %.1f)", eff.name, stat)
-                active = rest
-                diag.effects.remove(eff.name)
-                for st in diag.steps:
-                    if st["name"] == eff.name:
-                        st["dropped_in_backward_pass"] = {"statistic": float(stat)}
-                current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
-                changed = True
-                break
+    # final backward pass (also run after every accepted step, below)
+    active, current = _retest_accepted(
+        obs, tpl, active, current, w, prior_kw, bic_threshold, diag, "the final model"
+    )
     diag.final_gap = gap_metrics(current, obs, tpl, bp_null)
     diag.final_fit = current
     diag.unexplained = describe_unexplained(current, obs, diag.final_gap)
