@@ -885,6 +885,11 @@ class Diagnosis:
     unexplained
         ``None`` when the final model fits to within the noise; else what remains and its
         structure (:func:`describe_unexplained`): no catalogue entry explains it.
+    negligible
+        Effects detected (significant by the same test, kept in the fitted model) whose
+        impact on ``G`` and ``Trxr`` is negligible (:func:`is_negligible`): reported as
+        "detected, negligible", not named among :attr:`effects`; their steps say
+        ``negligible: true``.
     """
 
     steps: list[dict[str, Any]] = field(default_factory=list)
@@ -898,11 +903,13 @@ class Diagnosis:
     final_parameters: dict[str, dict[str, Any]] = field(default_factory=dict)
     product_change: dict[str, Any] = field(default_factory=dict)
     unexplained: dict[str, Any] | None = None
+    negligible: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form (without residual arrays)."""
         return {
             "effects": self.effects,
+            "negligible": self.negligible,
             "unexplained": self.unexplained,
             "steps": self.steps,
             "initial_gap": self.initial_gap,
@@ -1051,6 +1058,26 @@ def describe_unexplained(
             f"{freq_kind}; largest in {worst}"
         ),
     }
+
+
+#: An effect is negligible when it moves ``G`` and ``Trxr`` by less than this many total
+#: sigma in the median channel ...
+NEGLIGIBLE_MEDIAN_SIGMA = 0.1
+#: ... and by less than this many in every channel.
+NEGLIGIBLE_MAX_SIGMA = 1.0
+
+
+def is_negligible(impact: dict[str, Any]) -> bool:
+    """Return whether a :func:`product_impact` is too small to matter for the products."""
+    for name in ("G", "Trxr"):
+        entry = impact.get(name, {})
+        if "median_change_over_sigma" not in entry:
+            return False
+        if entry["median_change_over_sigma"] >= NEGLIGIBLE_MEDIAN_SIGMA:
+            return False
+        if entry["max_change_over_sigma"] >= NEGLIGIBLE_MAX_SIGMA:
+            return False
+    return True
 
 
 def product_sigmas(obs: Observation, tpl: SkyTemplates) -> tuple[np.ndarray, np.ndarray]:
@@ -1270,7 +1297,9 @@ def _retest_accepted(
             if stat < bic_threshold:
                 logger.info("re-test at %s: %s dropped (Delta BIC %.1f)", when, eff.name, stat)
                 active = rest
-                diag.effects.remove(eff.name)
+                for names in (diag.effects, diag.negligible):
+                    if eff.name in names:
+                        names.remove(eff.name)
                 for st in diag.steps:
                     if st["name"] == eff.name and "dropped_in_backward_pass" not in st:
                         st["dropped_in_backward_pass"] = {"statistic": float(stat), "at": when}
@@ -1464,8 +1493,13 @@ def _diagnose_once(
                 params = _params_dict(eff, payload)
                 active.append(eff)
             new = fit_extended(obs, tpl, active, weights=w, **prior_kw)
+            impact = product_impact(current, new, sigma_g, sigma_t)
             gap_after = gap_metrics(new, obs, tpl, bp_null)
-            step_extra["product_impact"] = product_impact(current, new, sigma_g, sigma_t)
+            step_extra["product_impact"] = impact
+            # detected, but it moves G and Trxr by a small fraction of their total errors:
+            # kept in the fitted model (else other entries would absorb what it explains)
+            # and reported as negligible, not named among the effects
+            step_extra["negligible"] = is_negligible(impact)
             # re-weight with the improved model for the next step
             w = radiometer_weights(obs, new.model)
             current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
@@ -1502,7 +1536,11 @@ def _diagnose_once(
                 **step_extra,
             }
         )
-        diag.effects.append(eff.name)
+        if step_extra.get("negligible"):
+            diag.negligible.append(eff.name)
+            logger.info("step %d: %s detected, negligible for the products", step + 1, eff.name)
+        else:
+            diag.effects.append(eff.name)
     # final backward pass (also run after every accepted step, below)
     active, current = _retest_accepted(
         obs, tpl, active, current, w, prior_kw, bic_threshold, diag, "the final model"
@@ -1570,12 +1608,18 @@ def summary_text(diag: Diagnosis) -> str:
             f"{k} = {v['value']:.5g} +- {v['sigma']:.2g}" for k, v in st["parameters"].items()
         )
         lines.append(
-            f"step {i}: {st['name']} ({pars}); Delta BIC = {st['statistic']:.1f}, "
+            f"step {i}: {st['name']}{' [negligible]' if st.get('negligible') else ''} ({pars}); "
+            f"Delta BIC = {st['statistic']:.1f}, "
             f"Delta chi2 = {st['delta']:.1f}; chi2/dof {st['gap_before']['reduced_chi2']:.4f} "
             f"-> {st['gap_after']['reduced_chi2']:.4f}"
         )
         if st.get("product_impact"):
             lines.append("  " + _impact_text(st["product_impact"]))
+    if diag.negligible:
+        lines.append(
+            "detected, negligible for the calibration products (kept in the fit, not named): "
+            + ", ".join(diag.negligible)
+        )
     rej = diag.config.get("last_rejected")
     if rej:
         lines.append(

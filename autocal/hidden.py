@@ -330,13 +330,19 @@ def score(
 ) -> Score:
     """Score a diagnosis: names, parameters (``|value - truth| < max_pull sigma``), gaps.
 
-    Parameters are those of the final joint fit (``Diagnosis.final_parameters``).
+    Names: every named effect must be hidden, and every hidden effect named or reported
+    as detected but negligible (``Diagnosis.negligible``). Parameters are those of the
+    final joint fit (``Diagnosis.final_parameters``).
 
     A parameter's pull is ``(value - truth) / sigma``; for ``missing_cmb`` the adopted
     hypothesis must equal the truth; phases are compared modulo ``2 pi``.
     """
     found = tuple(diagnosis.effects)
-    named = sorted(found) == sorted(case.names)
+    negligible = set(getattr(diagnosis, "negligible", []))
+    # every effect named is hidden, and every hidden effect is named or reported as
+    # detected but negligible for the products (not added to the model)
+    named = set(found) <= set(case.names) and set(case.names) <= set(found) | negligible
+    named = named and len(found) == len(set(found))
     pulls: dict[str, float] = {}
     for st in diagnosis.steps:
         if "dropped_in_backward_pass" in st:

@@ -471,6 +471,11 @@ class DiagnosisResults(BaseModel):
         ..., description="per effect: Fisher fraction left after the (G, n) projection"
     )
     config: dict[str, Any] = Field(..., description="statistic, thresholds, prior, candidates")
+    negligible: list[str] = Field(
+        default_factory=list,
+        description="effects detected but negligible for G and Trxr (kept in the fit, not "
+        "named among the effects); their steps carry details.negligible = true",
+    )
     unexplained: dict[str, Any] | None = Field(
         None,
         description="null when the final model fits within the noise; else the remaining "

@@ -379,6 +379,7 @@ def _diagnosis_results(settings: Settings, job: dict[str, Any]) -> DiagnosisResu
             config=doc.get("config") or {},
             product_change=doc.get("product_change") or {},
             unexplained=doc.get("unexplained"),
+            negligible=list(doc.get("negligible") or []),
             summary=json_safe(job.get("result")),
         )
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
