@@ -921,23 +921,32 @@ class Diagnosis:
         }
 
 
+#: Largest ``timing_offset`` (seconds) taken as one: its template is Tsky's first
+#: derivative in time (a central difference over +-2 min of LST), so it represents a shift
+#: of a few minutes at most; J2000 instead of the frame of date for data of the 2010s-2020s
+#: is ~1 min in right ascension.
+TIMING_MAX_S = 240.0
 #: Legendre order of the smooth part removed from a ``gain_jitter`` series before its
-#: remainder is tested for whiteness (:func:`jitter_is_white`).
+#: remainder is tested (:func:`jitter_is_white`).
 JITTER_SMOOTH_ORDER = 3
-#: Largest lag-1 autocorrelation of that remainder for the series to count as jitter.
-JITTER_MAX_LAG1 = 0.5
 
 
 def jitter_is_white(
-    eps: np.ndarray, sigma: np.ndarray, lsts: np.ndarray
+    eps: np.ndarray,
+    sigma: np.ndarray,
+    lsts: np.ndarray,
+    sky_shapes: np.ndarray | None = None,
 ) -> tuple[bool, dict[str, float]]:
     """Test whether a per-integration gain series is jitter rather than a smooth change.
 
     A ``gain_jitter`` fit absorbs any achromatic time structure, including a smooth one
-    (a drift, or a sky model slightly wrong in time). The series counts as jitter only if,
-    after removing a Legendre polynomial of order :data:`JITTER_SMOOTH_ORDER` in LST, the
-    remainder is significant (its chi-square exceeds its degrees of freedom by more than
-    3 sigma) and white (lag-1 autocorrelation below :data:`JITTER_MAX_LAG1`).
+    (a drift) and the time shape of a sky model that is slightly wrong (the series then
+    follows the sky's own variation). The series counts as jitter only if, after removing
+    a Legendre polynomial of order :data:`JITTER_SMOOTH_ORDER` in LST and the sky's time
+    shapes (``sky_shapes``: e.g. the band-averaged model Tsky, its square and its time
+    derivative), the remainder is significant: its chi-square exceeds its degrees of freedom
+    by more than 3 sigma. Fluctuations correlated from one integration to the next (red
+    gain noise) pass; what a smooth function of time or of the sky explains does not.
 
     Parameters
     ----------
@@ -947,25 +956,33 @@ def jitter_is_white(
         ``(Ntime,)`` their 1-sigma (0 for the reference: it gets the median).
     lsts
         ``(Ntime,)`` hours.
+    sky_shapes
+        ``(K, Ntime)`` further smooth templates, or ``None``.
 
     Returns
     -------
     bool, dict
-        The verdict and the numbers behind it (``rough_reduced_chi2``, ``lag1``,
-        ``smooth_fraction``: the share of the series' power the smooth part holds).
+        The verdict and the numbers behind it (``rough_reduced_chi2``, ``smooth_fraction``:
+        the share of the series' weighted power the smooth part holds, and ``lag1``, the
+        remainder's lag-1 autocorrelation, for information).
     """
     eps = np.asarray(eps, float)
     sig = np.asarray(sigma, float)
     good = np.isfinite(eps) & np.isfinite(sig)
     sig = np.where(sig > 0, sig, np.median(sig[sig > 0]) if np.any(sig > 0) else 1.0)
+    rows = [np.ones(eps.size)]
     order = min(JITTER_SMOOTH_ORDER, max(int(good.sum()) - 3, 0))
-    basis = (
-        np.vstack([np.ones(eps.size), time_basis(lsts, order)]) if order else np.ones((1, eps.size))
-    )
+    if order:
+        rows += list(time_basis(lsts, order))
+    if sky_shapes is not None:
+        for shape in np.atleast_2d(sky_shapes):
+            if np.all(np.isfinite(shape)) and np.ptp(shape) > 0:
+                rows.append((shape - shape.mean()) / np.ptp(shape))
+    basis = np.vstack(rows)
+    basis = basis[: max(1, min(basis.shape[0], int(good.sum()) - 2))]
     w = good / sig**2
     coef = np.linalg.lstsq((basis * np.sqrt(w)).T, eps * np.sqrt(w), rcond=None)[0]
-    smooth = coef @ basis
-    rough = np.where(good, eps - smooth, 0.0)
+    rough = np.where(good, eps - coef @ basis, 0.0)
     dof = max(int(good.sum()) - basis.shape[0], 1)
     chi2 = float(np.sum(w * rough**2))
     z = rough[good] / sig[good]
@@ -974,11 +991,22 @@ def jitter_is_white(
     total_power = float(np.sum(w * centred**2))
     info = {
         "rough_reduced_chi2": chi2 / dof,
-        "lag1": lag1,
         "smooth_fraction": 1.0 - chi2 / total_power if total_power > 0 else 0.0,
+        "lag1": lag1,
     }
-    significant = chi2 - dof > 3.0 * math.sqrt(2.0 * dof)
-    return bool(significant and lag1 < JITTER_MAX_LAG1), info
+    return bool(chi2 - dof > 3.0 * math.sqrt(2.0 * dof)), info
+
+
+def sky_time_shapes(tpl: SkyTemplates) -> np.ndarray:
+    """Return ``(3, Ntime)`` time shapes of the model sky.
+
+    The band-averaged relative Tsky, its square and its time derivative: the templates a
+    slightly wrong sky model leaves in a per-integration gain series.
+    """
+    rel = tpl.total / np.mean(tpl.total, axis=1, keepdims=True)  # (P, T, F)
+    mean = rel.mean(axis=(0, 2))
+    deriv = np.gradient(mean)
+    return np.vstack([mean, mean**2, deriv])
 
 
 #: The final model's chi-square may exceed its degrees of freedom by this many standard
@@ -1275,19 +1303,22 @@ def _retest_accepted(
     bic_threshold: float,
     diag: Diagnosis,
     when: str,
+    keep: Effect | None = None,
 ) -> tuple[list[Effect], ExtendedFit]:
     """Drop accepted effects that the others now explain (backward elimination).
 
     An effect accepted early may be explained away by later ones (a per-integration gain
     soaking up part of a sky error, say): any whose removal from the current model no
     longer costs Delta BIC > ``bic_threshold`` is dropped, one at a time, the model refitted
-    after each.
+    after each. ``keep`` (the effect just accepted) is not re-tested.
     """
     changed = True
     while changed and len(active) > 1:
         changed = False
         chat_f = max(1.0, current.reduced_chi2)
         for eff in list(active):
+            if eff is keep:
+                continue
             rest = [a for a in active if a is not eff]
             try:
                 without = fit_extended(obs, tpl, rest, weights=w, **prior_kw)
@@ -1413,17 +1444,24 @@ def _diagnose_once(
                 diag.identifiability[eff.name] = trial.identifiable.get(eff.name, 0.0)
             if trial.identifiable.get(eff.name, 0.0) < MIN_IDENTIFIABLE:
                 continue
+            if eff.name == "timing_offset" and abs(trial.params[eff.name][0]) > TIMING_MAX_S:
+                diag.config["failed_candidates"]["timing_offset"] = (
+                    f"best dt {trial.params[eff.name][0]:.0f} s is beyond the linear "
+                    f"template's range (+-{TIMING_MAX_S:.0f} s; a frame error of decades is "
+                    "~1 min): the template absorbs other time structure, not a timing error"
+                )
+                continue
             if eff.basis == "integration":
                 eps = np.concatenate([[0.0], trial.params[eff.name]])
                 sig = np.concatenate([[0.0], trial.sigmas[eff.name]])
-                white, info = jitter_is_white(eps, sig, obs.lsts)
+                white, info = jitter_is_white(eps, sig, obs.lsts, sky_time_shapes(tpl))
                 diag.config.setdefault("jitter_tests", []).append({"step": step + 1, **info})
                 if not white:
                     diag.config["failed_candidates"]["gain_jitter"] = (
-                        "its per-integration series is smooth or correlated in time, not "
-                        f"white jitter (after a smooth order-{JITTER_SMOOTH_ORDER} part: "
-                        f"chi2/dof {info['rough_reduced_chi2']:.3g}, lag-1 "
-                        f"{info['lag1']:.2f}): a smooth effect or a model error"
+                        "its per-integration series is explained by a smooth function of "
+                        f"time (Legendre order {JITTER_SMOOTH_ORDER}) and the sky's own time "
+                        f"shape (remainder chi2/dof {info['rough_reduced_chi2']:.3g}): a "
+                        "smooth effect or a sky-model error, not jitter"
                     )
                     continue
             k, stat_fit = eff.nfree, trial
@@ -1506,7 +1544,16 @@ def _diagnose_once(
             # the effects accepted before are re-tested against the refit: one that the
             # new effect explains away is dropped now, before the search goes on
             active, current = _retest_accepted(
-                obs, tpl, active, current, w, prior_kw, bic_threshold, diag, f"step {step + 1}"
+                obs,
+                tpl,
+                active,
+                current,
+                w,
+                prior_kw,
+                bic_threshold,
+                diag,
+                f"step {step + 1}",
+                keep=active[-1],
             )
             diag.residual_snapshots.append((f"after {eff.name}", current.residuals[0, 0]))
             if not isinstance(payload, tuple):
