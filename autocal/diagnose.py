@@ -936,6 +936,9 @@ def jitter_is_white(
     sigma: np.ndarray,
     lsts: np.ndarray,
     sky_shapes: np.ndarray | None = None,
+    *,
+    ndata: int = 1,
+    overdispersion: float = 1.0,
 ) -> tuple[bool, dict[str, float]]:
     """Test whether a per-integration gain series is jitter rather than a smooth change.
 
@@ -944,9 +947,11 @@ def jitter_is_white(
     follows the sky's own variation). The series counts as jitter only if, after removing
     a Legendre polynomial of order :data:`JITTER_SMOOTH_ORDER` in LST and the sky's time
     shapes (``sky_shapes``: e.g. the band-averaged model Tsky, its square and its time
-    derivative), the remainder is significant: its chi-square exceeds its degrees of freedom
-    by more than 3 sigma. Fluctuations correlated from one integration to the next (red
-    gain noise) pass; what a smooth function of time or of the sky explains does not.
+    derivative), the remainder pays for its extra parameters as any candidate must: its
+    chi-square over the overdispersion, less ``ln N`` per parameter beyond the smooth part,
+    exceeds :data:`BIC_THRESHOLD`. Fluctuations correlated from one integration to the
+    next (red gain noise) pass when they are large; what a smooth function of time or of the
+    sky explains does not, and goes to a smooth effect or stays unexplained.
 
     Parameters
     ----------
@@ -958,13 +963,15 @@ def jitter_is_white(
         ``(Ntime,)`` hours.
     sky_shapes
         ``(K, Ntime)`` further smooth templates, or ``None``.
+    ndata, overdispersion
+        The data count ``N`` of the BIC penalty and the fit's ``max(1, chi^2/dof)``.
 
     Returns
     -------
     bool, dict
-        The verdict and the numbers behind it (``rough_reduced_chi2``, ``smooth_fraction``:
-        the share of the series' weighted power the smooth part holds, and ``lag1``, the
-        remainder's lag-1 autocorrelation, for information).
+        The verdict and the numbers behind it (``rough_reduced_chi2``, ``rough_delta_bic``,
+        and for information ``smooth_fraction``, the share of the series' weighted power the
+        smooth part holds, and ``lag1``, the remainder's lag-1 autocorrelation).
     """
     eps = np.asarray(eps, float)
     sig = np.asarray(sigma, float)
@@ -994,7 +1001,11 @@ def jitter_is_white(
         "smooth_fraction": 1.0 - chi2 / total_power if total_power > 0 else 0.0,
         "lag1": lag1,
     }
-    return bool(chi2 - dof > 3.0 * math.sqrt(2.0 * dof)), info
+    # the per-integration freedom beyond the smooth part must pay for itself as any
+    # candidate does: Delta BIC of the rough part (its chi2 over the overdispersion, less
+    # ln N per extra parameter) above the threshold
+    info["rough_delta_bic"] = chi2 / max(overdispersion, 1.0) - dof * math.log(max(ndata, 2))
+    return bool(info["rough_delta_bic"] > BIC_THRESHOLD), info
 
 
 def sky_time_shapes(tpl: SkyTemplates) -> np.ndarray:
@@ -1454,14 +1465,22 @@ def _diagnose_once(
             if eff.basis == "integration":
                 eps = np.concatenate([[0.0], trial.params[eff.name]])
                 sig = np.concatenate([[0.0], trial.sigmas[eff.name]])
-                white, info = jitter_is_white(eps, sig, obs.lsts, sky_time_shapes(tpl))
+                white, info = jitter_is_white(
+                    eps,
+                    sig,
+                    obs.lsts,
+                    sky_time_shapes(tpl),
+                    ndata=trial.ndata,
+                    overdispersion=trial.reduced_chi2,
+                )
                 diag.config.setdefault("jitter_tests", []).append({"step": step + 1, **info})
                 if not white:
                     diag.config["failed_candidates"]["gain_jitter"] = (
-                        "its per-integration series is explained by a smooth function of "
-                        f"time (Legendre order {JITTER_SMOOTH_ORDER}) and the sky's own time "
-                        f"shape (remainder chi2/dof {info['rough_reduced_chi2']:.3g}): a "
-                        "smooth effect or a sky-model error, not jitter"
+                        "its per-integration series is a smooth function of time (Legendre "
+                        f"order {JITTER_SMOOTH_ORDER}) and of the sky's own time shape up to "
+                        f"a remainder that does not pay for its parameters (Delta BIC "
+                        f"{info['rough_delta_bic']:.3g}; {100 * info['smooth_fraction']:.0f} % "
+                        "of the power smooth): a smooth effect or a sky-model error, not jitter"
                     )
                     continue
             k, stat_fit = eff.nfree, trial
