@@ -1363,6 +1363,11 @@ class Solution:
                 vals = x[ok & np.isfinite(x)]
             return float(np.median(vals)) if vals.size else None
 
+        gain = self.G  # every property below is computed once (a HERA file: 1 M channels)
+        total, stat = self._sigmas(), self._sigmas(stat=True)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            abs_g, trxr = np.sqrt(gain), self.n / gain
+            frac, frac_stat = total["sigma_G"] / gain, stat["sigma_G"] / gain
         return {
             "model": self.model.describe(),
             "antennas": self.antennas.tolist(),
@@ -1370,13 +1375,13 @@ class Solution:
             "nfreq": int(self.freqs.size),
             "ntime": int(self.lsts.size),
             "flagged_channels": int(self.flags.sum()),
-            "median_G": med(self.G),
-            "median_abs_g": med(self.abs_g),
-            "median_Trxr_K": med(self.Trxr),
-            "median_sigma_Trxr_K": med(self.sigma_Trxr),
-            "median_sigma_Trxr_stat_K": med(self.sigma_Trxr_stat),
-            "median_sigma_G_frac": med(self.sigma_G / self.G),
-            "median_sigma_G_stat_frac": med(self.sigma_G_stat / self.G),
+            "median_G": med(gain),
+            "median_abs_g": med(abs_g),
+            "median_Trxr_K": med(trxr),
+            "median_sigma_Trxr_K": med(total["sigma_Trxr"]),
+            "median_sigma_Trxr_stat_K": med(stat["sigma_Trxr"]),
+            "median_sigma_G_frac": med(frac),
+            "median_sigma_G_stat_frac": med(frac_stat),
             "errors": "statistical" if self.total is None else "total",
             "weak_separation": None if self.total is None else int(np.sum(self.total.separation())),
             "median_reduced_chi2": med(self.reduced_chi2),

@@ -928,11 +928,12 @@ def _calibrate(
     report(0.85, "writing products")
     t3 = time.perf_counter()
     products = _write_products(config, solution, source, run, Path(out), comparison_inputs)
+    separation = separation_summary(solution)
     timings["products_s"] = time.perf_counter() - t3
     timings["total_s"] = time.perf_counter() - t0
     summary = {
         "solution": solution.describe(),
-        "separation": separation_summary(solution),
+        "separation": separation,
         "comparison": _comparison_summary(Path(out), products),
         "config": config.model_dump(mode="json"),
         "provenance": provenance,

@@ -694,9 +694,10 @@ def separation_summary(solution: Any) -> list[dict[str, Any]]:
     out = []
     ok = ~solution.flags
     weak = total.separation()
+    gain, trxr = solution.G, solution.Trxr  # properties: computed once, not per antenna
     with np.errstate(all="ignore"):
-        frac_tot = solution.sigma_G / solution.G
-        frac_stat = solution.sigma_G_stat / solution.G
+        frac_tot = solution.sigma_G / gain
+        frac_stat = solution.sigma_G_stat / gain
     for ia, ant in enumerate(np.asarray(solution.antennas).tolist()):
         for ip, pol in enumerate(solution.pols):
             sel = ok[ia, ip]
@@ -712,8 +713,8 @@ def separation_summary(solution: Any) -> list[dict[str, Any]]:
                 "antenna": int(ant),
                 "pol": pol,
                 "channels": int(sel.sum()),
-                "G": med(solution.G),
-                "Trxr_K": med(solution.Trxr),
+                "G": med(gain),
+                "Trxr_K": med(trxr),
                 "sky_contrast": med(total.sky_contrast),
                 "corr_G_n": med(total.corr_G_n),
                 "drift_sensitivity": med(total.drift_sensitivity),
