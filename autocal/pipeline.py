@@ -422,8 +422,11 @@ class FilePartial:
     sums
         The file's normal sums (its read blocks added in order); ``None`` with time blocks.
     blocks
-        With ``PartialSpec.edges``: ``{block: sums of the extended model}`` for the time
+        With ``PartialSpec.edges``: ``{block: sums of the fitted model}`` for the time
         blocks the file overlaps; else ``None``.
+    extended
+        With ``PartialSpec.edges``: the file's sums of the extended model
+        (:func:`autocal.uncertainty.extended_model`); else ``None``.
     waterfall
         ``(Nshow, Npol, Nbins_file, Nfreq, nparam + 2)`` per waterfall row: the sums
         over its integrations of ``w R``, ``w`` and ``w a_m`` (``a`` the design columns).
@@ -455,6 +458,7 @@ class FilePartial:
     stats: dict[str, int]
     seconds: float
     blocks: dict[int, NormalSums] | None = None
+    extended: NormalSums | None = None
 
 
 def compute_partial(
@@ -579,6 +583,13 @@ def compute_partial(
             tick(nt)
     if (sums is None and not blocks) or antennas is None or waterfall is None:
         raise PipelineError(f"file {task.index}: the selection left no data")
+    extended: NormalSums | None = None
+    if blocks:  # the extended sums once per file; per block, the fitted model's (copies)
+        fitted: dict[int, NormalSums] = {}
+        for b in sorted(blocks):
+            fitted[b] = base_sums(blocks[b], spec.model)
+            extended = blocks[b] if extended is None else _add_into(extended, blocks[b])
+        blocks = fitted
     if offset != ntot:
         raise PipelineError(f"file {task.index} yielded {offset} integrations, {ntot} were scanned")
     return FilePartial(
@@ -594,6 +605,7 @@ def compute_partial(
         stats.as_dict(),
         time.perf_counter() - started,
         blocks or None,
+        extended,
     )
 
 
@@ -698,11 +710,12 @@ def _fold(
     waterfall_shape: tuple[int, ...] | None,
     report: Callable[[float, str], None],
     progress_range: tuple[float, float],
-) -> tuple[NormalSums | dict[int, NormalSums], np.ndarray, list[FilePartial]]:
+) -> tuple[NormalSums | tuple[dict[int, NormalSums], NormalSums], np.ndarray, list[FilePartial]]:
     """Add the files' partials in file order (the same order serially and on Dask).
 
-    Returns the summed normal sums (or, with time blocks, the sums of each block), the
-    waterfall sums and the partials' other information.
+    Returns the summed normal sums (or, with time blocks, the fitted model's sums of each
+    block and the extended model's total), the waterfall sums and the partials' other
+    information.
     """
     sums: NormalSums | None = None
     blocks: dict[int, NormalSums] = {}
@@ -715,7 +728,9 @@ def _fold(
         if partial.blocks is not None:
             for b, part in partial.blocks.items():
                 blocks[b] = part if b not in blocks else _add_into(blocks[b], part)
-            partial.blocks = None
+            assert partial.extended is not None
+            sums = partial.extended if sums is None else _add_into(sums, partial.extended)
+            partial.blocks = partial.extended = None
         else:
             assert partial.sums is not None
             sums = partial.sums if sums is None else _add_into(sums, partial.sums)
@@ -731,9 +746,9 @@ def _fold(
         partial.waterfall = None  # type: ignore[assignment]
         infos.append(partial)
         report(lo + (hi - lo) * (i + 1) / ntasks, f"file {i + 1}/{ntasks} summed")
-    if (sums is None and not blocks) or waterfall is None:
+    if sums is None or waterfall is None:
         raise PipelineError("the selection left no data")
-    return (sums if sums is not None else blocks), waterfall, infos
+    return (sums if not blocks else (blocks, sums)), waterfall, infos
 
 
 # the run --------------------------------------------------------------------------------
@@ -1046,8 +1061,11 @@ def _run_passes(
         else:
             partials = _serial_partials(spec, tasks, ntime, (lo, hi), progress, should_stop)
         folded, waterfall, infos = _fold(partials, len(tasks), (nbins,), report, (lo, hi))
-        assert isinstance(folded, dict)
-        blocks = BlockSums([folded[b] for b in range(len(edges) - 1)], model, edges, source.lsts)
+        assert isinstance(folded, tuple)
+        per_block, extended = folded
+        blocks = BlockSums(
+            [per_block[b] for b in range(len(edges) - 1)], model, edges, source.lsts, extended
+        )
         sums = blocks.fitted_total()
         for info in infos:
             for key, value in info.stats.items():
@@ -1236,9 +1254,8 @@ def _block_trend(
     nb = blocks.model.nbasis
     power = []
     for part in blocks.blocks:
-        base = base_sums(part, blocks.model)
         with np.errstate(invalid="ignore", divide="ignore"):
-            power.append(base.aty[..., nb] / base.ata[..., nb, nb])
+            power.append(part.aty[..., nb] / part.ata[..., nb, nb])
     edges = blocks.edges
     spans = [slice(int(edges[b]), int(edges[b + 1])) for b in range(blocks.nblocks)]
     jds = np.array([source.jds[sl].mean() for sl in spans])

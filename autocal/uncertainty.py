@@ -52,7 +52,7 @@ models up to the factor ``phi``.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
@@ -124,33 +124,53 @@ class BlockSums:
     Attributes
     ----------
     blocks
-        One :class:`~autocal.fit.NormalSums` per block, in time order, of the
-        *extended* model (:func:`extended_model` of ``model``).
+        One :class:`~autocal.fit.NormalSums` per block, in time order, of the fitted
+        ``model`` (the jackknife's and the halves' refits).
     model
         The fitted model.
     edges
         ``(B + 1,)`` integration indices of the block boundaries.
     lsts
         ``(Ntime,)`` LSTs (hours) of all integrations of the fit.
+    extended
+        The sums over all blocks of the *extended* model (:func:`extended_model`): the
+        drift term's fit, and (its lower orders) the ordinary fit. One set, not one per
+        block: a HERA file's extended sums are ~200 MB.
     """
 
     blocks: list[NormalSums]
     model: FitModel
     edges: np.ndarray
     lsts: np.ndarray
-    _total: NormalSums | None = field(default=None, repr=False)
+    extended: NormalSums
 
     def __post_init__(self) -> None:
         if len(self.blocks) != len(self.edges) - 1:
             raise FitError(f"{len(self.blocks)} block sums for {len(self.edges) - 1} blocks")
         if self.edges[0] != 0 or self.edges[-1] != len(self.lsts):
             raise FitError("block edges must run from 0 to the number of integrations")
-        if any(b.model != extended_model(self.model) for b in self.blocks):
-            raise FitError("block sums must be of the fitted model's extended model")
+        if any(b.model != self.model for b in self.blocks):
+            raise FitError("block sums must be of the fitted model")
+        if self.extended.model != extended_model(self.model):
+            raise FitError("the extended sums must be of the fitted model's extended model")
+
+    @classmethod
+    def from_extended(
+        cls,
+        blocks: list[NormalSums],
+        model: FitModel,
+        edges: np.ndarray,
+        lsts: np.ndarray,
+    ) -> BlockSums:
+        """Build from per-block sums of the extended model (their sum is kept once)."""
+        total = NormalSums.zeros(blocks[0].model, *blocks[0].count.shape)
+        for part in blocks:
+            total += part
+        return cls([base_sums(b, model) for b in blocks], model, edges, lsts, total)
 
     def fitted_total(self) -> NormalSums:
         """Return the fitted model's sums over all blocks (the ordinary fit)."""
-        return base_sums(self.total(), self.model)
+        return base_sums(self.extended, self.model)
 
     @property
     def nblocks(self) -> int:
@@ -158,13 +178,8 @@ class BlockSums:
         return len(self.blocks)
 
     def total(self) -> NormalSums:
-        """Return the extended model's sums over all blocks (computed once)."""
-        if self._total is None:
-            total = NormalSums.zeros(self.blocks[0].model, *self.blocks[0].count.shape)
-            for part in self.blocks:
-                total += part
-            self._total = total
-        return self._total
+        """Return the extended model's sums over all blocks."""
+        return self.extended
 
 
 def _minus(total: NormalSums, part: NormalSums) -> NormalSums:
@@ -305,9 +320,9 @@ def base_sums(sums: NormalSums, model: FitModel) -> NormalSums:
         model,
         np.ascontiguousarray(sums.ata[..., idx[:, None], idx[None, :]]),
         np.ascontiguousarray(sums.aty[..., idx]),
-        sums.yty,
-        sums.count,
-        sums.nflagged,
+        sums.yty.copy(),
+        sums.count.copy(),
+        sums.nflagged.copy(),
         sums.lst_min,
         sums.lst_max,
         dict(sums.info),
@@ -349,6 +364,7 @@ def total_uncertainty(
     vg, vn = mean_vectors(model, lsts)
     evg, evn = mean_vectors(ext_model, lsts)
     total = blocks.total()
+    fitted = blocks.fitted_total()
     notes: list[str] = []
 
     def solve(sums: NormalSums) -> dict[str, np.ndarray]:
@@ -371,7 +387,7 @@ def total_uncertainty(
     if nblk >= MIN_BLOCKS:
         reps = np.empty((nblk, *lead, 2))
         for b, part in enumerate(blocks.blocks):
-            reps[b] = project(solve(base_sums(_minus(total, part), model)))[0]
+            reps[b] = project(solve(_minus(fitted, part)))[0]
         ok = np.all(np.isfinite(reps), axis=-1)  # (B, ...)
         nok = ok.sum(axis=0)
         mean = np.where(ok[..., None], reps, 0.0).sum(axis=0) / np.maximum(nok, 1)[..., None]
@@ -386,7 +402,7 @@ def total_uncertainty(
             sub = blocks.blocks[ids[0]]
             for b in ids[1:]:
                 sub = sub + blocks.blocks[b]
-            halves[h] = project(solve(base_sums(sub, model)))[0][..., 0]
+            halves[h] = project(solve(sub))[0][..., 0]
     else:
         notes.append(
             f"no jackknife: {len(lsts)} integrations make fewer than {MIN_BLOCKS} blocks of two "
@@ -429,7 +445,7 @@ def total_uncertainty(
     ctot = scale * ((1.0 - w1e) * c0 + w1e * c1) + w1e * np.einsum("...i,...j->...ij", d, d)
     ctot = np.where(c0_ok[..., None, None], ctot, np.nan)
     bad = ~c0_ok
-    base_total = base_sums(total, model)
+    base_total = fitted
     contrast = _sky_contrast(base_total, model, theta0)
     with np.errstate(divide="ignore", invalid="ignore"):
         corr = c0[..., 0, 1] / np.sqrt(c0[..., 0, 0] * c0[..., 1, 1])
@@ -661,7 +677,7 @@ def accumulate_blocks(
                 **{k: part(v, sl) for k, v in kwargs.items()},
             )
         )
-    return BlockSums(blocks, model, np.asarray(edges), np.asarray(lsts, np.float64))
+    return BlockSums.from_extended(blocks, model, np.asarray(edges), np.asarray(lsts, np.float64))
 
 
 def _median(x: np.ndarray) -> float | None:
