@@ -47,9 +47,11 @@ Model
   ``tests/independent_effects.py``): :class:`SkyChange` replaces the sky above the horizon
   by ``(1 + scale) S (nu / nu0)^dbeta + T_cmb' + offset`` (``S`` the GSM2008 map without
   the CMB, ``T_cmb'`` 2.725 K or 0), and ``beam_width = w`` makes the beam wider
-  (``w > 0``) or narrower: the Gaussian dipole's FWHM is multiplied by ``1 + w`` (its
-  azimuthal factor is kept), the HERA beam is evaluated at ``za / (1 + w)`` (clipped to
-  ``pi``). The ground temperature is ``tgnd_k``.
+  (``w > 0``) or narrower: by default (``beam_width_mode="fwhm"``) the Gaussian dipole's
+  FWHM is multiplied by ``1 + w`` (its azimuthal factor is kept); with
+  ``beam_width_mode="stretch"`` the whole pattern is stretched in zenith angle,
+  ``A'(za, phi) = A(min(za / (1 + w), pi), phi)``; the HERA beam is always stretched.
+  The ground temperature is ``tgnd_k``.
 
 Everything expensive (GSM maps, AltAz coordinates, Tsky) is cached in memory
 (:func:`functools.lru_cache`), so the tests of one session share it.
@@ -408,17 +410,22 @@ def _exact_tsky(
     tgnd_k: float,
     change: SkyChange | None = None,
     beam_width: float = 0.0,
+    beam_width_mode: str = "fwhm",
 ) -> np.ndarray:
     """Beam-weighted Tsky evaluated exactly at every time: ``(Ntime, Nfreq)``."""
     freqs = np.asarray(freqs_key)
     sky = _true_sky(freqs_key, change)
     alt, az = _altaz(jds_key)
     out = np.empty((alt.shape[0], freqs.size))
+    stretch = beam_width != 0.0 and (beam_width_mode == "stretch" or beam == "hera")
     if beam == "dipole":
-        inv_theta0_sq = -1.0 / _dipole_theta0(freqs, beam_width) ** 2
-        norm = 1.0 / (math.sqrt(math.pi) * _dipole_theta0(freqs, beam_width))
+        fwhm_width = 0.0 if stretch else beam_width
+        inv_theta0_sq = -1.0 / _dipole_theta0(freqs, fwhm_width) ** 2
+        norm = 1.0 / (math.sqrt(math.pi) * _dipole_theta0(freqs, fwhm_width))
         for it in range(alt.shape[0]):
             za = np.pi / 2 - alt[it]
+            if stretch:
+                za = np.minimum(za / (1.0 + beam_width), np.pi)
             weight = np.exp(np.multiply.outer(inv_theta0_sq, za * za))
             weight *= norm[:, None]
             weight *= _dipole_azimuthal(za, _dipole_phi(az[it], pol))[None, :]
@@ -428,7 +435,7 @@ def _exact_tsky(
         for start in range(0, alt.shape[0], 4):
             stop = min(start + 4, alt.shape[0])
             za = np.pi / 2 - alt[start:stop]
-            if beam_width:
+            if stretch:
                 za = np.minimum(za / (1.0 + beam_width), np.pi)
             weight = hera_beam(freqs, za.ravel(), az[start:stop].ravel(), pol)
             weight = weight.reshape(freqs.size, stop - start, -1)
@@ -467,7 +474,7 @@ def node_times(jds: np.ndarray, node_spacing_s: float | None = None) -> np.ndarr
     return np.linspace(jds[0], jds[-1], count)
 
 
-@functools.lru_cache(maxsize=32)
+@functools.lru_cache(maxsize=128)
 def _tsky_cached(
     freqs_key: tuple[float, ...],
     jds_key: tuple[float, ...],
@@ -477,13 +484,21 @@ def _tsky_cached(
     node_spacing_s: float | None,
     change: SkyChange | None = None,
     beam_width: float = 0.0,
+    beam_width_mode: str = "fwhm",
 ) -> np.ndarray:
     from scipy.interpolate import CubicSpline
 
     jds = np.asarray(jds_key)
     nodes = node_times(jds, node_spacing_s)
     exact = _exact_tsky(
-        freqs_key, tuple(float(t) for t in nodes), pol, beam, tgnd_k, change, beam_width
+        freqs_key,
+        tuple(float(t) for t in nodes),
+        pol,
+        beam,
+        tgnd_k,
+        change,
+        beam_width,
+        beam_width_mode,
     )
     if nodes.size == jds.size:
         result = exact
@@ -504,6 +519,7 @@ def independent_tsky(
     node_spacing_s: float | None = None,
     sky: SkyChange | None = None,
     beam_width: float = 0.0,
+    beam_width_mode: str = "fwhm",
 ) -> np.ndarray:
     """Beam-weighted sky temperature at HERA, computed independently of autocal.
 
@@ -526,8 +542,11 @@ def independent_tsky(
     sky
         A true sky other than GSM2008 + CMB (:class:`SkyChange`; ``None``: the default).
     beam_width
-        Fractional change ``w`` of the beam width (the dipole's FWHM times ``1 + w``; the
-        HERA beam evaluated at ``za / (1 + w)``).
+        Fractional change ``w`` of the beam width.
+    beam_width_mode
+        ``"fwhm"``: the dipole's FWHM times ``1 + w`` (azimuthal factor unchanged);
+        ``"stretch"``: the dipole's whole pattern evaluated at ``za / (1 + w)`` (clipped
+        to ``pi``). The HERA beam is always stretched.
 
     Returns
     -------
@@ -542,6 +561,8 @@ def independent_tsky(
         raise ValueError(f"unknown polarisation {pol!r}: use 'ee' or 'nn'")
     if not 1.0 + beam_width > 0.0:
         raise ValueError(f"beam_width {beam_width} must be > -1")
+    if beam_width_mode not in ("fwhm", "stretch"):
+        raise ValueError(f"unknown beam_width_mode {beam_width_mode!r}: 'fwhm' or 'stretch'")
     spacing = float(node_spacing_s) if node_spacing_s else None
     change = None if sky is None or sky.is_default else sky
     return _tsky_cached(
@@ -553,6 +574,7 @@ def independent_tsky(
         spacing,
         change,
         float(beam_width),
+        beam_width_mode if beam_width else "fwhm",
     ).copy()
 
 
@@ -766,6 +788,7 @@ def simulate_autos(
     noise_drift: float = 0.0,
     sky: SkyChange | None = None,
     beam_width: float = 0.0,
+    beam_width_mode: str = "fwhm",
 ) -> Truth:
     """Simulate HERA auto-correlations and write them as a UVH5 file.
 
@@ -815,8 +838,9 @@ def simulate_autos(
         mapped linearly from -1 (first integration) to +1 (last); 0 for none.
     sky
         The true sky, if not GSM2008 + CMB (:class:`SkyChange`).
-    beam_width
-        Fractional change of the true beam's width (:func:`independent_tsky`).
+    beam_width, beam_width_mode
+        Fractional change of the true beam's width and how it is made
+        (:func:`independent_tsky`).
 
     Returns
     -------
@@ -869,6 +893,7 @@ def simulate_autos(
                 node_spacing_s=node_spacing_s,
                 sky=change,
                 beam_width=beam_width,
+                beam_width_mode=beam_width_mode,
             )
             for pol in pols
         ]
@@ -883,8 +908,9 @@ def simulate_autos(
     sky_text = "GSM2008+CMB" if change is None else f"GSM2008 changed ({change})"
     history = (
         "Simulated by tests/independent_sim.py (independent of autocal's Tsky engine): "
-        f"{sky_text} nside {SIM_NSIDE}, {beam} beam (width x {1 + beam_width:g}), hard "
-        f"horizon, Tgnd {tgnd_k} K, receiver drift e_1 {noise_drift:g}, seed {seed}."
+        f"{sky_text} nside {SIM_NSIDE}, {beam} beam (width x {1 + beam_width:g}, "
+        f"{beam_width_mode}), hard horizon, Tgnd {tgnd_k} K, receiver drift e_1 "
+        f"{noise_drift:g}, seed {seed}."
     )
     lsts = _write_uvh5(
         path, data, freqs, jds, antennas, pols, integration_s, channel_width, nsample, history
@@ -914,6 +940,7 @@ def simulate_autos(
         "node_spacing_s": float(node_spacing_s) if node_spacing_s else 0.0,
         "noise_drift": float(noise_drift),
         "beam_width": float(beam_width),
+        "beam_width_mode": beam_width_mode,
         "sky": None if change is None else dataclasses.asdict(change),
     }
     return Truth(
