@@ -1122,11 +1122,14 @@ def is_negligible(impact: dict[str, Any]) -> bool:
     Negligible: below :data:`NEGLIGIBLE_MEDIAN_SIGMA` total sigma in the median channel and
     :data:`NEGLIGIBLE_MAX_SIGMA` in every channel, for both ``G`` and ``Trxr``; or a median
     change below :data:`NEGLIGIBLE_G_FRACTION` of ``G`` and :data:`NEGLIGIBLE_TRXR_K` in
-    ``Trxr``, below what the sky model itself supports.
+    ``Trxr``, below what the sky model itself supports. Never negligible when fewer than
+    half of the channels could be compared (the ordinary calibration failed in the rest).
     """
     g, t = impact.get("G", {}), impact.get("Trxr", {})
     if "median_change_over_sigma" not in g or "median_change_over_sigma" not in t:
         return False
+    if any(e["channels"] < 0.5 * e.get("of", e["channels"]) for e in (g, t)):
+        return False  # the yardstick calibration failed in most channels: no verdict
     small = (
         abs(g.get("median_relative_change", np.inf)) < NEGLIGIBLE_G_FRACTION
         and abs(t.get("median_change_K", np.inf)) < NEGLIGIBLE_TRXR_K
@@ -1180,7 +1183,7 @@ def product_impact(
         for name, (diff, sig, change) in pairs.items():
             z = np.abs(diff) / sig
             ok = np.isfinite(z) & np.isfinite(change)
-            entry: dict[str, Any] = {"channels": int(ok.sum())}
+            entry: dict[str, Any] = {"channels": int(ok.sum()), "of": int(z.size)}
             if ok.any():
                 entry["median_change_over_sigma"] = float(np.median(z[ok]))
                 entry["max_change_over_sigma"] = float(np.max(z[ok]))

@@ -351,3 +351,30 @@ def test_unexplained_remainder_is_described_not_named(setup):
     jumpy = {**gap, "time_mode_power": [1.0, 1.2, 1.1, 1.0], "integration_jitter": 6.0}
     out = describe_unexplained(SimpleNamespace(residuals=smooth), obs, jumpy)
     assert out is not None and out["time"].startswith("integration to integration")
+
+
+def test_negligible_needs_a_verdict_on_most_channels() -> None:
+    from autocal.diagnose import is_negligible
+
+    tiny = {
+        "channels": 161,
+        "of": 161,
+        "median_change_over_sigma": 0.01,
+        "max_change_over_sigma": 0.05,
+    }
+    impact = {
+        "G": {**tiny, "median_relative_change": 1e-5},
+        "Trxr": {**tiny, "median_change_K": 0.01},
+    }
+    assert is_negligible(impact)
+    # the yardstick calibration failed in 158 of 161 channels: no verdict, not negligible
+    few = {name: {**entry, "channels": 3} for name, entry in impact.items()}
+    assert not is_negligible(few)
+    # tiny in absolute terms (below the sky model's accuracy) though many sigma
+    precise = {
+        "G": {**tiny, "median_change_over_sigma": 3.0, "median_relative_change": 2e-4},
+        "Trxr": {**tiny, "median_change_over_sigma": 2.0, "median_change_K": 0.2},
+    }
+    assert is_negligible(precise)
+    big = {**precise, "G": {**precise["G"], "median_relative_change": 0.02}}
+    assert not is_negligible(big)
