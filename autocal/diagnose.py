@@ -41,6 +41,7 @@ from threadpoolctl import threadpool_limits
 
 from autocal.delay import delay_spectrum
 from autocal.effects import Effect, SkyTemplates, catalogue, time_basis
+from autocal.fit import unwrap_lsts
 from autocal.observation import Observation
 
 logger = logging.getLogger(__name__)
@@ -921,6 +922,18 @@ class Diagnosis:
         }
 
 
+#: Largest |parameter| of an effect taken as that effect (fractions; K for ``sky_offset`` and
+#: ``ground_temperature``): a fit beyond it means the template absorbs other structure (e.g.
+#: a diurnal drift of amplitude 100 over half an hour, nearly collinear with a constant).
+PLAUSIBLE_LIMITS = {
+    "gain_drift": 0.5,
+    "noise_drift": 0.5,
+    "beam_width": 0.3,
+    "sky_scale": 0.5,
+    "sky_spectral_index": 0.5,
+    "sky_offset": 100.0,
+    "ground_temperature": 300.0,
+}
 #: Largest ``timing_offset`` (seconds) taken as one: its template is Tsky's first
 #: derivative in time (a central difference over +-2 min of LST), so it represents a shift
 #: of a few minutes at most; J2000 instead of the frame of date for data of the 2010s-2020s
@@ -1397,6 +1410,7 @@ def _diagnose_once(
             include_beam_width=tpl.beam_dwidth is not None,
             ntime=obs.ntime,
             include_timing=tpl.lst_derivative is not None,
+            span_h=float(np.ptp(unwrap_lsts(obs.lsts))),
         )
     )
     if smooth_order is None:
@@ -1478,6 +1492,15 @@ def _diagnose_once(
                 diag.identifiability[eff.name] = trial.identifiable.get(eff.name, 0.0)
             if trial.identifiable.get(eff.name, 0.0) < MIN_IDENTIFIABLE:
                 continue
+            limit = PLAUSIBLE_LIMITS.get(eff.name)
+            values = np.abs(np.asarray(trial.params.get(eff.name, []), float))
+            if limit is not None and eff.fixed is None and np.any(values > limit):
+                diag.config["failed_candidates"][f"{eff.name}/{eff.basis}{eff.order}"] = (
+                    f"best fit {np.round(trial.params[eff.name], 4).tolist()} beyond the "
+                    f"plausible range (|value| <= {limit:g}): the template absorbs other "
+                    "structure"
+                )
+                continue
             if eff.name == "timing_offset" and abs(trial.params[eff.name][0]) > TIMING_MAX_S:
                 diag.config["failed_candidates"]["timing_offset"] = (
                     f"best dt {trial.params[eff.name][0]:.0f} s is beyond the linear "
@@ -1508,7 +1531,8 @@ def _diagnose_once(
                     continue
             k, stat_fit = eff.nfree, trial
             if eff.name == "missing_cmb":
-                # a discrete hypothesis: m = +-1, no free parameter
+                # a discrete hypothesis, m = +-1, nested in sky_offset (T_offset = -+2.725 K):
+                # no free parameter, so that it wins over sky_offset when it fits as well
                 m = 1.0 if trial.params[eff.name][0] > 0 else -1.0
                 fixed_eff = Effect(**{**eff.__dict__, "fixed": (m,)})
                 stat_fit = fit_extended(obs, tpl, [*active, fixed_eff], weights=w, **prior_kw)

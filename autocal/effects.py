@@ -63,6 +63,8 @@ EFFECT_NAMES = (
     "cable_reflection",
     "timing_offset",
 )
+#: Shortest LST span (hours) for which the diurnal drift variants are candidates.
+DIURNAL_MIN_SPAN_H = 6.0
 #: Step (hours) of the central difference of Tsky in LST behind ``timing_offset``.
 LST_STEP_H = 2.0 / 60.0
 
@@ -425,6 +427,7 @@ def catalogue(
     include_beam_width: bool = True,
     ntime: int | None = None,
     include_timing: bool = False,
+    span_h: float | None = None,
 ) -> list[Effect]:
     """Return the candidate effects (drifts in every order ``1..max_drift_order``).
 
@@ -436,6 +439,10 @@ def catalogue(
         Include ``beam_width`` (needs :attr:`SkyTemplates.beam_dwidth`).
     include_timing
         Include ``timing_offset`` (needs :attr:`SkyTemplates.lst_derivative`).
+    span_h
+        LST span of the data (hours): the diurnal drift variants only when it is at least
+        :data:`DIURNAL_MIN_SPAN_H` (over a shorter span a sidereal-day sine and cosine are
+        nearly collinear with a constant and a linear drift).
     ntime
         Number of integrations: with 3 or more, include ``gain_jitter`` (one broadband
         gain factor per integration, the first one the reference).
@@ -477,7 +484,10 @@ def catalogue(
                 signature="n(t) = n (1 + sum_k e_k P_k(s)), achromatic",
             )
         )
-    for kind, name, letter in (("gain", "gain_drift", "d"), ("noise", "noise_drift", "e")):
+    diurnal = ("gain", "gain_drift", "d"), ("noise", "noise_drift", "e")
+    if span_h is not None and span_h < DIURNAL_MIN_SPAN_H:
+        diurnal = ()
+    for kind, name, letter in diurnal:
         out.append(
             Effect(
                 name,
