@@ -989,7 +989,9 @@ def jitter_is_white(
     eps = np.asarray(eps, float)
     sig = np.asarray(sigma, float)
     good = np.isfinite(eps) & np.isfinite(sig)
-    sig = np.where(sig > 0, sig, np.median(sig[sig > 0]) if np.any(sig > 0) else 1.0)
+    positive = good & (sig > 0)
+    sig = np.where(positive, sig, np.median(sig[positive]) if positive.any() else 1.0)
+    eps = np.where(good, eps, 0.0)
     rows = [np.ones(eps.size)]
     order = min(JITTER_SMOOTH_ORDER, max(int(good.sum()) - 3, 0))
     if order:
@@ -1134,9 +1136,11 @@ def is_negligible(impact: dict[str, Any]) -> bool:
 
     Negligible: below :data:`NEGLIGIBLE_MEDIAN_SIGMA` total sigma in the median channel and
     :data:`NEGLIGIBLE_MAX_SIGMA` in every channel, for both ``G`` and ``Trxr``; or a median
-    change below :data:`NEGLIGIBLE_G_FRACTION` of ``G`` and :data:`NEGLIGIBLE_TRXR_K` in
-    ``Trxr``, below what the sky model itself supports. Never negligible when fewer than
-    half of the channels could be compared (the ordinary calibration failed in the rest).
+    absolute change below :data:`NEGLIGIBLE_G_FRACTION` of ``G`` and
+    :data:`NEGLIGIBLE_TRXR_K` in ``Trxr`` (below what the sky model itself supports) with no
+    channel moving by :data:`NEGLIGIBLE_MAX_SIGMA` total sigma or more. Never negligible
+    when fewer than half of the channels could be compared (the ordinary calibration failed
+    in the rest).
     """
     g, t = impact.get("G", {}), impact.get("Trxr", {})
     if "median_change_over_sigma" not in g or "median_change_over_sigma" not in t:
@@ -1144,8 +1148,9 @@ def is_negligible(impact: dict[str, Any]) -> bool:
     if any(e["channels"] < 0.5 * e.get("of", e["channels"]) for e in (g, t)):
         return False  # the yardstick calibration failed in most channels: no verdict
     small = (
-        abs(g.get("median_relative_change", np.inf)) < NEGLIGIBLE_G_FRACTION
-        and abs(t.get("median_change_K", np.inf)) < NEGLIGIBLE_TRXR_K
+        g.get("median_abs_relative_change", np.inf) < NEGLIGIBLE_G_FRACTION
+        and t.get("median_abs_change_K", np.inf) < NEGLIGIBLE_TRXR_K
+        and all(e["max_change_over_sigma"] < NEGLIGIBLE_MAX_SIGMA for e in (g, t))
     )
     within = all(
         e["median_change_over_sigma"] < NEGLIGIBLE_MEDIAN_SIGMA
@@ -1155,16 +1160,19 @@ def is_negligible(impact: dict[str, Any]) -> bool:
     return bool(small or within)
 
 
-def product_sigmas(obs: Observation, tpl: SkyTemplates) -> tuple[np.ndarray, np.ndarray]:
+def product_sigmas(
+    obs: Observation, tpl: SkyTemplates, prior: tuple[Any, Any] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Return the total 1-sigma of ``G`` and ``Trxr`` of the ordinary calibration.
 
     The constant-model fit of :func:`autocal.fit.fit` against the model Tsky, with
-    radiometer weights, errors inflated by ``max(1, chi^2/dof)`` and the total uncertainty
-    (:mod:`autocal.uncertainty`): the yardstick of :func:`product_impact`.
+    radiometer weights, errors inflated by ``max(1, chi^2/dof)``, the total uncertainty
+    (:mod:`autocal.uncertainty`) and the diagnosis's receiver prior ``(trxr, sigma)`` if
+    any: the yardstick of :func:`product_impact`.
     """
     from autocal.fit import fit
 
-    sol = fit(obs, tpl.total, scale_covariance="inflate")
+    sol = fit(obs, tpl.total, scale_covariance="inflate", trxr_prior=prior)
     return sol.sigma_G, sol.sigma_Trxr
 
 
@@ -1202,6 +1210,8 @@ def product_impact(
                 entry["max_change_over_sigma"] = float(np.max(z[ok]))
                 key = "median_relative_change" if name == "G" else "median_change_K"
                 entry[key] = float(np.median(change[ok]))
+                abs_key = key.replace("median_", "median_abs_")
+                entry[abs_key] = float(np.median(np.abs(change[ok])))
             out[name] = entry
     medians = [e.get("median_change_over_sigma", 0.0) for e in out.values()]
     out["significant"] = bool(max(medians) > 1.0)
@@ -1443,7 +1453,9 @@ def _diagnose_once(
     w = radiometer_weights(obs, current.model)
     current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
     base_fit = current
-    sigma_g, sigma_t = product_sigmas(obs, tpl)
+    sigma_g, sigma_t = product_sigmas(
+        obs, tpl, None if trxr_prior is None else (trxr_prior, trxr_prior_sigma)
+    )
     diag.config["failed_candidates"] = {}
     bp_null, _ = fit_cable_reflection(
         obs.freqs, current.G, current.sigma_G, smooth_order=smooth_order

@@ -417,13 +417,23 @@ def total_uncertainty(
         )
 
     # the model with one more time order (exact: the blocks hold its sums)
-    ext = solve(total)
+    ext_sums = total if prior is None else prior(total, evg, evn)
+    ext = solve_sums(ext_sums, scale_covariance=scale_covariance, positive_gain=False)
     theta1, c1 = project(ext, ext=True)
     dof1 = ext["dof"]
     count = total.count.astype(np.float64)
+    # the chi2 drop of nested least squares, dx^T A_ext dx (dx: the extended solution less
+    # the fitted one embedded), instead of a difference of two chi2 that are each a small
+    # difference of large sums (rounding noise of eps x condition x y^T W y)
+    embedded = np.zeros_like(ext["coeffs"])
+    embedded[..., _base_index(model)] = solved["coeffs"]
+    dx = np.nan_to_num(ext["coeffs"] - embedded)
+    dchi2 = np.einsum("...i,...ij,...j->...", dx, ext_sums.ata, dx)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        phi = np.maximum(np.where(dof1 > 0, ext["chi2"] / dof1, np.nan), 1.0)
-        stat = (solved["chi2"] - ext["chi2"]) / phi - 2.0 * np.log(np.maximum(count, 1.0))
+        phi = np.where(dof1 > 0, ext["chi2"] / dof1, np.nan)
+        if scale_covariance != True:  # noqa: E712 - identity weights: chi2 in data units
+            phi = np.maximum(phi, 1.0)  # inverse-variance weights: never below the noise
+        stat = dchi2 / phi - 2.0 * np.log(np.maximum(count, 1.0))
     # a gain is positive: each model's estimate is the Gaussian restricted to G > 0, and
     # its evidence is scaled by the probability it gives to G > 0
     theta1, c1, logp1 = positive_gain(theta1, c1)

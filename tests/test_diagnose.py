@@ -363,8 +363,8 @@ def test_negligible_needs_a_verdict_on_most_channels() -> None:
         "max_change_over_sigma": 0.05,
     }
     impact = {
-        "G": {**tiny, "median_relative_change": 1e-5},
-        "Trxr": {**tiny, "median_change_K": 0.01},
+        "G": {**tiny, "median_relative_change": 1e-5, "median_abs_relative_change": 1e-5},
+        "Trxr": {**tiny, "median_change_K": 0.01, "median_abs_change_K": 0.01},
     }
     assert is_negligible(impact)
     # the yardstick calibration failed in 158 of 161 channels: no verdict, not negligible
@@ -372,9 +372,16 @@ def test_negligible_needs_a_verdict_on_most_channels() -> None:
     assert not is_negligible(few)
     # tiny in absolute terms (below the sky model's accuracy) though many sigma
     precise = {
-        "G": {**tiny, "median_change_over_sigma": 3.0, "median_relative_change": 2e-4},
-        "Trxr": {**tiny, "median_change_over_sigma": 2.0, "median_change_K": 0.2},
+        "G": {**impact["G"], "median_change_over_sigma": 0.6, "median_abs_relative_change": 2e-4},
+        "Trxr": {**impact["Trxr"], "median_change_over_sigma": 0.5, "median_abs_change_K": 0.2},
     }
     assert is_negligible(precise)
-    big = {**precise, "G": {**precise["G"], "median_relative_change": 0.02}}
+    big = {**precise, "G": {**precise["G"], "median_abs_relative_change": 0.02}}
     assert not is_negligible(big)
+    # a change alternating in sign: its signed median is ~0, its absolute one is not
+    alternating = {**precise, "G": {**precise["G"], "median_relative_change": 0.0}}
+    alternating["G"]["median_abs_relative_change"] = 0.05
+    assert not is_negligible(alternating)
+    # one channel moving by a total sigma or more is never negligible
+    spike = {**precise, "Trxr": {**precise["Trxr"], "max_change_over_sigma": 1.5}}
+    assert not is_negligible(spike)
