@@ -628,15 +628,13 @@ def _block_slices(edges: tuple[int, ...] | None, start: int, stop: int) -> list[
 def _time_part(value: Any, sl: slice, ntime: int) -> Any:
     """Slice an array with a time axis of length ``ntime`` (the chunk's) to ``sl``.
 
-    4-d arrays ``(Nant, Npol, Ntime, Nfreq)`` and 2-d ``(Ntime, Nfreq)``; anything else
+    Arrays ``(..., Ntime, Nfreq)`` (per sample, per pol or shared by all); anything else
     (strings, scalars, ``(Nfreq,)`` rows, ``None``) is returned as it is.
     """
     if sl == slice(0, ntime) or not isinstance(value, np.ndarray):
         return value
-    if value.ndim == 4 and value.shape[2] == ntime:
-        return value[:, :, sl]
-    if value.ndim == 2 and value.shape[0] == ntime:
-        return value[sl]
+    if value.ndim >= 2 and value.shape[-2] == ntime:  # (..., Ntime, Nfreq)
+        return value[..., sl, :]
     return value
 
 

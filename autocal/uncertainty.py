@@ -9,8 +9,9 @@ indistinguishable from a different ``(G, n)``. This module turns per-block norma
 
 Blocks
     The integrations are split into ``B`` contiguous time blocks (:func:`block_edges`) and
-    the normal sums of the fitted model are kept per block (:class:`BlockSums`). The sum of
-    the blocks is the ordinary fit, bit for bit.
+    the normal sums of the fitted model are kept per block (:class:`BlockSums`), those of
+    the model with one more order once. The ordinary fit is the lower orders of the latter
+    (equal to a direct fit to rounding, ~1e-11 relative).
 
 Correlated residuals and an unstable fit: delete-a-block jackknife
     ``B`` refits, each without one block, give the jackknife covariance of the
@@ -28,8 +29,13 @@ What the span cannot decide: the time model averaged over one more order
     the span). The extra order is evaluated at each block's mean time (a staircase), so it
     is built from the same block sums. Each channel weighs the two by the Bayesian
     information criterion of a quasi-likelihood (chi-square divided by the larger model's
-    ``max(1, chi^2/dof)``, Burnham & Anderson's QAIC/QBIC):
-    ``w_1 = 1 / (1 + exp(-(dchi2 / phi - 2 ln N) / 2))``. When the data prefer a drift,
+    ``max(1, chi^2/dof)``, or ``chi^2/dof`` for identity weights, Burnham & Anderson's
+    QAIC/QBIC): ``w_1 = 1 / (1 + exp(-(dchi2 / phi - 2 ln N) / 2))``, ``dchi2 = dx^T A dx``
+    of the nested fits (exact, not a difference of two chi-squares). Each channel takes the
+    larger of its own weight and its antenna-pol's over all channels (the sum of the
+    channels' statistics: a drifting gain drifts at every frequency). Both models are
+    restricted to ``G > 0`` (:func:`positive_gain`): each estimate is its Gaussian truncated
+    there and the statistic gains ``2 ln [P_1(G > 0) / P_0(G > 0)]``. When the data prefer a drift,
     ``w_1 -> 1`` and the total covers both the drift model's (much larger) uncertainty and
     the difference between the two estimates; on data that follow the fitted model
     ``w_1 ~ 1e-2`` and the total stays at the statistical error.
@@ -258,7 +264,7 @@ class TotalUncertainty:
         """
         with np.errstate(all="ignore"):
             med = _nanmedian_last(np.abs(self.drift_sensitivity))
-        return ~(med <= WEAK_SENSITIVITY)
+        return med > WEAK_SENSITIVITY  # NaN (nothing solved) is not "weak"
 
     def describe(self) -> dict[str, Any]:
         """JSON-serialisable description of the method and its settings."""
@@ -664,8 +670,8 @@ def accumulate_blocks(
         Block boundaries from :func:`block_edges`.
     **kwargs
         Passed to :func:`autocal.fit.accumulate` (``flags``, ``weights``,
-        ``bandwidth_time``, ``reference``); arrays with a time axis (axis -2 of a
-        4-dimensional array, the time axis of ``tsky``) are sliced per block.
+        ``bandwidth_time``, ``reference``); arrays ``(..., Ntime, Nfreq)`` are sliced per
+        block.
     """
     from autocal.fit import accumulate
 
@@ -673,10 +679,8 @@ def accumulate_blocks(
     ntime = data.shape[2]
 
     def part(value: Any, sl: slice) -> Any:
-        if isinstance(value, np.ndarray) and value.ndim == 4 and value.shape[2] == ntime:
-            return value[:, :, sl]
-        if isinstance(value, np.ndarray) and value.ndim == 2 and value.shape[0] == ntime:
-            return value[sl]
+        if isinstance(value, np.ndarray) and value.ndim >= 2 and value.shape[-2] == ntime:
+            return value[..., sl, :]  # (..., Ntime, Nfreq)
         return value
 
     ext = extended_model(model)

@@ -202,3 +202,16 @@ def test_the_total_matches_the_separation_summary_and_refits_without_blocks() ->
     again = total_uncertainty(blocks, solve_sums(blocks.fitted_total(), scale_covariance=False))
     assert again.nblocks == sol.total.nblocks
     assert np.all(np.isfinite(again.cov[0, 0, :, 0, 0]))
+
+
+def test_per_pol_weights_are_sliced_per_block() -> None:
+    """Inverse variances given per pol (Npol, Ntime, Nfreq) work with the total as without."""
+    rng = np.random.default_rng(4)
+    lsts, tsky = short_sky(40)
+    data = (0.02 * (tsky + 150.0))[None, None] * (1 + 1e-3 * rng.standard_normal((1, 2, 40, NF)))
+    w = np.broadcast_to(1.0 / (1e-3 * data[0]) ** 2, (2, 40, NF)).copy()
+    obs = make_obs(data, lsts)
+    total = fit(obs, np.stack([tsky, tsky]), weights=w)
+    stat = fit(obs, np.stack([tsky, tsky]), weights=w, uncertainty="statistical")
+    np.testing.assert_allclose(total.G, stat.G, rtol=1e-9)
+    assert total.total is not None and total.total.nblocks == 10
