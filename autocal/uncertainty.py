@@ -406,9 +406,16 @@ def total_uncertainty(
         dev = np.where(ok[..., None], reps - mean, 0.0)
         frac = (nok - 1) / np.maximum(nok, 1)
         vjk = frac[..., None, None] * np.einsum("b...i,b...j->...ij", dev, dev)
-        cinv = _inv2(np.where(c0_ok[..., None, None], c0, np.eye(2)))
-        fjk = np.einsum("...ij,...ji->...", cinv, vjk) / 2.0
-        fjk = np.where((nok >= MIN_BLOCKS) & c0_ok, fjk, np.nan)
+        # against the jackknife covariance the statistical model itself predicts (the
+        # delete-a-block estimator over-weights the ends of a time model: a Legendre fit's
+        # refits extrapolate), times the chi2/dof scaling the statistical covariance has
+        expected = _expected_jackknife(blocks, fitted, prior, vg, vn)
+        scaling = _covariance_scaling(solved, scale_covariance)
+        einv = _inv2(np.where(np.isfinite(expected), expected, np.eye(2)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            fjk = np.einsum("...ij,...ji->...", einv, vjk) / 2.0 / scaling
+        good_e = np.all(np.isfinite(expected), axis=(-2, -1)) & (scaling > 0)
+        fjk = np.where((nok >= MIN_BLOCKS) & c0_ok & good_e, fjk, np.nan)
         half = nblk // 2
         for h, ids in enumerate((range(half), range(half, nblk))):
             sub = blocks.blocks[ids[0]]
@@ -636,6 +643,66 @@ def positive_gain(theta: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.nd
 def _logistic(x: np.ndarray) -> np.ndarray:
     """``1 / (1 + exp(-x))`` without overflow warnings."""
     return 1.0 / (1.0 + np.exp(-np.clip(x, -700.0, 700.0)))
+
+
+def _covariance_scaling(
+    solved: dict[str, np.ndarray], scale_covariance: bool | Literal["inflate"]
+) -> np.ndarray:
+    """Return the factor :func:`autocal.fit.solve_sums` applied to each channel's covariance."""
+    if not scale_covariance:
+        return np.ones(solved["chi2"].shape)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        factor = np.where(solved["dof"] > 0, solved["chi2"] / solved["dof"], np.nan)
+    if scale_covariance == "inflate":
+        factor = np.maximum(np.nan_to_num(factor, nan=1.0), 1.0)
+    return factor
+
+
+def _expected_jackknife(
+    blocks: BlockSums, fitted: NormalSums, prior: Any, vg: np.ndarray, vn: np.ndarray
+) -> np.ndarray:
+    """Return the jackknife covariance of ``(G, n)`` the statistical model predicts.
+
+    With inverse-variance weights a block's right-hand side has covariance ``A_b`` (its
+    normal matrix) and blocks are independent; the refit without block ``b`` is
+    ``x_b = K_b (v - v_b)``, ``K_b = (A - A_b + P)^-1`` (``P``: the prior's rows, noiseless),
+    so ``Cov(x_b, x_c) = K_b (A - A_b - A_c + delta_bc A_b) K_c``. With ``Y_b`` the projection
+    of ``K_b`` onto the time-averaged ``(G, n)`` the expectation of the jackknife estimator
+    ``(B-1)/B sum_b (t_b - tbar)(t_b - tbar)^T`` needs only sums over blocks:
+    ``(B-1)/B [sum_b Y_b (A - A_b) Y_b^T - (Ysum A Ysum^T - sum_b Y_b A_b Ysum^T -
+    Ysum sum_c A_c Y_c^T + sum_b Y_b A_b Y_b^T) / B]``.
+    """
+    nblk = blocks.nblocks
+    a = fitted.ata
+    p = 0.0
+    if prior is not None:
+        p = prior(fitted, vg, vn).ata - a
+    proj = np.stack([vg, vn])  # (2, M)
+    m = a.shape[-1]
+    eye = np.eye(m)
+    lead = a.shape[:-2]
+    ysum = np.zeros((*lead, 2, m))  # sum_b Y_b
+    own = np.zeros((*lead, 2, 2))  # sum_b Y_b (A - A_b) Y_b^T
+    same = np.zeros((*lead, 2, 2))  # sum_b Y_b A_b Y_b^T
+    cross = np.zeros((*lead, 2, m))  # sum_b Y_b A_b
+    with np.errstate(all="ignore"):
+        for part in blocks.blocks:
+            rest = a - part.ata + p
+            ok = np.all(np.isfinite(rest), axis=(-2, -1)) & (np.linalg.det(rest) != 0)
+            k = np.where(
+                ok[..., None, None], np.linalg.inv(np.where(ok[..., None, None], rest, eye)), np.nan
+            )
+            y = proj @ k  # (..., 2, M)
+            yt = np.swapaxes(y, -1, -2)
+            yab = y @ part.ata
+            ysum += y
+            own += (y @ (a - part.ata)) @ yt
+            same += yab @ yt
+            cross += yab
+        ysum_t = np.swapaxes(ysum, -1, -2)
+        # sum_{b,c} Y_b (A - A_b - A_c) Y_c^T + sum_b Y_b A_b Y_b^T
+        every = (ysum @ a) @ ysum_t - cross @ ysum_t - ysum @ np.swapaxes(cross, -1, -2) + same
+        return (nblk - 1) / nblk * (own - every / nblk)
 
 
 def _inv2(a: np.ndarray) -> np.ndarray:

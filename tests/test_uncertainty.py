@@ -215,3 +215,23 @@ def test_per_pol_weights_are_sliced_per_block() -> None:
     stat = fit(obs, np.stack([tsky, tsky]), weights=w, uncertainty="statistical")
     np.testing.assert_allclose(total.G, stat.G, rtol=1e-9)
     assert total.total is not None and total.total.nblocks == 10
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_the_jackknife_is_judged_against_what_the_model_predicts(order: int) -> None:
+    """A Legendre fit's delete-a-block refits extrapolate at the ends of the span, so the raw
+    jackknife variance exceeds the statistical one on clean data; the factor compares it
+    with the jackknife variance the statistical model predicts instead (~1 on clean data)."""
+    from tests.test_fit import make_obs as day_obs
+    from tests.test_fit import noisy, toy_tsky
+
+    rng = np.random.default_rng(12)
+    tsky = toy_tsky()
+    factors = []
+    for _ in range(10):
+        sol = fit(
+            day_obs(noisy((tsky + 150.0)[None, None], rng)), tsky, model="legendre", order=order
+        )
+        assert sol.total is not None
+        factors.append(sol.total.jackknife_factor)
+    assert 0.7 < np.nanmedian(factors) < 1.2
