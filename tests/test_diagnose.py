@@ -366,6 +366,8 @@ def test_negligible_needs_a_verdict_on_most_channels() -> None:
         "G": {**tiny, "median_relative_change": 1e-5, "median_abs_relative_change": 1e-5},
         "Trxr": {**tiny, "median_change_K": 0.01, "median_abs_change_K": 0.01},
     }
+    impact["G"]["max_abs_relative_change"] = 2e-5
+    impact["Trxr"]["max_abs_change_K"] = 0.02
     assert is_negligible(impact)
     # the yardstick calibration failed in 158 of 161 channels: no verdict, not negligible
     few = {name: {**entry, "channels": 3} for name, entry in impact.items()}
@@ -382,6 +384,9 @@ def test_negligible_needs_a_verdict_on_most_channels() -> None:
     alternating = {**precise, "G": {**precise["G"], "median_relative_change": 0.0}}
     alternating["G"]["median_abs_relative_change"] = 0.05
     assert not is_negligible(alternating)
-    # one channel moving by a total sigma or more is never negligible
-    spike = {**precise, "Trxr": {**precise["Trxr"], "max_change_over_sigma": 1.5}}
+    # below the sky model's accuracy it does not matter how many sigma the change is ...
+    sharp = {**precise, "Trxr": {**precise["Trxr"], "max_change_over_sigma": 1.5}}
+    assert is_negligible(sharp)
+    # ... unless a channel moves by ten times that accuracy
+    spike = {**sharp, "Trxr": {**sharp["Trxr"], "max_abs_change_K": 12.0}}
     assert not is_negligible(spike)
