@@ -813,7 +813,6 @@ def _calibrate(
 ) -> CalibrationResult:
     """Run the calibration (see :func:`run_calibration`); ``executor``: Dask or None."""
     from autocal import __version__
-    from autocal.tsky import compute_tsky
 
     def report(fraction: float, message: str) -> None:
         logger.info("%3.0f%% %s", 100 * fraction, message)
@@ -841,26 +840,7 @@ def _calibrate(
         0.05, f"Tsky for {len(pols)} pol(s), {source.freqs.size} channels, {source.lsts.size} LSTs"
     )
     t1 = time.perf_counter()
-    tsky_all: np.ndarray | None = None
-    tsky_meta: dict[str, Any] = {}
-    for ip, pol in enumerate(pols):
-        result = compute_tsky(
-            config.sky,
-            config.beam,
-            site,
-            source.freqs,
-            source.lsts,
-            tgnd=config.tgnd_k,
-            nside=config.nside,
-            epoch=epoch,
-            pol=_beam_pol(pol),
-        )
-        if tsky_all is None:  # (P, T, F), filled pol by pol (no stacked copy)
-            tsky_all = np.empty((len(pols), *result.tsky.shape))
-        tsky_all[ip] = result.tsky
-        tsky_meta = result.meta
-        del result
-    assert tsky_all is not None
+    tsky_all, tsky_meta = _tsky_per_pol(config.sky, config, source, pols, epoch)
     timings["tsky_s"] = time.perf_counter() - t1
 
     model = FitModel.for_lsts(
@@ -1189,6 +1169,38 @@ ALTERNATIVE_SKIES = (
 )
 
 
+def _tsky_per_pol(
+    sky: str, config: CalibrationConfig, source: _Source, pols: tuple[str, ...], epoch: float
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Return Tsky ``(Npol, Ntime, Nfreq)`` of the observation's grid and the last meta.
+
+    Filled pol by pol into one array (no stacked copy), each pol with its own beam.
+    """
+    from autocal.tsky import compute_tsky
+
+    tsky_all: np.ndarray | None = None
+    meta: dict[str, Any] = {}
+    for ip, pol in enumerate(pols):
+        result = compute_tsky(
+            sky,
+            config.beam,
+            source.site,
+            source.freqs,
+            source.lsts,
+            tgnd=config.tgnd_k,
+            nside=config.nside,
+            epoch=epoch,
+            pol=_beam_pol(pol),
+        )
+        if tsky_all is None:
+            tsky_all = np.empty((len(pols), *result.tsky.shape))
+        tsky_all[ip] = result.tsky
+        meta = result.meta
+        del result
+    assert tsky_all is not None
+    return tsky_all, meta
+
+
 def _alternative_solutions(
     config: CalibrationConfig,
     source: _Source,
@@ -1203,28 +1215,11 @@ def _alternative_solutions(
     One pass over the data each (data-derived weights); only for a comparison with
     reference gains, whose systematics budget reports the spread of the ratio over them.
     """
-    from autocal.tsky import compute_tsky
-
     out: dict[str, Solution] = {}
     for sky in ALTERNATIVE_SKIES:
         if sky == config.sky:
             continue
-        tsky = np.stack(
-            [
-                compute_tsky(
-                    sky,
-                    config.beam,
-                    source.site,
-                    source.freqs,
-                    source.lsts,
-                    tgnd=config.tgnd_k,
-                    nside=config.nside,
-                    epoch=epoch,
-                    pol=_beam_pol(pol),
-                ).tsky
-                for pol in pols
-            ]
-        )
+        tsky = _tsky_per_pol(sky, config, source, pols, epoch)[0]
         alt = config.model_copy(update={"sky": sky, "passes": 1})
         run = _run_passes(
             alt, source, pols, tsky, model, lambda f, m: None, None, None, None, block_size
