@@ -915,7 +915,7 @@ def _calibrate(
         comparison_inputs = {
             **_block_trend(run, source, tsky_all, pols),
             "alternatives": _alternative_solutions(
-                config, source, pols, model, epoch, scaling, block_size
+                config, source, pols, model, epoch, scaling, block_size, prior_fn
             ),
         }
     report(0.85, "writing products")
@@ -1209,11 +1209,13 @@ def _alternative_solutions(
     epoch: float,
     scaling: bool | str,
     block_size: int | None,
+    prior_fn: Callable[..., NormalSums] | None = None,
 ) -> dict[str, Solution]:
     """Fit the data again with the other sky models of :data:`ALTERNATIVE_SKIES`.
 
-    One pass over the data each (data-derived weights); only for a comparison with
-    reference gains, whose systematics budget reports the spread of the ratio over them.
+    One pass over the data each (data-derived weights), with the main fit's receiver prior
+    (``prior_fn``) if any; only for a comparison with reference gains, whose systematics
+    budget reports the spread of the ratio over them.
     """
     out: dict[str, Solution] = {}
     for sky in ALTERNATIVE_SKIES:
@@ -1224,7 +1226,10 @@ def _alternative_solutions(
         run = _run_passes(
             alt, source, pols, tsky, model, lambda f, m: None, None, None, None, block_size
         )
-        solved = solve_sums(run.sums, scale_covariance=scaling)
+        sums = run.sums
+        if prior_fn is not None:
+            sums = prior_fn(sums, *mean_vectors(model, source.lsts))
+        solved = solve_sums(sums, scale_covariance=scaling)
         out[sky] = _solution(
             model, run, solved, source, pols, {"calibration": alt.model_dump(mode="json")}
         )
