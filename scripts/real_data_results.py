@@ -95,10 +95,27 @@ def hera_2458116(root: Path, out: Path) -> dict:
         ),
         out / "hera_2458116",
     )
+    # the same with an assumed receiver (150 +- 10 K): what knowing Trxr would change
+    held = run_calibration(
+        CalibrationConfig(
+            inputs=autos,
+            antennas=[23],
+            freq_range_mhz=(110.0, 190.0),
+            reference=refs,
+            products=["hdf5"],
+            trxr_prior=150.0,
+            trxr_prior_sigma_k=10.0,
+        ),
+        out / "hera_2458116_prior150",
+    )
     return {
         "solution": result.summary["solution"],
         "separation": result.summary["separation"],
         "comparison": per_pol(Path(result.products["compare_json"])),
+        "with_prior_150_10": {
+            "separation": held.summary["separation"],
+            "comparison": per_pol(Path(held.products["compare_json"])),
+        },
     }
 
 
