@@ -2,7 +2,7 @@
 
 Usage (from the repository root, data in ``$AUTOCAL_DATA_DIR`` or ``../shared/data``)::
 
-    python scripts/tsky_roughness.py
+    python scripts/tsky_roughness.py [--sim-nside 32]
 
 40 integrations of 10.7 s from LST 3.23 h, 17 channels 110-190 MHz, ee, hard horizon. For
 the independent forward model (``tests/independent_sim.py``: the beam interpolated by pyuvdata
@@ -37,6 +37,16 @@ def roughness(tsky: np.ndarray) -> float:
 
 
 def main() -> None:
+    import argparse
+
+    import tests.independent_sim as sim
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--sim-nside", type=int, default=sim.SIM_NSIDE, help="the independent model's sky nside"
+    )
+    args = parser.parse_args()
+    sim.SIM_NSIDE = args.sim_nside  # before any (cached) evaluation
     site = get_site("hera")
     freqs = np.linspace(110e6, 190e6, 17)
     jds = jd_at_lst(3.23) + np.arange(40) * 10.7 / 86400
@@ -47,6 +57,7 @@ def main() -> None:
     a64 = compute_tsky("gsm2008", "hera", site, freqs, lsts, **kw).tsky
     a128 = compute_tsky("gsm2008", "hera", site, freqs, lsts, nside=128, **kw).tsky
     out = {
+        "independent_sky_nside": args.sim_nside,
         "roughness": {
             "independent": roughness(independent),
             "autocal_nside64": roughness(a64),

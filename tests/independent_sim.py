@@ -348,12 +348,12 @@ def _hera_uvbeam() -> Any:
 
 
 def hera_beam(freqs_hz: np.ndarray, za: np.ndarray, az: np.ndarray, pol: str = "ee") -> np.ndarray:
-    """Evaluate the HERA Fagnoni power beam with pyuvdata's ``UVBeam.interp``.
+    """Evaluate the HERA Fagnoni power beam (read with pyuvdata), smoothly.
 
-    pyuvdata interpolates bilinearly on the beam's HEALPix grid at its 26 native
-    frequencies (asking it for other frequencies makes it interpolate whole maps in
-    frequency first and redo the spatial weights for every channel, ~10x slower); a cubic
-    spline in frequency (scipy, not-a-knot) then gives the requested channels.
+    The beam's HEALPix maps at its 26 native frequencies are resampled once through
+    spherical harmonics to :data:`SMOOTH_BEAM_NSIDE` and interpolated bilinearly there
+    (healpy); a cubic spline in frequency (scipy, not-a-knot) then gives the requested
+    channels.
 
     Parameters
     ----------
@@ -377,17 +377,44 @@ def hera_beam(freqs_hz: np.ndarray, za: np.ndarray, az: np.ndarray, pol: str = "
         raise ValueError(
             f"the HERA beam covers {native.min() / 1e6:g}-{native.max() / 1e6:g} MHz only"
         )
-    az_uvb = np.mod(np.pi / 2 - np.asarray(az, np.float64), 2 * np.pi)
-    values, _ = beam.interp(
-        az_array=az_uvb,
-        za_array=np.asarray(za, np.float64),
-        polarizations=[pol],
-        return_basis_vector=False,
-        run_check=False,
-        check_azza_domain=False,
-    )
-    # values: (Naxes_vec=1, Npols=1, Nfreqs_native, Npoint)
-    return _freq_spline_matrix(tuple(native), tuple(freqs)) @ values[0, 0].real
+    import healpy as hp
+
+    smooth = _smooth_hera_maps(pol)  # (Nfreq_native, Npix) at SMOOTH_BEAM_NSIDE, RING
+    # pyuvdata's HEALPix beams are in (theta = za, phi = az from east towards north)
+    phi = np.mod(np.pi / 2 - np.asarray(az, np.float64), 2 * np.pi)
+    theta = np.asarray(za, np.float64)
+    values = np.stack([hp.get_interp_val(m, theta, phi) for m in smooth])
+    return _freq_spline_matrix(tuple(native), tuple(freqs)) @ values
+
+
+#: HEALPix resolution the HERA beam maps are resampled to (band-limited, through spherical
+#: harmonics up to 3 x the file's nside) before bilinear interpolation: a bilinear
+#: interpolation of the file's nside-32 maps has kinks at its pixel edges, which make Tsky
+#: rough from one integration to the next as the sky moves across them
+#: (``scripts/tsky_roughness.py``); the real beam is smooth.
+SMOOTH_BEAM_NSIDE = 128
+
+
+@functools.lru_cache(maxsize=4)
+def _smooth_hera_maps(pol: str) -> np.ndarray:
+    """The HERA beam's maps at every native frequency, resampled to a smooth finer grid."""
+    import healpy as hp
+
+    beam = _hera_uvbeam()
+    if beam.pixel_coordinate_system != "healpix" or beam.ordering != "ring":
+        raise ValueError("the HERA beam file is expected as a RING HEALPix power beam")
+    pols = [int(p) for p in np.ravel(beam.polarization_array)]
+    from pyuvdata import utils as uvutils
+
+    code = int(uvutils.polstr2num(pol, x_orientation="east"))
+    maps = np.asarray(beam.data_array)[0, pols.index(code)].real  # (Nfreq, Npix)
+    nside = int(beam.nside)
+    lmax = 3 * nside - 1
+    out = []
+    for m in maps:
+        alm = hp.map2alm(m, lmax=lmax, iter=3)
+        out.append(hp.alm2map(alm, SMOOTH_BEAM_NSIDE, lmax=lmax))
+    return np.asarray(out)
 
 
 @functools.lru_cache(maxsize=8)
