@@ -19,15 +19,18 @@ Correlated residuals and an unstable fit: delete-a-block jackknife
     Residuals correlated over less than a block and any instability of the fit over the
     span (a gain that wanders, a solution that depends on which part of the span is used)
     show up in it; the radiometer covariance does not see them. Its size relative to the
-    statistical covariance ``C`` is the factor ``f_jk = tr(C^-1 V_jk) / 2``; the statistical
-    covariance is scaled by ``max(1, f_jk)`` (the correlation of ``G`` and ``n`` is kept from
-    ``C``, which is far better determined than ``V_jk`` with ``B - 1`` degrees of freedom).
+    jackknife covariance ``E`` the statistical model itself predicts (from the blocks'
+    normal matrices: the delete-a-block estimator over-weights the ends of a time model)
+    and to the chi2/dof scaling ``s`` of the statistical covariance is the factor
+    ``f_jk = tr(E^-1 V_jk) / (2 s)``; the statistical covariance ``C`` is scaled by
+    ``max(1, f_jk)`` (the correlation of ``G`` and ``n`` is kept from ``C``, far better
+    determined than ``V_jk`` with ``B - 1`` degrees of freedom).
 
 What the span cannot decide: the time model averaged over one more order
     The fitted model is compared with the model that has one more Legendre order in both
     ``G(t)`` and ``n(t)`` (for the constant model: a gain and offset that drift linearly over
-    the span). The extra order is evaluated at each block's mean time (a staircase), so it
-    is built from the same block sums. Each channel weighs the two by the Bayesian
+    the span). Its sums are accumulated with the data (its lower orders are the fitted
+    model's), so it costs no second pass. Each channel weighs the two by the Bayesian
     information criterion of a quasi-likelihood (chi-square divided by the larger model's
     ``max(1, chi^2/dof)``, or ``chi^2/dof`` for identity weights, Burnham & Anderson's
     QAIC/QBIC): ``w_1 = 1 / (1 + exp(-(dchi2 / phi - 2 ln N) / 2))``, ``dchi2 = dx^T A dx``
@@ -35,8 +38,8 @@ What the span cannot decide: the time model averaged over one more order
     larger of its own weight and its antenna-pol's over all channels (the sum of the
     channels' statistics: a drifting gain drifts at every frequency). Both models are
     restricted to ``G > 0`` (:func:`positive_gain`): each estimate is its Gaussian truncated
-    there and the statistic gains ``2 ln [P_1(G > 0) / P_0(G > 0)]``. When the data prefer a drift,
-    ``w_1 -> 1`` and the total covers both the drift model's (much larger) uncertainty and
+    there and the statistic gains ``2 ln [P_1(G > 0) / P_0(G > 0)]``. When the data prefer a
+    drift, ``w_1 -> 1`` and the total covers both the drift model's (much larger) uncertainty and
     the difference between the two estimates; on data that follow the fitted model
     ``w_1 ~ 1e-2`` and the total stays at the statistical error.
 
@@ -50,9 +53,11 @@ than ``2 MIN_BLOCKS`` integrations) there is no jackknife, and a model that cann
 more order (too few samples, an extension that does not solve) gets ``w_1 = 0``.
 
 Assumptions: the blocks are long compared with the correlation time of the residuals (else
-the jackknife under-estimates); a drift of the gain is smooth over the span (a staircase of
-``B`` steps represents it); the BIC weights assume the residual scatter is the same in both
-models up to the factor ``phi``.
+the jackknife under-estimates); an unmodelled drift is smooth enough over the span for one
+more Legendre order to represent it; the BIC weights assume the residual scatter is the same
+in both models up to the factor ``phi``. Errors with no time signature (a sky model's
+spectrum, a flux scale) are not covered: they belong to a systematics budget
+(:mod:`autocal.compare`).
 """
 
 from __future__ import annotations
