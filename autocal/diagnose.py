@@ -940,11 +940,11 @@ PLAUSIBLE_LIMITS = {
 #: is ~1 min in right ascension.
 TIMING_MAX_S = 240.0
 #: Legendre order of the smooth part removed from a ``gain_jitter`` series before its
-#: remainder is tested (:func:`jitter_is_white`).
+#: remainder is tested (:func:`jitter_is_significant`).
 JITTER_SMOOTH_ORDER = 3
 
 
-def jitter_is_white(
+def jitter_is_significant(
     eps: np.ndarray,
     sigma: np.ndarray,
     lsts: np.ndarray,
@@ -1523,7 +1523,7 @@ def _diagnose_once(
             if eff.basis == "integration":
                 eps = np.concatenate([[0.0], trial.params[eff.name]])
                 sig = np.concatenate([[0.0], trial.sigmas[eff.name]])
-                white, info = jitter_is_white(
+                white, info = jitter_is_significant(
                     eps,
                     sig,
                     obs.lsts,
