@@ -40,7 +40,14 @@ from scipy import stats
 from threadpoolctl import threadpool_limits
 
 from autocal.delay import delay_spectrum
-from autocal.effects import Effect, SkyTemplates, catalogue, time_basis
+from autocal.effects import (
+    DIURNAL_MIN_SPAN_H,
+    Effect,
+    SkyTemplates,
+    catalogue,
+    diurnal_basis,
+    time_basis,
+)
 from autocal.fit import unwrap_lsts
 from autocal.observation import Observation
 
@@ -119,6 +126,10 @@ class ExtendedFit:
         (0 below :data:`IDENTIFIABLE_RESOLUTION`: degenerate with ``(G, n)``).
     iterations
         Gauss-Newton iterations used.
+    gain_factor, noise_factor
+        ``(Ntime,)`` the achromatic factors of ``G`` and ``n`` over time
+        (``G(t) = G gain_factor(t)``, ``n(t) = n noise_factor(t)``; ones without drift or
+        jitter).
     """
 
     effects: tuple[Effect, ...]
@@ -134,6 +145,8 @@ class ExtendedFit:
     residuals: np.ndarray
     identifiable: dict[str, float]
     iterations: int
+    gain_factor: np.ndarray | None = None
+    noise_factor: np.ndarray | None = None
 
     @property
     def dof(self) -> int:
@@ -182,6 +195,7 @@ def fit_extended(
     gain_ref: np.ndarray | None = None,
     max_iter: int = 30,
     tol: float = 1e-4,
+    start: dict[str, np.ndarray] | None = None,
 ) -> ExtendedFit:
     """Fit per-channel ``(G, n)`` and the global parameters of ``effects``.
 
@@ -204,13 +218,16 @@ def fit_extended(
         without prior).
     max_iter, tol
         Gauss-Newton limits (``tol`` in units of the parameter sigma).
+    start
+        ``{effect name: values}`` to start Gauss-Newton from (default zero: no effect);
+        entries whose length does not match the effect's free parameters are ignored.
 
     Returns
     -------
     ExtendedFit
         The fit.
     """
-    effects = tuple(e for e in effects if e.kind != "bandpass")
+    effects = tuple(e for e in effects if e.kind not in ("bandpass", "feed_gain"))
     if tpl.total.shape[0] != len(obs.pols) or tpl.total.shape[1:] != (obs.ntime, obs.nfreq):
         raise DiagnoseError("templates do not match the observation's grid")
     w = np.swapaxes(np.where(np.isfinite(weights) & (weights > 0), weights, 0.0), 2, 3)
@@ -223,6 +240,10 @@ def fit_extended(
     blocks = _split(effects)
     nfree = sum(b.stop - b.start for _, b in blocks)
     p = np.zeros(nfree)
+    for eff, sl in blocks:
+        init = None if start is None else start.get(eff.name)
+        if init is not None and np.shape(init) == (sl.stop - sl.start,):
+            p[sl] = np.where(np.isfinite(init), init, 0.0)
     fixed = {e.name: np.asarray(e.fixed, float) for e in effects if e.fixed is not None}
     bases = {(e.basis, e.order): e.time_basis(obs.lsts) for e in effects if e.kind != "tsky"}
     prior = trxr_prior is not None
@@ -293,7 +314,7 @@ def fit_extended(
     with np.errstate(over="ignore", invalid="ignore", under="ignore"):
         if prior:
             if gain_ref is None:
-                gain_ref = evaluate(p, wp).g
+                gain_ref = evaluate(np.zeros(nfree), wp).g  # the model without effects
             gain_ref = np.where(np.abs(gain_ref) > 0, np.abs(gain_ref), np.inf)
             wp = np.where(chan_ok & has_prior, 1.0 / (gain_ref * sig0) ** 2, 0.0)
         st = evaluate(p, wp)
@@ -380,6 +401,8 @@ def fit_extended(
         residuals=resid,
         identifiable=ident,
         iterations=it,
+        gain_factor=np.asarray(st.gfac, float).copy(),
+        noise_factor=np.asarray(st.nfac, float).copy(),
     )
 
 
@@ -925,12 +948,16 @@ class Diagnosis:
 #: Largest |parameter| of an effect taken as that effect (fractions; K for ``sky_offset`` and
 #: ``ground_temperature``): a fit beyond it means the template absorbs other structure (e.g.
 #: a diurnal drift of amplitude 100 over half an hour, nearly collinear with a constant).
+#: ``sky_spectral_index``: the diffuse sky's index at 90-190 MHz is measured between about
+#: -2.5 and -2.6 (EDGES, Mozdzen et al. 2017), varying by ~0.1 over the sky, so a sky
+#: model whose index is wrong by more than 0.3 is a template absorbing a beam or horizon
+#: error.
 PLAUSIBLE_LIMITS = {
     "gain_drift": 0.5,
     "noise_drift": 0.5,
     "beam_width": 0.3,
     "sky_scale": 0.5,
-    "sky_spectral_index": 0.5,
+    "sky_spectral_index": 0.3,
     "sky_offset": 100.0,
     "ground_temperature": 300.0,
 }
@@ -942,6 +969,9 @@ TIMING_MAX_S = 240.0
 #: Legendre order of the smooth part removed from a ``gain_jitter`` series before its
 #: remainder is tested (:func:`jitter_is_significant`).
 JITTER_SMOOTH_ORDER = 3
+#: Sidereal-day harmonics also removed from a ``gain_jitter`` series spanning at least
+#: :data:`autocal.effects.DIURNAL_MIN_SPAN_H` (:func:`jitter_is_significant`).
+JITTER_DIURNAL_HARMONICS = 2
 
 
 def jitter_is_significant(
@@ -960,7 +990,8 @@ def jitter_is_significant(
     follows the sky's own variation). The series counts as jitter only if, after removing
     a Legendre polynomial of order :data:`JITTER_SMOOTH_ORDER` in LST and the sky's time
     shapes (``sky_shapes``: e.g. the band-averaged model Tsky, its square and its time
-    derivative), the remainder pays for its extra parameters as any candidate must: its
+    derivative), and over 6 h or more :data:`JITTER_DIURNAL_HARMONICS` sidereal-day
+    harmonics, the remainder pays for its extra parameters as any candidate must: its
     chi-square over the overdispersion, less ``ln N`` per parameter beyond the smooth part,
     exceeds :data:`BIC_THRESHOLD`. Fluctuations correlated from one integration to the
     next (red gain noise) pass when they are large; what a smooth function of time or of the
@@ -996,6 +1027,10 @@ def jitter_is_significant(
     order = min(JITTER_SMOOTH_ORDER, max(int(good.sum()) - 3, 0))
     if order:
         rows += list(time_basis(lsts, order))
+    if np.ptp(unwrap_lsts(np.asarray(lsts, float))) >= DIURNAL_MIN_SPAN_H:
+        # the catalogue's diurnal drifts are smooth too (a sidereal-day sine is not a
+        # low-order polynomial over a day)
+        rows += list(diurnal_basis(lsts, JITTER_DIURNAL_HARMONICS))
     if sky_shapes is not None:
         for shape in np.atleast_2d(sky_shapes):
             if np.all(np.isfinite(shape)) and np.ptp(shape) > 0:
@@ -1138,8 +1173,13 @@ def is_negligible(impact: dict[str, Any]) -> bool:
     :data:`NEGLIGIBLE_MAX_SIGMA` in every channel, for both ``G`` and ``Trxr``; or a median
     absolute change below :data:`NEGLIGIBLE_G_FRACTION` of ``G`` and
     :data:`NEGLIGIBLE_TRXR_K` in ``Trxr`` (below what the sky model itself supports) and
-    no channel moving by ten times that. Never negligible when fewer than half of the
-    channels could be compared (the ordinary calibration failed in the rest).
+    no channel moving by ten times that. In both cases the products' variation in time
+    must also stay put (``G_time``, ``Trxr_time``: a drift or jitter changing ``G(t)`` by
+    more than :data:`NEGLIGIBLE_G_FRACTION` rms or ten times that at any integration, or
+    ``Trxr(t)`` by :data:`NEGLIGIBLE_TRXR_K` in the median channel, matters to whoever
+    applies the gains per integration, however well the time-mean products agree). Never
+    negligible when fewer than half of the channels could be compared (the ordinary
+    calibration failed in the rest).
     """
     g, t = impact.get("G", {}), impact.get("Trxr", {})
     if "median_change_over_sigma" not in g or "median_change_over_sigma" not in t:
@@ -1157,7 +1197,14 @@ def is_negligible(impact: dict[str, Any]) -> bool:
         and e["max_change_over_sigma"] < NEGLIGIBLE_MAX_SIGMA
         for e in (g, t)
     )
-    return bool(small or within)
+    gt, tt = impact.get("G_time", {}), impact.get("Trxr_time", {})
+    steady = (
+        gt.get("rms_relative_change", 0.0) < NEGLIGIBLE_G_FRACTION
+        and gt.get("max_abs_relative_change", 0.0) < 10 * NEGLIGIBLE_G_FRACTION
+        and tt.get("median_max_abs_change_K", 0.0) < NEGLIGIBLE_TRXR_K
+        and tt.get("max_abs_change_K", 0.0) < 10 * NEGLIGIBLE_TRXR_K
+    )
+    return bool((small or within) and steady)
 
 
 def product_sigmas(
@@ -1193,13 +1240,27 @@ def product_impact(
     dict
         For ``G`` and ``Trxr``: the median and largest ``|change| / sigma`` over channels,
         the median change (relative for ``G``, kelvin for ``Trxr``) and the channels
-        compared; ``significant`` when the median change exceeds one total sigma.
+        compared (time means: a jitter's ``G`` is its reference integration's);
+        ``significant`` when the median change exceeds one total sigma. ``G_time``: the rms
+        and largest change of ``G(t) / <G>`` (achromatic); ``Trxr_time``: the largest
+        change over time of ``Trxr(t) - <Trxr>`` in kelvin, median channel and worst.
     """
     out: dict[str, Any] = {}
+    gs_b, ns_b = _time_shapes(before)
+    gs_a, ns_a = _time_shapes(after)
     with np.errstate(invalid="ignore", divide="ignore"):
+        # the time-mean products (a jitter's G is that of its reference integration)
+        g_b, g_a = (
+            before.G * _mean_factor(before.gain_factor),
+            after.G * _mean_factor(after.gain_factor),
+        )
+        t_b, t_a = (
+            before.Trxr * _mean_factor(before.noise_factor),
+            after.Trxr * _mean_factor(after.noise_factor),
+        )
         pairs = {
-            "G": (after.G - before.G, sigma_g, (after.G - before.G) / np.abs(before.G)),
-            "Trxr": (after.Trxr - before.Trxr, sigma_t, after.Trxr - before.Trxr),
+            "G": (g_a - g_b, sigma_g, (g_a - g_b) / np.abs(g_b)),
+            "Trxr": (t_a - t_b, sigma_t, t_a - t_b),
         }
         for name, (diff, sig, change) in pairs.items():
             z = np.abs(diff) / sig
@@ -1213,9 +1274,40 @@ def product_impact(
                 entry[key.replace("median_", "median_abs_")] = float(np.median(np.abs(change[ok])))
                 entry[key.replace("median_", "max_abs_")] = float(np.max(np.abs(change[ok])))
             out[name] = entry
-    medians = [e.get("median_change_over_sigma", 0.0) for e in out.values()]
+        # how the products' variation in time changes (drifts, jitter): G's relative
+        # shape is achromatic; Trxr's in kelvin per channel
+        dshape = gs_a - gs_b
+        out["G_time"] = {
+            "rms_relative_change": float(np.sqrt(np.mean(dshape**2))),
+            "max_abs_relative_change": float(np.max(np.abs(dshape))),
+        }
+        dtrx = np.abs(t_a[..., None] * (ns_a - 1.0) - t_b[..., None] * (ns_b - 1.0)).max(axis=-1)
+        ok = np.isfinite(dtrx)
+        out["Trxr_time"] = (
+            {
+                "median_max_abs_change_K": float(np.median(dtrx[ok])),
+                "max_abs_change_K": float(np.max(dtrx[ok])),
+            }
+            if ok.any()
+            else {}
+        )
+    medians = [e.get("median_change_over_sigma", 0.0) for e in (out["G"], out["Trxr"])]
     out["significant"] = bool(max(medians) > 1.0)
     return out
+
+
+def _mean_factor(factor: np.ndarray | None) -> float:
+    """Time mean of a fit's gain or noise factor (1 without one)."""
+    return 1.0 if factor is None else float(np.mean(factor))
+
+
+def _time_shapes(fit: ExtendedFit) -> tuple[np.ndarray, np.ndarray]:
+    """``(Ntime,)`` gain and noise factors relative to their time means."""
+    shapes = []
+    for factor in (fit.gain_factor, fit.noise_factor):
+        f = np.ones(1) if factor is None else np.asarray(factor, float)
+        shapes.append(f / np.mean(f))
+    return shapes[0], shapes[1]
 
 
 def _params_dict(eff: Effect, fit: ExtendedFit) -> dict[str, dict[str, float]]:
@@ -1378,7 +1470,7 @@ def _retest_accepted(
                 continue
             rest = [a for a in active if a is not eff]
             try:
-                without = fit_extended(obs, tpl, rest, weights=w, **prior_kw)
+                without = fit_extended(obs, tpl, rest, weights=w, start=current.params, **prior_kw)
             except (DiagnoseError, np.linalg.LinAlgError):
                 continue
             stat = (without.chi2 - current.chi2) / chat_f - eff.nfree * math.log(current.ndata)
@@ -1391,10 +1483,310 @@ def _retest_accepted(
                 for st in diag.steps:
                     if st["name"] == eff.name and "dropped_in_backward_pass" not in st:
                         st["dropped_in_backward_pass"] = {"statistic": float(stat), "at": when}
-                current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
+                current = fit_extended(
+                    obs, tpl, active, weights=w, start=without.params, **prior_kw
+                )
                 changed = True
                 break
     return active, current
+
+
+def wald_statistic(fit: ExtendedFit, eff: Effect) -> float | None:
+    """Return ``sum (value / sigma)^2`` of an effect's free parameters in a fit.
+
+    The Wald statistic with the covariance's diagonal: for a model linear in the effect's
+    parameters it equals the fit's Delta chi2 when the parameters are uncorrelated. A
+    Delta chi2 far above it means the improvement came from the other parameters moving
+    (the model is not linear in them), not from this effect. ``None`` for a fixed effect.
+    """
+    if eff.fixed is not None or not eff.nfree or eff.name not in fit.params:
+        return None
+    values = np.asarray(fit.params[eff.name], float)
+    sigmas = np.asarray(fit.sigmas[eff.name], float)
+    ok = np.isfinite(values) & np.isfinite(sigmas) & (sigmas > 0)
+    return float(np.sum((values[ok] / sigmas[ok]) ** 2))
+
+
+#: Significance (chi-square survival probability) below which the two half-band fits of
+#: an effect disagree (:func:`band_consistency`) ...
+CONSISTENCY_ALPHA = 1e-3
+#: ... provided they also differ by more than this fraction of the whole band's value.
+CONSISTENCY_RELATIVE = 0.3
+
+
+def _band_half(
+    obs: Observation,
+    tpl: SkyTemplates,
+    w: np.ndarray,
+    prior_kw: dict[str, Any],
+    channels: slice,
+) -> tuple[Observation, SkyTemplates, np.ndarray, dict[str, Any]]:
+    """Restrict the observation, templates, weights and receiver prior to ``channels``."""
+    f = obs.freqs[channels]
+    sub = obs.select(freq_range=(float(f[0]), float(f[-1])))
+    sub_tpl = _template_subset(tpl, channels=channels)
+    sub_prior = {}
+    for key, value in prior_kw.items():
+        arr = None if value is None else np.asarray(value, float)
+        sub_prior[key] = (
+            arr[..., channels]
+            if arr is not None and arr.ndim and arr.shape[-1] == obs.nfreq
+            else value
+        )
+    return sub, sub_tpl, w[..., channels], sub_prior
+
+
+def band_consistency(
+    obs: Observation,
+    tpl: SkyTemplates,
+    active: list[Effect],
+    eff: Effect,
+    fit: ExtendedFit,
+    w: np.ndarray,
+    prior_kw: dict[str, Any],
+) -> dict[str, Any] | None:
+    """Fit a candidate in the lower and the upper half of the band and compare.
+
+    Every effect of the catalogue has the same parameters at every frequency (an
+    achromatic drift, one sky scale or index, one beam-width factor, one timing offset).
+    A template that fits because it absorbs structure of another origin, e.g. a spectral
+    index of -0.5 taking up part of a beam-shape error, generally gets different values
+    from the two halves. They disagree when the difference is significant (chi-square of
+    the difference over the summed variances, scaled by the halves' overdispersion,
+    survival probability below :data:`CONSISTENCY_ALPHA`) and larger than
+    :data:`CONSISTENCY_RELATIVE` of the whole band's value (a real effect measured with
+    tiny errors may differ slightly between halves when the sky model is slightly wrong).
+
+    Parameters
+    ----------
+    obs, tpl, w, prior_kw
+        The observation, its templates, weights and receiver prior.
+    active
+        The effects already in the model (refitted in each half).
+    eff
+        The candidate (free parameters; a fixed effect is not tested).
+    fit
+        Its fit on the whole band.
+
+    Returns
+    -------
+    dict or None
+        ``consistent``, ``values`` (lower, upper, whole), ``chi2``, ``k``, ``p_value``,
+        ``relative_difference`` and ``message``; ``None`` (no verdict) when the candidate
+        has no free parameters, is a per-integration series (``gain_jitter``, judged by
+        :func:`jitter_is_significant`: split by band, its hundreds of factors follow
+        whatever chromatic structure the model still lacks), or a half cannot be fitted.
+    """
+    if eff.fixed is not None or not eff.nfree or obs.nfreq < 8 or eff.basis == "integration":
+        return None
+    mid = obs.nfreq // 2
+    halves = []
+    for channels in (slice(0, mid), slice(mid, obs.nfreq)):
+        try:
+            sub, sub_tpl, sub_w, sub_prior = _band_half(obs, tpl, w, prior_kw, channels)
+            half = fit_extended(
+                sub, sub_tpl, [*active, eff], weights=sub_w, start=fit.params, **sub_prior
+            )
+        except (DiagnoseError, np.linalg.LinAlgError, ValueError) as exc:
+            logger.debug("band consistency of %s: no verdict (%s)", eff.name, exc)
+            return None
+        if half.identifiable.get(eff.name, 0.0) < MIN_IDENTIFIABLE:
+            return None
+        halves.append(half)
+    lo, hi = (np.asarray(h.params[eff.name], float) for h in halves)
+    slo, shi = (np.asarray(h.sigmas[eff.name], float) for h in halves)
+    whole = np.asarray(fit.params[eff.name], float)
+    var = slo**2 + shi**2
+    ok = np.isfinite(lo) & np.isfinite(hi) & np.isfinite(var) & (var > 0)
+    if not ok.any():
+        return None
+    chat = max(1.0, *(h.reduced_chi2 for h in halves))
+    chi2 = float(np.sum((lo - hi)[ok] ** 2 / var[ok]) / chat)
+    k = int(ok.sum())
+    pval = float(stats.chi2.sf(chi2, k))
+    rel = float(np.linalg.norm((lo - hi)[ok]) / max(np.linalg.norm(whole[ok]), 1e-300))
+    consistent = bool(pval >= CONSISTENCY_ALPHA or rel <= CONSISTENCY_RELATIVE)
+    show = (
+        f"{eff.params[0]} = {lo[0]:.4g} +- {slo[0]:.2g} (lower half), {hi[0]:.4g} +- "
+        f"{shi[0]:.2g} (upper)"
+        if lo.size <= 2
+        else f"{k} values differ by {100 * rel:.0f} % rms of the whole band's"
+    )
+    return {
+        "consistent": consistent,
+        "values": {"lower": lo.tolist(), "upper": hi.tolist(), "whole": whole.tolist()}
+        if lo.size <= 8
+        else None,
+        "chi2": chi2,
+        "k": k,
+        "p_value": pval,
+        "relative_difference": rel,
+        "message": f"{show}; chi2 {chi2:.3g} for {k}, p {pval:.2g}",
+    }
+
+
+#: Most antenna-pols for which ``antenna_gain_jitter`` is tried (one fit each).
+FEED_JITTER_MAX_FEEDS = 64
+
+
+@dataclass(frozen=True)
+class FeedJitterFit:
+    """Every antenna-pol's own per-integration gain series (:func:`fit_feed_jitter`).
+
+    Attributes
+    ----------
+    factors, sigmas
+        ``(Nant, Npol, Ntime)`` gain factors (time mean 1 per antenna-pol) and 1-sigma.
+    chi2
+        Sum of the antenna-pols' chi-square (with their prior terms).
+    delta_chi2
+        The common-series model's chi-square less :attr:`chi2`.
+    k
+        Extra parameters: ``(Nfeeds - 1) (Ntime - 1)``.
+    ndata, nparam
+        Data (with prior rows) and parameters of the per-antenna-pol model.
+    """
+
+    factors: np.ndarray
+    sigmas: np.ndarray
+    chi2: float
+    delta_chi2: float
+    k: int
+    ndata: int
+    nparam: int
+
+    @property
+    def reduced_chi2(self) -> float:
+        """``chi^2 / dof``."""
+        return self.chi2 / max(self.ndata - self.nparam, 1)
+
+
+def fit_feed_jitter(
+    obs: Observation,
+    tpl: SkyTemplates,
+    active: list[Effect],
+    current: ExtendedFit,
+    w: np.ndarray,
+    prior_kw: dict[str, Any],
+) -> FeedJitterFit | None:
+    """Fit each antenna-pol's own ``gain_jitter`` series, the other effects held.
+
+    The model with one common series (``gain_jitter`` in ``active``, fitted in
+    ``current``) is nested in this one: each antenna-pol gets its own series, started
+    from the common one, with every other accepted effect fixed at its joint estimate, so
+    the antenna-pols are independent and fitted one by one. ``None`` when a fit fails.
+    """
+    jitter = next((a for a in active if a.basis == "integration"), None)
+    if jitter is None:
+        return None
+    held = [
+        a if a.fixed is not None else dataclasses.replace(a, fixed=tuple(current.params[a.name]))
+        for a in active
+        if a is not jitter
+    ]
+    shape = (obs.nant, len(obs.pols), obs.nfreq)
+    prior = {
+        key: value
+        if value is None or np.ndim(value) == 0
+        else np.broadcast_to(np.asarray(value, float), shape)
+        for key, value in prior_kw.items()
+    }
+    factors = np.ones((obs.nant, len(obs.pols), obs.ntime))
+    sigmas = np.zeros_like(factors)
+    chi2, ndata, nparam = 0.0, 0, 0
+    for ia, ant in enumerate(obs.antennas):
+        for ip, pol in enumerate(obs.pols):
+            sub = obs.select(antennas=[int(ant)], pols=[pol])
+            sub_tpl = _template_subset(tpl, pols=slice(ip, ip + 1))
+            sub_prior = {
+                key: value
+                if value is None or np.ndim(value) == 0
+                else value[ia : ia + 1, ip : ip + 1]
+                for key, value in prior.items()
+            }
+            try:
+                fit = fit_extended(
+                    sub,
+                    sub_tpl,
+                    [jitter, *held],
+                    weights=w[ia : ia + 1, ip : ip + 1],
+                    start={jitter.name: current.params[jitter.name]},
+                    **sub_prior,
+                )
+            except (DiagnoseError, np.linalg.LinAlgError) as exc:
+                logger.info("antenna_gain_jitter: %s %s not fitted (%s)", ant, pol, exc)
+                return None
+            eps = np.concatenate([[0.0], fit.params[jitter.name]])
+            factors[ia, ip] = (1.0 + eps) / np.mean(1.0 + eps)
+            sigmas[ia, ip] = np.concatenate([[0.0], fit.sigmas[jitter.name]])
+            chi2 += fit.chi2
+            ndata += fit.ndata
+            nparam += fit.nparam
+    nfeeds = obs.nant * len(obs.pols)
+    return FeedJitterFit(
+        factors=factors,
+        sigmas=sigmas,
+        chi2=chi2,
+        delta_chi2=float(current.chi2 - chi2),
+        k=(nfeeds - 1) * (obs.ntime - 1),
+        ndata=ndata,
+        nparam=nparam,
+    )
+
+
+def _template_subset(
+    tpl: SkyTemplates, pols: slice = slice(None), channels: slice = slice(None)
+) -> SkyTemplates:
+    """Return the templates of some polarisations and channels."""
+    fields: dict[str, Any] = {"freqs": tpl.freqs[channels]}
+    for name in ("total", "galactic", "cmb", "ground", "beam_dwidth", "lst_derivative"):
+        arr = getattr(tpl, name)
+        fields[name] = None if arr is None else arr[pols, :, channels]
+    for name in ("f_above", "f_below"):
+        fields[name] = getattr(tpl, name)[pols, channels]
+    if tpl.beam_width_poly is not None:
+        fields["beam_width_poly"] = tpl.beam_width_poly[:, pols, :, channels]
+    return dataclasses.replace(tpl, **fields)
+
+
+#: Most times one search re-fits its model from a candidate's better minimum
+#: (:func:`_escape_local_minimum`).
+MAX_RESTARTS = 2
+
+
+def _escape_local_minimum(
+    obs: Observation,
+    tpl: SkyTemplates,
+    active: list[Effect],
+    current: ExtendedFit,
+    fit: ExtendedFit,
+    w: np.ndarray,
+    prior_kw: dict[str, Any],
+    bic_threshold: float,
+) -> ExtendedFit | None:
+    """Re-fit the current model from a candidate fit's values of its parameters.
+
+    The model with several effects is not linear in their parameters (a per-integration
+    gain and a noise drift are nearly interchangeable over half an hour), so Gauss-Newton
+    from zero can stop in a local minimum. A candidate fit that nests the current model
+    then "explains" the difference between the two minima, whatever its own parameter
+    says (a timing offset of -76 +- 130 s taking Delta chi2 1.5e5 from a per-integration
+    gain and a noise drift stuck at chi2/dof 6.4 with the drift's sign wrong). Started from
+    ``fit``'s values (the step's lowest-chi2 candidate model) of the accepted effects'
+    parameters, the current model reaches the better minimum itself; it is returned when
+    it lowers chi2 by more than ``bic_threshold`` (in units of its overdispersion), else
+    ``None``. Every fit's prior weights come from the model without effects, so chi2 of
+    fits started from different values compare.
+    """
+    start = {e.name: fit.params[e.name] for e in active if e.fixed is None and e.name in fit.params}
+    if not start:
+        return None
+    try:
+        refit = fit_extended(obs, tpl, active, weights=w, start=start, **prior_kw)
+    except (DiagnoseError, np.linalg.LinAlgError):
+        return None
+    gain = (current.chi2 - refit.chi2) / max(1.0, refit.reduced_chi2)
+    return refit if gain > bic_threshold else None
 
 
 def _diagnose_once(
@@ -1421,6 +1813,7 @@ def _diagnose_once(
             ntime=obs.ntime,
             include_timing=tpl.lst_derivative is not None,
             span_h=float(np.ptp(unwrap_lsts(obs.lsts))),
+            nfeeds=obs.nant * len(obs.pols),
         )
     )
     if smooth_order is None:
@@ -1462,8 +1855,16 @@ def _diagnose_once(
     )
     diag.initial_gap = gap_metrics(current, obs, tpl, bp_null)
     diag.residual_snapshots.append(("initial model", current.residuals[0, 0]))
-    for step in range(max_steps):
+
+    def try_candidates(step: int) -> tuple[list[tuple[Any, ...]], ExtendedFit | None]:
+        """Fit every candidate not yet in the model.
+
+        Returns the accepted candidates' ``(nan, dchi2, k, effect, fit, c)`` and the
+        lowest-chi2 model fitted (rejected candidates included: see
+        :func:`_escape_local_minimum`).
+        """
         results = []
+        lowest: ExtendedFit | None = None
         for icand, eff in enumerate(cands):
             progress(
                 (step + icand / len(cands)) / max_steps,
@@ -1489,17 +1890,40 @@ def _diagnose_once(
                 stat = dchi / chat - k * math.log(max(null.nfreq, 2))
                 results.append((stat, dchi, k, eff, rip, chat))
                 continue
+            if eff.kind == "feed_gain":
+                # nested in gain_jitter: tested once a common series is in the model
+                if not any(a.basis == "integration" for a in active):
+                    continue
+                if obs.nant * len(obs.pols) > FEED_JITTER_MAX_FEEDS:
+                    diag.config["failed_candidates"][eff.name] = (
+                        f"not tested: {obs.nant * len(obs.pols)} antenna-pols (at most "
+                        f"{FEED_JITTER_MAX_FEEDS}, one fit each; select fewer antennas)"
+                    )
+                    continue
+                feed = fit_feed_jitter(obs, tpl, active, current, w, prior_kw)
+                if feed is not None:
+                    results.append(
+                        (math.nan, feed.delta_chi2, feed.k, eff, feed, feed.reduced_chi2)
+                    )
+                continue
             if eff.kind == "gain" and any(
                 a.kind == "gain" and a.basis == "integration" for a in active
             ):
                 continue  # nested: a per-integration gain already absorbs any gain drift
             try:
-                trial = fit_extended(obs, tpl, [*active, eff], weights=w, **prior_kw)
+                # from the current model's values (a new effect starts at zero): a model
+                # of several effects is not linear in them, and from zero Gauss-Newton
+                # can stop in a local minimum
+                trial = fit_extended(
+                    obs, tpl, [*active, eff], weights=w, start=current.params, **prior_kw
+                )
             except (DiagnoseError, np.linalg.LinAlgError) as exc:
                 label = f"{eff.name}/{eff.basis}{eff.order}"
                 logger.warning("candidate %s failed: %s", label, exc)
                 diag.config["failed_candidates"][label] = str(exc)
                 continue
+            if lowest is None or trial.chi2 < lowest.chi2:
+                lowest = trial
             if eff.name not in diag.identifiability:
                 diag.identifiability[eff.name] = trial.identifiable.get(eff.name, 0.0)
             if trial.identifiable.get(eff.name, 0.0) < MIN_IDENTIFIABLE:
@@ -1541,39 +1965,146 @@ def _diagnose_once(
                         "of the power smooth): a smooth effect or a sky-model error, not jitter"
                     )
                     continue
+            # a candidate that would pass on its Delta chi2 must pass on its own parameters
+            wald = wald_statistic(trial, eff)
+            penalty = eff.nfree * math.log(current.ndata)
+            chat_own = max(1.0, trial.reduced_chi2)
+            if (
+                wald is not None
+                and (current.chi2 - trial.chi2) / chat_own - penalty > bic_threshold
+                and wald / chat_own - penalty <= bic_threshold
+            ):
+                label = f"{eff.name}/{eff.basis}{eff.order}"
+                diag.config["failed_candidates"][label] = (
+                    f"its own parameters are consistent with zero (Wald chi2 {wald:.3g} for "
+                    f"{eff.nfree}) though the fit improves by Delta chi2 "
+                    f"{current.chi2 - trial.chi2:.3g}: the other parameters moved along a "
+                    "nearly degenerate valley, not evidence for this effect"
+                )
+                continue
             k, stat_fit = eff.nfree, trial
             if eff.name == "missing_cmb":
                 # a discrete hypothesis, m = +-1, nested in sky_offset (T_offset = -+2.725 K):
                 # no free parameter, so that it wins over sky_offset when it fits as well
                 m = 1.0 if trial.params[eff.name][0] > 0 else -1.0
+                # ... but only if the data ask for a CMB-shaped offset at all: the free
+                # factor must pay for its parameter (else a small offset of any origin,
+                # e.g. a horizon treated differently, passes for a missing CMB)
+                free_stat = (current.chi2 - trial.chi2) / max(1.0, trial.reduced_chi2) - math.log(
+                    current.ndata
+                )
+                if free_stat <= bic_threshold:
+                    diag.config["failed_candidates"]["missing_cmb"] = (
+                        f"the free CMB factor {trial.params[eff.name][0]:.3g} +- "
+                        f"{trial.sigmas[eff.name][0]:.2g} does not pay for its parameter "
+                        f"(Delta BIC {free_stat:.3g})"
+                    )
+                    continue
                 fixed_eff = Effect(**{**eff.__dict__, "fixed": (m,)})
-                stat_fit = fit_extended(obs, tpl, [*active, fixed_eff], weights=w, **prior_kw)
+                stat_fit = fit_extended(
+                    obs, tpl, [*active, fixed_eff], weights=w, start=trial.params, **prior_kw
+                )
                 k = 0
                 stat_fit = (stat_fit, trial, fixed_eff)  # type: ignore[assignment]
             fit_for_chi = stat_fit[0] if isinstance(stat_fit, tuple) else stat_fit
             dchi = current.chi2 - fit_for_chi.chi2
             results.append((math.nan, dchi, k, eff, stat_fit, fit_for_chi.reduced_chi2))
+        return results, lowest
+
+    restarts = 0
+    consistency: dict[str, dict[str, Any]] = {}
+    for step in range(max_steps):
+        while True:
+            results, lowest = try_candidates(step)
+            escaped = (
+                _escape_local_minimum(obs, tpl, active, current, lowest, w, prior_kw, bic_threshold)
+                if restarts < MAX_RESTARTS and lowest is not None
+                else None
+            )
+            if escaped is None:
+                break
+            restarts += 1
+            diag.config.setdefault("restarts", []).append(
+                {
+                    "step": step + 1,
+                    "chi2_before": float(current.chi2),
+                    "chi2_after": float(escaped.chi2),
+                    "from_model": [e.name for e in lowest.effects],
+                }
+            )
+            logger.info(
+                "step %d: the model was at a local minimum (%s reaches a chi2 lower by %.1f "
+                "with parameters the model can take itself); refitted from there",
+                step + 1,
+                "+".join(e.name for e in lowest.effects),
+                current.chi2 - escaped.chi2,
+            )
+            w = radiometer_weights(obs, escaped.model)
+            current = fit_extended(obs, tpl, active, weights=w, start=escaped.params, **prior_kw)
+        if results:
+            # one overdispersion for every time-domain candidate of a step (as in QAIC,
+            # from the best-fitting model), so that tiny differences of chi2/dof between
+            # candidates are not multiplied by a huge Delta chi2
+            own = [r[5] for r in results if r[3].kind != "bandpass"]
+            chat_t = max(1.0, min(own)) if own else 1.0
+            results = [
+                r
+                if r[3].kind == "bandpass"
+                else (
+                    r[1] / chat_t - r[2] * math.log(current.ndata),
+                    r[1],
+                    r[2],
+                    r[3],
+                    r[4],
+                    chat_t,
+                )
+                for r in results
+            ]
+            # best variant of each effect name first, then best overall
+            results.sort(key=lambda r: -r[0])
         if not results:
             break
-        # one overdispersion for every time-domain candidate of a step (as in QAIC, from
-        # the best-fitting model), so that tiny differences of chi2/dof between
-        # candidates are not multiplied by a huge Delta chi2
-        own = [r[5] for r in results if r[3].kind != "bandpass"]
-        chat_t = max(1.0, min(own)) if own else 1.0
-        results = [
-            r
-            if r[3].kind == "bandpass"
-            else (r[1] / chat_t - r[2] * math.log(current.ndata), r[1], r[2], r[3], r[4], chat_t)
-            for r in results
-        ]
-        # best variant of each effect name first, then best overall
-        results.sort(key=lambda r: -r[0])
-        best = results[0]
-        stat, dchi, k, eff, payload, chat = best
-        pval = float(stats.chi2.sf(dchi / chat, max(k, 1)))
         candidates_report = {}
         for r in results:
             candidates_report.setdefault(r[3].name, float(r[0]))
+        # the best candidate whose parameters the two halves of the band agree on: an
+        # effect of the catalogue is the same at every frequency, a template absorbing
+        # structure of another origin (a beam-shape error, say) is not
+        best = results[0]
+        for r in results:
+            r_stat, r_dchi, r_k, r_eff, r_payload, r_chat = r
+            r_p = float(stats.chi2.sf(r_dchi / r_chat, max(r_k, 1)))
+            if not (r_stat > bic_threshold and r_p < alpha):
+                break
+            best = r
+            if r_eff.kind in ("bandpass", "feed_gain"):
+                break
+            free_fit = r_payload[1] if isinstance(r_payload, tuple) else r_payload
+            check = band_consistency(obs, tpl, active, r_eff, free_fit, w, prior_kw)
+            if check is None or check["consistent"]:
+                if check is not None:
+                    consistency[r_eff.name] = check
+                break
+            label = f"{r_eff.name}/{r_eff.basis}{r_eff.order}"
+            diag.config["failed_candidates"][label] = (
+                f"Delta BIC {r_stat:.3g}, but the two halves of the band disagree on its "
+                f"parameters ({check['message']}): its template absorbs structure of "
+                "another origin"
+            )
+            logger.info("step %d: %s inconsistent across the band", step + 1, r_eff.name)
+            best = None
+        if best is None:
+            diag.config["last_rejected"] = {
+                "name": results[0][3].name,
+                "statistic": float(results[0][0]),
+                "p_value": float(
+                    stats.chi2.sf(results[0][1] / results[0][5], max(results[0][2], 1))
+                ),
+                "reason": "inconsistent across the band",
+            }
+            break
+        stat, dchi, k, eff, payload, chat = best
+        pval = float(stats.chi2.sf(dchi / chat, max(k, 1)))
         logger.info("step %d: best %s (Delta BIC %.1f, p %.2g)", step + 1, eff.name, stat, pval)
         if not (stat > bic_threshold and pval < alpha):
             diag.config["last_rejected"] = {"name": eff.name, "statistic": stat, "p_value": pval}
@@ -1599,6 +2130,48 @@ def _diagnose_once(
             gap_after["bandpass_reduced_chi2"] = rip.reduced_chi2
             bp_null = rip
             diag.residual_snapshots.append((f"after {eff.name}", current.residuals[0, 0]))
+        elif eff.kind == "feed_gain":
+            feed: FeedJitterFit = payload
+            # every antenna-pol's series replaces the common one: divided out of the data
+            # (held at its estimate from here on) and the common gain_jitter superseded
+            obs = dataclasses.replace(obs, data=obs.data / feed.factors[..., None])
+            common = next(a for a in active if a.basis == "integration")
+            active = [a for a in active if a is not common]
+            for names in (diag.effects, diag.negligible):
+                if common.name in names:
+                    names.remove(common.name)
+            for st in diag.steps:
+                if st["name"] == common.name and "dropped_in_backward_pass" not in st:
+                    st["superseded_by"] = eff.name
+            new = fit_extended(obs, tpl, active, weights=w, start=current.params, **prior_kw)
+            impact = product_impact(current, new, sigma_g, sigma_t)
+            shared = current.gain_factor / np.mean(current.gain_factor)
+            diff = feed.factors - shared
+            impact["G_time"] = {
+                "rms_relative_change": float(np.sqrt(np.mean(diff**2))),
+                "max_abs_relative_change": float(np.max(np.abs(diff))),
+            }
+            step_extra["product_impact"] = impact
+            step_extra["negligible"] = is_negligible(impact)
+            gap_after = gap_metrics(new, obs, tpl, bp_null)
+            w = radiometer_weights(obs, new.model)
+            current = fit_extended(obs, tpl, active, weights=w, start=new.params, **prior_kw)
+            diag.residual_snapshots.append((f"after {eff.name}", current.residuals[0, 0]))
+            rms = np.std(feed.factors, axis=-1)
+            params = {
+                "rms": {"value": float(np.median(rms)), "sigma": float(np.median(feed.sigmas))},
+                "max_rms": {"value": float(np.max(rms)), "sigma": float(np.max(feed.sigmas))},
+            }
+            step_extra["per_feed"] = [
+                {"antenna": int(a), "pol": str(p), "rms": float(rms[ia, ip])}
+                for ia, a in enumerate(obs.antennas)
+                for ip, p in enumerate(obs.pols)
+            ]
+            step_extra["series"] = {
+                "lst_h": obs.lsts.tolist(),
+                "gain_factor": feed.factors.tolist(),
+                "shared_gain_factor": shared.tolist(),
+            }
         else:
             if isinstance(payload, tuple):
                 _, free_fit, fixed_eff = payload
@@ -1608,7 +2181,8 @@ def _diagnose_once(
             else:
                 params = _params_dict(eff, payload)
                 active.append(eff)
-            new = fit_extended(obs, tpl, active, weights=w, **prior_kw)
+            start = (payload[0] if isinstance(payload, tuple) else payload).params
+            new = fit_extended(obs, tpl, active, weights=w, start=start, **prior_kw)
             impact = product_impact(current, new, sigma_g, sigma_t)
             gap_after = gap_metrics(new, obs, tpl, bp_null)
             step_extra["product_impact"] = impact
@@ -1618,7 +2192,7 @@ def _diagnose_once(
             step_extra["negligible"] = is_negligible(impact)
             # re-weight with the improved model for the next step
             w = radiometer_weights(obs, new.model)
-            current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
+            current = fit_extended(obs, tpl, active, weights=w, start=new.params, **prior_kw)
             # the effects accepted before are re-tested against the refit: one that the
             # new effect explains away is dropped now, before the search goes on
             active, current = _retest_accepted(
@@ -1643,6 +2217,8 @@ def _diagnose_once(
                     "gain_factor": ((1 + eps) / np.mean(1 + eps)).tolist(),
                     "sigma": np.concatenate([[0.0], current.sigmas[eff.name]]).tolist(),
                 }
+        if eff.name in consistency:
+            step_extra["band_consistency"] = consistency[eff.name]
         if eff.order:
             params["order"] = {"value": float(eff.order), "sigma": 0.0}
             step_extra["time_basis"] = eff.basis
@@ -1782,8 +2358,25 @@ def _impact_text(impact: dict[str, Any]) -> str:
         f"{g['median_change_over_sigma']:.2g} total sigma, worst channel "
         f"{g['max_change_over_sigma']:.2g}); Trxr by {t.get('median_change_K', nan):+.3g} K "
         f"({t.get('median_change_over_sigma', nan):.2g} sigma, worst "
-        f"{t.get('max_change_over_sigma', nan):.2g}): {verdict}"
+        f"{t.get('max_change_over_sigma', nan):.2g}): {verdict}" + _time_change_text(impact)
     )
+
+
+def _time_change_text(impact: dict[str, Any]) -> str:
+    """How the products' variation in time changed, when it did (see :func:`is_negligible`)."""
+    gt, tt = impact.get("G_time", {}), impact.get("Trxr_time", {})
+    parts = []
+    if gt.get("max_abs_relative_change", 0.0) >= NEGLIGIBLE_G_FRACTION:
+        parts.append(
+            f"G(t) {100 * gt['rms_relative_change']:.2g} % rms over time (largest "
+            f"{100 * gt['max_abs_relative_change']:.2g} %)"
+        )
+    if tt.get("max_abs_change_K", 0.0) >= NEGLIGIBLE_TRXR_K:
+        parts.append(
+            f"Trxr(t) up to {tt['median_max_abs_change_K']:.3g} K (median channel; largest "
+            f"{tt['max_abs_change_K']:.3g} K)"
+        )
+    return f"; in time: {', '.join(parts)}" if parts else ""
 
 
 def write_diagnosis(diag: Diagnosis, out_dir: str | Path, obs: Observation | None = None) -> Path:

@@ -62,6 +62,7 @@ EFFECT_NAMES = (
     "missing_cmb",
     "cable_reflection",
     "timing_offset",
+    "antenna_gain_jitter",
 )
 #: Shortest LST span (hours) for which the diurnal drift variants are candidates.
 DIURNAL_MIN_SPAN_H = 6.0
@@ -324,7 +325,9 @@ class Effect:
         Catalogue identifier (:data:`EFFECT_NAMES`).
     kind
         ``"tsky"`` (additive change of Tsky), ``"gain"`` (relative achromatic gain
-        drift), ``"noise"`` (relative achromatic noise drift) or ``"bandpass"``.
+        drift), ``"noise"`` (relative achromatic noise drift), ``"bandpass"`` or
+        ``"feed_gain"`` (one gain series per antenna-pol, fitted feed by feed:
+        :func:`autocal.diagnose.fit_feed_jitter`).
     params
         Parameter names.
     units
@@ -339,13 +342,13 @@ class Effect:
     """
 
     name: str
-    kind: Literal["tsky", "gain", "noise", "bandpass"]
+    kind: Literal["tsky", "gain", "noise", "bandpass", "feed_gain"]
     params: tuple[str, ...]
     units: tuple[str, ...]
     order: int = 0
     fixed: tuple[float, ...] | None = None
     signature: str = ""
-    basis: Literal["legendre", "diurnal", "integration"] = "legendre"
+    basis: Literal["legendre", "diurnal", "integration", "feed_integration"] = "legendre"
 
     def time_basis(self, lsts: np.ndarray) -> np.ndarray:
         """``(k, Ntime)`` time basis of a drift effect (:func:`time_basis`)."""
@@ -362,7 +365,7 @@ class Effect:
 
     @property
     def nfree(self) -> int:
-        """Number of free (penalised) parameters."""
+        """Number of free (penalised) parameters (``feed_gain``: counted by its fit)."""
         if self.kind == "bandpass":
             return 3
         return 0 if self.fixed is not None else len(self.params)
@@ -428,6 +431,7 @@ def catalogue(
     ntime: int | None = None,
     include_timing: bool = False,
     span_h: float | None = None,
+    nfeeds: int | None = None,
 ) -> list[Effect]:
     """Return the candidate effects (drifts in every order ``1..max_drift_order``).
 
@@ -446,6 +450,10 @@ def catalogue(
     ntime
         Number of integrations: with 3 or more, include ``gain_jitter`` (one broadband
         gain factor per integration, the first one the reference).
+    nfeeds
+        Number of antenna-pols: with 2 or more (and ``ntime`` >= 3), include
+        ``antenna_gain_jitter``, every antenna-pol its own ``gain_jitter`` series (tested
+        against a common series once ``gain_jitter`` is in the model).
     """
     out: list[Effect] = []
     if ntime is not None and ntime >= 3:
@@ -461,6 +469,20 @@ def catalogue(
                 basis="integration",
             )
         )
+        if nfeeds is not None and nfeeds >= 2:
+            out.append(
+                Effect(
+                    "antenna_gain_jitter",
+                    "feed_gain",
+                    ("rms",),
+                    ("1",),
+                    1,
+                    signature="G_a(t_i) = G_a (1 + eps_a,i), every antenna-pol its own "
+                    "per-integration gain series (gain fluctuations in each signal chain, "
+                    "not common to the array)",
+                    basis="feed_integration",
+                )
+            )
     for order in range(1, max_drift_order + 1):
         names = tuple(f"d_{k}" for k in range(1, order + 1))
         out.append(

@@ -816,6 +816,7 @@ def simulate_autos(
     sky: SkyChange | None = None,
     beam_width: float = 0.0,
     beam_width_mode: str = "fwhm",
+    feed_gain: np.ndarray | None = None,
 ) -> Truth:
     """Simulate HERA auto-correlations and write them as a UVH5 file.
 
@@ -868,6 +869,9 @@ def simulate_autos(
     beam_width, beam_width_mode
         Fractional change of the true beam's width and how it is made
         (:func:`independent_tsky`).
+    feed_gain
+        ``(Nant, Npol, Ntime)`` achromatic gain factors of each antenna-pol (its own
+        jitter), on top of the common gain; ``None`` for none.
 
     Returns
     -------
@@ -929,6 +933,11 @@ def simulate_autos(
     noise = rng.standard_normal((len(antennas), len(pols), ntime, freqs.size))
     trxr_t = trxr[None, :] if trxr_drift is None else trxr[None, :] * (1 + trxr_drift[:, None])
     model = gain[None, None] * (tsky[None] + trxr_t[None, None])
+    if feed_gain is not None:
+        feed_gain = np.asarray(feed_gain, dtype=np.float64)
+        if feed_gain.shape != (len(antennas), len(pols), ntime) or np.any(feed_gain <= 0):
+            raise ValueError("feed_gain must be positive, (Nant, Npol, Ntime)")
+        model = model * feed_gain[..., None]
     data = model * (1.0 + noise / math.sqrt(dnu_dt))
 
     nsample = dnu_dt / (channel_width * integration_s)

@@ -390,3 +390,69 @@ def test_negligible_needs_a_verdict_on_most_channels() -> None:
     # ... unless a channel moves by ten times that accuracy
     spike = {**sharp, "Trxr": {**sharp["Trxr"], "max_abs_change_K": 12.0}}
     assert not is_negligible(spike)
+    # the products' variation in time must stay put as well: a 1 % rms jitter is not
+    # negligible to whoever applies the gains per integration, however well the time
+    # means agree
+    jitter = {**impact, "G_time": {"rms_relative_change": 1e-2, "max_abs_relative_change": 3e-2}}
+    assert not is_negligible(jitter)
+    steady = {**impact, "G_time": {"rms_relative_change": 1e-4, "max_abs_relative_change": 3e-4}}
+    assert is_negligible(steady)
+    drifting = {**impact, "Trxr_time": {"median_max_abs_change_K": 3.0, "max_abs_change_K": 5.0}}
+    assert not is_negligible(drifting)
+
+
+def test_fits_from_another_start_compare(setup):
+    """A fit started elsewhere reaches the same minimum with the same chi2: its receiver
+    prior's weights come from the model without effects, not from the start."""
+    from autocal.diagnose import fit_extended, radiometer_weights
+    from autocal.effects import catalogue
+
+    obs, tpl = setup
+    g = 1 + 0.02 * s_of(obs.lsts)
+    data = hidden(obs, tpl.total, gain=g)
+    drift = next(e for e in catalogue() if e.name == "gain_drift" and e.order == 1)
+    w = radiometer_weights(data, data.data)
+    kw = {"weights": w, "trxr_prior": 150.0, "trxr_prior_sigma": PRIOR_SIGMA}
+    zero = fit_extended(data, tpl, [drift], **kw)
+    far = fit_extended(data, tpl, [drift], start={"gain_drift": np.array([-0.05])}, **kw)
+    assert far.chi2 == pytest.approx(zero.chi2, rel=1e-9)
+    np.testing.assert_allclose(far.params["gain_drift"], zero.params["gain_drift"], rtol=1e-5)
+    # a start of the wrong length is ignored
+    odd = fit_extended(data, tpl, [drift], start={"gain_drift": np.zeros(3)}, **kw)
+    assert odd.chi2 == pytest.approx(zero.chi2, rel=1e-12)
+    # the gain factor over time is the fitted drift, the noise factor is one
+    np.testing.assert_allclose(zero.gain_factor, 1 + zero.params["gain_drift"][0] * s_of(obs.lsts))
+    np.testing.assert_array_equal(zero.noise_factor, np.ones(obs.ntime))
+
+
+def test_band_consistency_tells_a_real_effect_from_an_absorbing_template(setup):
+    """A sky spectral index error is the same in both halves of the band; the same
+    template made to absorb a beam-shape error (a narrower beam at low frequencies only)
+    is not."""
+    from autocal.diagnose import band_consistency, fit_extended, radiometer_weights
+    from autocal.effects import catalogue
+
+    obs, tpl = setup
+    index = next(e for e in catalogue() if e.name == "sky_spectral_index")
+    kw = {"trxr_prior": 150.0, "trxr_prior_sigma": PRIOR_SIGMA}
+    real = tpl.total + index.delta(np.array([0.1]), tpl)
+    data = hidden(obs, real)
+    w = radiometer_weights(data, data.data)
+    fit = fit_extended(data, tpl, [index], weights=w, **kw)
+    check = band_consistency(data, tpl, [], index, fit, w, kw)
+    assert check is not None and check["consistent"], check
+    lower, upper = check["values"]["lower"][0], check["values"]["upper"][0]
+    assert abs(lower - 0.1) < 0.02 and abs(upper - 0.1) < 0.02
+    # a chromatic error the index template can only partly follow: the beam-width
+    # template's change in the lower half of the band only
+    low = (obs.freqs < np.median(obs.freqs)).astype(float)
+    other = tpl.total + 0.08 * tpl.beam_dwidth * low[None, None, :]
+    data = hidden(obs, other)
+    w = radiometer_weights(data, data.data)
+    fit = fit_extended(data, tpl, [index], weights=w, **kw)
+    check = band_consistency(data, tpl, [], index, fit, w, kw)
+    assert check is not None and not check["consistent"], check
+    assert check["p_value"] < 1e-3 and check["relative_difference"] > 0.3
+    # no verdict for a per-integration series or a fixed hypothesis
+    jitter = next(e for e in catalogue(ntime=obs.ntime) if e.basis == "integration")
+    assert band_consistency(data, tpl, [], jitter, fit, w, kw) is None
