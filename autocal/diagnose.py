@@ -42,6 +42,8 @@ from threadpoolctl import threadpool_limits
 from autocal.delay import delay_spectrum
 from autocal.effects import (
     DIURNAL_MIN_SPAN_H,
+    LST_STEP_H,
+    SIDEREAL_RATE,
     Effect,
     SkyTemplates,
     catalogue,
@@ -962,10 +964,12 @@ PLAUSIBLE_LIMITS = {
     "ground_temperature": 300.0,
 }
 #: Largest ``timing_offset`` (seconds) taken as one: its template is Tsky's first
-#: derivative in time (a central difference over +-2 min of LST), so it represents a shift
-#: of a few minutes at most; J2000 instead of the frame of date for data of the 2010s-2020s
-#: is ~1 min in right ascension.
-TIMING_MAX_S = 240.0
+#: derivative in time, a central difference over +-2 min of LST
+#: (:data:`autocal.effects.LST_STEP_H`), so a shift beyond that step extrapolates the
+#: difference; J2000 instead of the frame of date for data of the 2010s-2020s is ~1 min
+#: in right ascension. (It was 240 s until a real night, JD 2458116, fitted -227 +- 8 s
+#: next to a per-antenna jitter: the template trading off against the jitter series.)
+TIMING_MAX_S = LST_STEP_H * 3600.0 / SIDEREAL_RATE
 #: Legendre order of the smooth part removed from a ``gain_jitter`` series before its
 #: remainder is tested (:func:`jitter_is_significant`).
 JITTER_SMOOTH_ORDER = 3
@@ -1544,6 +1548,7 @@ def band_consistency(
     fit: ExtendedFit,
     w: np.ndarray,
     prior_kw: dict[str, Any],
+    partner: Effect | None = None,
 ) -> dict[str, Any] | None:
     """Fit a candidate in the lower and the upper half of the band and compare.
 
@@ -1557,6 +1562,10 @@ def band_consistency(
     :data:`CONSISTENCY_RELATIVE` of the whole band's value (a real effect measured with
     tiny errors may differ slightly between halves when the sky model is slightly wrong).
 
+    A real effect next to another missing chromatic one (a noise drift while the sky's
+    spectral index is also wrong) is biased differently in the two halves too; fitted
+    with that ``partner`` alongside (``fit`` then the joint fit), both agree again.
+
     Parameters
     ----------
     obs, tpl, w, prior_kw
@@ -1566,36 +1575,56 @@ def band_consistency(
     eff
         The candidate (free parameters; a fixed effect is not tested).
     fit
-        Its fit on the whole band.
+        Its fit on the whole band (with ``partner``, if any).
+    partner
+        Another candidate fitted alongside; its free parameters must agree as well.
 
     Returns
     -------
     dict or None
         ``consistent``, ``values`` (lower, upper, whole), ``chi2``, ``k``, ``p_value``,
-        ``relative_difference`` and ``message``; ``None`` (no verdict) when the candidate
-        has no free parameters, is a per-integration series (``gain_jitter``, judged by
-        :func:`jitter_is_significant`: split by band, its hundreds of factors follow
-        whatever chromatic structure the model still lacks), or a half cannot be fitted.
+        ``relative_difference``, ``partner`` and ``message``; ``None`` (no verdict) when
+        the candidate has no free parameters, is a per-integration series
+        (``gain_jitter``, judged by :func:`jitter_is_significant`: split by band, its
+        hundreds of factors follow whatever chromatic structure the model still lacks), or
+        a half cannot be fitted.
     """
     if eff.fixed is not None or not eff.nfree or obs.nfreq < 8 or eff.basis == "integration":
         return None
+    model = [*active, eff] + ([partner] if partner is not None else [])
     mid = obs.nfreq // 2
     halves = []
     for channels in (slice(0, mid), slice(mid, obs.nfreq)):
         try:
             sub, sub_tpl, sub_w, sub_prior = _band_half(obs, tpl, w, prior_kw, channels)
-            half = fit_extended(
-                sub, sub_tpl, [*active, eff], weights=sub_w, start=fit.params, **sub_prior
-            )
+            half = fit_extended(sub, sub_tpl, model, weights=sub_w, start=fit.params, **sub_prior)
         except (DiagnoseError, np.linalg.LinAlgError, ValueError) as exc:
             logger.debug("band consistency of %s: no verdict (%s)", eff.name, exc)
             return None
         if half.identifiable.get(eff.name, 0.0) < MIN_IDENTIFIABLE:
             return None
         halves.append(half)
+    out = _compare_halves(eff, halves, fit)
+    if out is None:
+        return None
+    out["partner"] = None if partner is None else partner.name
+    if partner is not None and partner.fixed is None and partner.nfree:
+        other = _compare_halves(partner, halves, fit)
+        if other is not None and not other["consistent"]:
+            out["consistent"] = False
+            out["message"] += f"; with {partner.name}: {other['message']}"
+        elif partner is not None:
+            out["message"] += f" (fitted with {partner.name})"
+    return out
+
+
+def _compare_halves(
+    eff: Effect, halves: list[ExtendedFit], whole_fit: ExtendedFit
+) -> dict[str, Any] | None:
+    """Compare one effect's parameters in the two half-band fits (:func:`band_consistency`)."""
     lo, hi = (np.asarray(h.params[eff.name], float) for h in halves)
     slo, shi = (np.asarray(h.sigmas[eff.name], float) for h in halves)
-    whole = np.asarray(fit.params[eff.name], float)
+    whole = np.asarray(whole_fit.params[eff.name], float)
     var = slo**2 + shi**2
     ok = np.isfinite(lo) & np.isfinite(hi) & np.isfinite(var) & (var > 0)
     if not ok.any():
@@ -1623,6 +1652,63 @@ def band_consistency(
         "relative_difference": rel,
         "message": f"{show}; chi2 {chi2:.3g} for {k}, p {pval:.2g}",
     }
+
+
+#: Most partners tried for a candidate whose parameters the band's halves disagree on.
+CONSISTENCY_PARTNERS = 3
+
+
+def _consistent_with_partner(
+    obs: Observation,
+    tpl: SkyTemplates,
+    active: list[Effect],
+    cand: tuple[Any, ...],
+    results: list[tuple[Any, ...]],
+    w: np.ndarray,
+    prior_kw: dict[str, Any],
+    bic_threshold: float,
+    alpha: float,
+    check: dict[str, Any],
+) -> dict[str, Any]:
+    """Re-test an inconsistent candidate with another significant candidate alongside.
+
+    Two effects missing at once bias each other's half-band fits (a noise drift and a
+    spectral index error are both chromatic); fitted together, both agree across the band.
+    The next :data:`CONSISTENCY_PARTNERS` significant candidates of other names are tried;
+    the first joint fit in which both are consistent is returned (with ``partner``), else
+    the original ``check``.
+    """
+    eff, payload = cand[3], cand[4]
+    own = payload[1] if isinstance(payload, tuple) else payload
+    tried = 0
+    for other in results:
+        o_stat, o_dchi, o_k, o_eff, o_payload, o_chat = other
+        if other is cand or o_eff.name == eff.name or o_eff.kind in ("bandpass", "feed_gain"):
+            continue
+        if not (
+            o_stat > bic_threshold and float(stats.chi2.sf(o_dchi / o_chat, max(o_k, 1))) < alpha
+        ):
+            break
+        if tried >= CONSISTENCY_PARTNERS:
+            break
+        tried += 1
+        partner = o_payload[2] if isinstance(o_payload, tuple) else o_eff
+        o_fit = o_payload[0] if isinstance(o_payload, tuple) else o_payload
+        try:
+            joint = fit_extended(
+                obs,
+                tpl,
+                [*active, eff, partner],
+                weights=w,
+                start={**o_fit.params, **own.params},
+                **prior_kw,
+            )
+        except (DiagnoseError, np.linalg.LinAlgError):
+            continue
+        again = band_consistency(obs, tpl, active, eff, joint, w, prior_kw, partner=partner)
+        if again is not None and again["consistent"]:
+            return again
+    return check
 
 
 #: Most antenna-pols for which ``antenna_gain_jitter`` is tried (one fit each).
@@ -2081,6 +2167,10 @@ def _diagnose_once(
                 break
             free_fit = r_payload[1] if isinstance(r_payload, tuple) else r_payload
             check = band_consistency(obs, tpl, active, r_eff, free_fit, w, prior_kw)
+            if check is not None and not check["consistent"]:
+                check = _consistent_with_partner(
+                    obs, tpl, active, r, results, w, prior_kw, bic_threshold, alpha, check
+                )
             if check is None or check["consistent"]:
                 if check is not None:
                     consistency[r_eff.name] = check
@@ -2100,14 +2190,21 @@ def _diagnose_once(
                 "p_value": float(
                     stats.chi2.sf(results[0][1] / results[0][5], max(results[0][2], 1))
                 ),
-                "reason": "inconsistent across the band",
+                "reason": "significant, but the two halves of the band disagree on it "
+                "and on every other significant candidate (failed_candidates)",
+                "candidates": candidates_report,
             }
             break
         stat, dchi, k, eff, payload, chat = best
         pval = float(stats.chi2.sf(dchi / chat, max(k, 1)))
         logger.info("step %d: best %s (Delta BIC %.1f, p %.2g)", step + 1, eff.name, stat, pval)
         if not (stat > bic_threshold and pval < alpha):
-            diag.config["last_rejected"] = {"name": eff.name, "statistic": stat, "p_value": pval}
+            diag.config["last_rejected"] = {
+                "name": eff.name,
+                "statistic": stat,
+                "p_value": pval,
+                "candidates": candidates_report,
+            }
             break
         gap_before = gap_metrics(current, obs, tpl, bp_null)
         step_extra: dict[str, Any] = {}
@@ -2132,11 +2229,14 @@ def _diagnose_once(
             diag.residual_snapshots.append((f"after {eff.name}", current.residuals[0, 0]))
         elif eff.kind == "feed_gain":
             feed: FeedJitterFit = payload
-            # every antenna-pol's series replaces the common one: divided out of the data
-            # (held at its estimate from here on) and the common gain_jitter superseded
-            obs = dataclasses.replace(obs, data=obs.data / feed.factors[..., None])
+            # every antenna-pol's own series supersedes the common one. Its departure from
+            # the common series is divided out of the data (held at its estimate from here
+            # on); the common series stays free in the model, so that later candidates are
+            # fitted jointly with it (held whole, the series would keep whatever achromatic
+            # trend they absorbed, e.g. most of a noise drift)
             common = next(a for a in active if a.basis == "integration")
-            active = [a for a in active if a is not common]
+            shared = current.gain_factor / np.mean(current.gain_factor)
+            obs = dataclasses.replace(obs, data=obs.data / (feed.factors / shared)[..., None])
             for names in (diag.effects, diag.negligible):
                 if common.name in names:
                     names.remove(common.name)
@@ -2145,7 +2245,6 @@ def _diagnose_once(
                     st["superseded_by"] = eff.name
             new = fit_extended(obs, tpl, active, weights=w, start=current.params, **prior_kw)
             impact = product_impact(current, new, sigma_g, sigma_t)
-            shared = current.gain_factor / np.mean(current.gain_factor)
             diff = feed.factors - shared
             impact["G_time"] = {
                 "rms_relative_change": float(np.sqrt(np.mean(diff**2))),
@@ -2325,7 +2424,7 @@ def summary_text(diag: Diagnosis) -> str:
     if rej:
         lines.append(
             f"best remaining candidate {rej['name']}: Delta BIC = {rej['statistic']:.1f} "
-            f"(not significant)"
+            f"({rej.get('reason') or 'not significant'})"
         )
     lines.append("")
     lines.append("not identifiable from these data (Fisher fraction after (G, n) projection):")
