@@ -14,6 +14,22 @@ until nothing is accepted. ``cable_reflection`` is absorbed by the per-channel g
 is ranked in the bandpass domain: ``chi^2`` of the fitted ``G(nu)`` (with its errors)
 against a smooth Legendre bandpass, with and without the ripple, ``N = Nfreq``.
 
+The data's model is never exactly autocal's (another simulator, a real sky), so the
+statistic is a quasi-likelihood one (``Delta chi^2`` over the step's overdispersion), and
+a candidate is named only when its own signature explains the residual: the two halves of
+the band agree on its parameters (:func:`band_consistency`, with a significant partner
+fitted alongside when two chromatic effects are missing at once), its own parameters are
+significant (:func:`wald_statistic`), a per-integration gain series is not a smooth
+function of time (:func:`jitter_is_significant`), and its values are plausible
+(:data:`PLAUSIBLE_LIMITS`). Fits start from the current model's values, and a model stuck
+in a local minimum is refitted from a candidate's better one
+(:func:`_escape_local_minimum`). An effect that barely moves the products
+(:func:`is_negligible`) is kept in the model and reported "detected, negligible"; what no
+entry explains is described (:func:`describe_unexplained`), not named.
+``antenna_gain_jitter`` (every antenna-pol its own series) is fitted feed by feed against
+the common ``gain_jitter``, and ``antenna_gain_drift`` (every antenna-pol its own
+Legendre drift) likewise (:func:`fit_feed_gains`).
+
 The fit with global parameters is a variable-projection Gauss-Newton: for fixed global
 parameters every channel is a weighted linear fit of ``(G, n)``; the global step uses the
 Jacobian projected orthogonally to each channel's ``(G, n)`` design, so the covariance of
@@ -1062,6 +1078,25 @@ def jitter_is_significant(
     return bool(info["rough_delta_bic"] > BIC_THRESHOLD), info
 
 
+#: Median of a chi-square variable with one degree of freedom.
+_CHI2_1_MEDIAN = float(stats.chi2.ppf(0.5, 1))
+
+
+def robust_overdispersion(fit: ExtendedFit) -> float:
+    """Return the fit's overdispersion from the median squared normalised residual.
+
+    ``median(r^2) / 0.455`` (the median of chi-square with one degree of freedom): the
+    scatter of the bulk of the data, which a few strong outliers (RFI not yet flagged, on
+    the first search) do not inflate as they inflate ``chi^2 / dof``. Used by the
+    ``gain_jitter`` test, whose verdict would otherwise rest on the RFI.
+    """
+    res = np.asarray(fit.residuals)
+    ok = np.isfinite(res)
+    if not ok.any():
+        return fit.reduced_chi2
+    return float(np.median(res[ok] ** 2) / _CHI2_1_MEDIAN)
+
+
 def sky_time_shapes(tpl: SkyTemplates) -> np.ndarray:
     """Return ``(3, Ntime)`` time shapes of the model sky.
 
@@ -1717,7 +1752,7 @@ FEED_JITTER_MAX_FEEDS = 64
 
 @dataclass(frozen=True)
 class FeedJitterFit:
-    """Every antenna-pol's own per-integration gain series (:func:`fit_feed_jitter`).
+    """Every antenna-pol's own gain series (:func:`fit_feed_gains`).
 
     Attributes
     ----------
@@ -1728,9 +1763,12 @@ class FeedJitterFit:
     delta_chi2
         The common-series model's chi-square less :attr:`chi2`.
     k
-        Extra parameters: ``(Nfeeds - 1) (Ntime - 1)``.
+        Extra parameters: ``(Nfeeds - 1) (Ntime - 1)`` for a jitter replacing the common
+        series, ``Nfeeds x order`` for a drift.
     ndata, nparam
         Data (with prior rows) and parameters of the per-antenna-pol model.
+    values
+        ``(Nant, Npol, k)`` each antenna-pol's fitted parameters.
     """
 
     factors: np.ndarray
@@ -1740,6 +1778,7 @@ class FeedJitterFit:
     k: int
     ndata: int
     nparam: int
+    values: np.ndarray | None = None
 
     @property
     def reduced_chi2(self) -> float:
@@ -1747,29 +1786,43 @@ class FeedJitterFit:
         return self.chi2 / max(self.ndata - self.nparam, 1)
 
 
-def fit_feed_jitter(
+def fit_feed_gains(
     obs: Observation,
     tpl: SkyTemplates,
     active: list[Effect],
     current: ExtendedFit,
     w: np.ndarray,
     prior_kw: dict[str, Any],
+    eff: Effect,
 ) -> FeedJitterFit | None:
-    """Fit each antenna-pol's own ``gain_jitter`` series, the other effects held.
+    """Fit each antenna-pol's own gain series, the other effects held at their values.
 
-    The model with one common series (``gain_jitter`` in ``active``, fitted in
-    ``current``) is nested in this one: each antenna-pol gets its own series, started
-    from the common one, with every other accepted effect fixed at its joint estimate, so
-    the antenna-pols are independent and fitted one by one. ``None`` when a fit fails.
+    ``antenna_gain_jitter`` (``eff.basis == "feed_integration"``): the model with one
+    common series (``gain_jitter`` in ``active``, fitted in ``current``) is nested in this
+    one, each antenna-pol getting its own series started from the common one.
+    ``antenna_gain_drift`` (``"feed_legendre"``): each antenna-pol its own Legendre drift
+    of order ``eff.order`` on top of the current model. Every other accepted effect is
+    fixed at its joint estimate, so the antenna-pols are independent and fitted one by
+    one. ``None`` when there is nothing to test or a fit fails.
     """
     jitter = next((a for a in active if a.basis == "integration"), None)
-    if jitter is None:
-        return None
+    if eff.basis == "feed_integration":
+        if jitter is None:
+            return None
+        own = jitter
+        start = {jitter.name: current.params[jitter.name]}
+        replaced: Effect | None = jitter
+        k_per_feed, k_shared = obs.ntime - 1, obs.ntime - 1
+    else:
+        own = Effect(eff.name, "gain", eff.params, eff.units, eff.order, basis="legendre")
+        start, replaced = {}, None
+        k_per_feed, k_shared = eff.order, 0
     held = [
         a if a.fixed is not None else dataclasses.replace(a, fixed=tuple(current.params[a.name]))
         for a in active
-        if a is not jitter
+        if a is not replaced
     ]
+    basis = own.time_basis(obs.lsts)
     shape = (obs.nant, len(obs.pols), obs.nfreq)
     prior = {
         key: value
@@ -1779,6 +1832,7 @@ def fit_feed_jitter(
     }
     factors = np.ones((obs.nant, len(obs.pols), obs.ntime))
     sigmas = np.zeros_like(factors)
+    values = np.zeros((obs.nant, len(obs.pols), basis.shape[0]))
     chi2, ndata, nparam = 0.0, 0, 0
     for ia, ant in enumerate(obs.antennas):
         for ip, pol in enumerate(obs.pols):
@@ -1794,17 +1848,20 @@ def fit_feed_jitter(
                 fit = fit_extended(
                     sub,
                     sub_tpl,
-                    [jitter, *held],
+                    [own, *held],
                     weights=w[ia : ia + 1, ip : ip + 1],
-                    start={jitter.name: current.params[jitter.name]},
+                    start=start,
                     **sub_prior,
                 )
             except (DiagnoseError, np.linalg.LinAlgError) as exc:
-                logger.info("antenna_gain_jitter: %s %s not fitted (%s)", ant, pol, exc)
+                logger.info("%s: %s %s not fitted (%s)", eff.name, ant, pol, exc)
                 return None
-            eps = np.concatenate([[0.0], fit.params[jitter.name]])
-            factors[ia, ip] = (1.0 + eps) / np.mean(1.0 + eps)
-            sigmas[ia, ip] = np.concatenate([[0.0], fit.sigmas[jitter.name]])
+            values[ia, ip] = fit.params[own.name]
+            factor = 1.0 + fit.params[own.name] @ basis
+            factors[ia, ip] = factor / np.mean(factor)
+            # 1-sigma of the factor at each integration (diagonal: the reference of a
+            # series, or a drift's centre, has none)
+            sigmas[ia, ip] = np.sqrt(fit.sigmas[own.name] ** 2 @ basis**2)
             chi2 += fit.chi2
             ndata += fit.ndata
             nparam += fit.nparam
@@ -1814,10 +1871,63 @@ def fit_feed_jitter(
         sigmas=sigmas,
         chi2=chi2,
         delta_chi2=float(current.chi2 - chi2),
-        k=(nfeeds - 1) * (obs.ntime - 1),
+        k=nfeeds * k_per_feed - k_shared,
         ndata=ndata,
         nparam=nparam,
+        values=values,
     )
+
+
+def feed_departures_rough(
+    feed: FeedJitterFit, current: ExtendedFit, obs: Observation, tpl: SkyTemplates
+) -> float:
+    """Delta BIC of the rough part of each antenna-pol's departure from the common series.
+
+    The test :func:`jitter_is_significant` applies to ``gain_jitter``, applied to every
+    antenna-pol's series divided by the common one and summed over antenna-pols: what a
+    smooth function of time explains (one antenna's gain drifting against the others) is
+    not jitter.
+    """
+    shared = current.gain_factor / np.mean(current.gain_factor)
+    shapes = sky_time_shapes(tpl)
+    total = 0.0
+    for ia in range(obs.nant):
+        for ip in range(len(obs.pols)):
+            _, info = jitter_is_significant(
+                feed.factors[ia, ip] / shared - 1.0,
+                feed.sigmas[ia, ip],
+                obs.lsts,
+                shapes,
+                ndata=current.ndata,
+                overdispersion=feed.reduced_chi2,
+            )
+            total += info["rough_delta_bic"]
+    return float(total)
+
+
+#: Common entries that a per-antenna entry contains (the antenna-pols sharing one series
+#: or drift is a special case): named once the per-antenna one is accepted, they stay in
+#: the fitted model (the part the antenna-pols share) but are reported as superseded.
+SUPERSEDES = {
+    "antenna_gain_jitter": ("gain_jitter", ("integration",)),
+    "antenna_gain_drift": ("gain_drift", ("legendre",)),
+}
+
+
+def _supersede(diag: Diagnosis, accepted: set[str]) -> None:
+    """Report common entries contained in accepted per-antenna ones as superseded."""
+    for feed_name in accepted:
+        common, bases = SUPERSEDES[feed_name]
+        for st in diag.steps:
+            if (
+                st["name"] == common
+                and st.get("time_basis", "legendre") in bases
+                and "dropped_in_backward_pass" not in st
+            ):
+                st["superseded_by"] = feed_name
+                for names in (diag.effects, diag.negligible):
+                    if common in names:
+                        names.remove(common)
 
 
 def _template_subset(
@@ -1977,8 +2087,15 @@ def _diagnose_once(
                 results.append((stat, dchi, k, eff, rip, chat))
                 continue
             if eff.kind == "feed_gain":
-                # nested in gain_jitter: tested once a common series is in the model
-                if not any(a.basis == "integration" for a in active):
+                if eff.name in feed_accepted:
+                    continue  # held in the data already
+                # a per-antenna jitter is tested once a common series is in the model
+                # (nested: it replaces it); a per-antenna drift unless every antenna-pol
+                # has its own series already (which holds any drift of its own)
+                if eff.basis == "feed_integration":
+                    if not any(a.basis == "integration" for a in active):
+                        continue
+                elif "antenna_gain_jitter" in feed_accepted:
                     continue
                 if obs.nant * len(obs.pols) > FEED_JITTER_MAX_FEEDS:
                     diag.config["failed_candidates"][eff.name] = (
@@ -1986,7 +2103,21 @@ def _diagnose_once(
                         f"{FEED_JITTER_MAX_FEEDS}, one fit each; select fewer antennas)"
                     )
                     continue
-                feed = fit_feed_jitter(obs, tpl, active, current, w, prior_kw)
+                feed = fit_feed_gains(obs, tpl, active, current, w, prior_kw, eff)
+                rough = (
+                    feed_departures_rough(feed, current, obs, tpl)
+                    if feed is not None and eff.basis == "feed_integration"
+                    else None
+                )
+                if rough is not None and rough <= bic_threshold:
+                    diag.config["failed_candidates"][eff.name] = (
+                        "the antenna-pols' departures from the common series are smooth "
+                        "functions of time (Legendre order "
+                        f"{JITTER_SMOOTH_ORDER} and the sky's time shapes) up to a remainder "
+                        f"that does not pay for its parameters (Delta BIC {rough:.3g}): a "
+                        "smooth per-antenna change, not jitter"
+                    )
+                    continue
                 if feed is not None:
                     results.append(
                         (math.nan, feed.delta_chi2, feed.k, eff, feed, feed.reduced_chi2)
@@ -2039,7 +2170,7 @@ def _diagnose_once(
                     obs.lsts,
                     sky_time_shapes(tpl),
                     ndata=trial.ndata,
-                    overdispersion=trial.reduced_chi2,
+                    overdispersion=robust_overdispersion(trial),
                 )
                 diag.config.setdefault("jitter_tests", []).append({"step": step + 1, **info})
                 if not white:
@@ -2099,6 +2230,7 @@ def _diagnose_once(
 
     restarts = 0
     consistency: dict[str, dict[str, Any]] = {}
+    feed_accepted: set[str] = set()
     for step in range(max_steps):
         while True:
             results, lowest = try_candidates(step)
@@ -2229,23 +2361,22 @@ def _diagnose_once(
             diag.residual_snapshots.append((f"after {eff.name}", current.residuals[0, 0]))
         elif eff.kind == "feed_gain":
             feed: FeedJitterFit = payload
-            # every antenna-pol's own series supersedes the common one. Its departure from
-            # the common series is divided out of the data (held at its estimate from here
-            # on); the common series stays free in the model, so that later candidates are
-            # fitted jointly with it (held whole, the series would keep whatever achromatic
-            # trend they absorbed, e.g. most of a noise drift)
-            common = next(a for a in active if a.basis == "integration")
-            shared = current.gain_factor / np.mean(current.gain_factor)
+            feed_accepted.add(eff.name)
+            # every antenna-pol's own series: its departure from what the antenna-pols
+            # share (the common jitter series, or their mean drift) is divided out of the
+            # data and held at its estimate from here on; the shared part stays with the
+            # model, free, so that later candidates are fitted jointly with it (held
+            # whole, a jitter series would keep whatever trend it absorbed, e.g. most of
+            # a noise drift)
+            jitter = eff.basis == "feed_integration"
+            if jitter:
+                shared = current.gain_factor / np.mean(current.gain_factor)
+            else:
+                shared = feed.factors.mean(axis=(0, 1))
             obs = dataclasses.replace(obs, data=obs.data / (feed.factors / shared)[..., None])
-            for names in (diag.effects, diag.negligible):
-                if common.name in names:
-                    names.remove(common.name)
-            for st in diag.steps:
-                if st["name"] == common.name and "dropped_in_backward_pass" not in st:
-                    st["superseded_by"] = eff.name
             new = fit_extended(obs, tpl, active, weights=w, start=current.params, **prior_kw)
             impact = product_impact(current, new, sigma_g, sigma_t)
-            diff = feed.factors - shared
+            diff = feed.factors - (shared if jitter else 1.0)
             impact["G_time"] = {
                 "rms_relative_change": float(np.sqrt(np.mean(diff**2))),
                 "max_abs_relative_change": float(np.max(np.abs(diff))),
@@ -2257,19 +2388,25 @@ def _diagnose_once(
             current = fit_extended(obs, tpl, active, weights=w, start=new.params, **prior_kw)
             diag.residual_snapshots.append((f"after {eff.name}", current.residuals[0, 0]))
             rms = np.std(feed.factors, axis=-1)
+            swing = np.ptp(feed.factors, axis=-1)
             params = {
                 "rms": {"value": float(np.median(rms)), "sigma": float(np.median(feed.sigmas))},
                 "max_rms": {"value": float(np.max(rms)), "sigma": float(np.max(feed.sigmas))},
             }
-            step_extra["per_feed"] = [
-                {"antenna": int(a), "pol": str(p), "rms": float(rms[ia, ip])}
-                for ia, a in enumerate(obs.antennas)
-                for ip, p in enumerate(obs.pols)
-            ]
+            if not jitter:
+                params["max_change"] = {"value": float(np.max(swing)), "sigma": 0.0}
+            step_extra["per_feed"] = []
+            for ia, a in enumerate(obs.antennas):
+                for ip, p in enumerate(obs.pols):
+                    row = {"antenna": int(a), "pol": str(p), "rms": float(rms[ia, ip])}
+                    if not jitter and feed.values is not None:
+                        own = zip(eff.params, feed.values[ia, ip], strict=True)
+                        row.update({name: float(v) for name, v in own})
+                    step_extra["per_feed"].append(row)
             step_extra["series"] = {
                 "lst_h": obs.lsts.tolist(),
                 "gain_factor": feed.factors.tolist(),
-                "shared_gain_factor": shared.tolist(),
+                "shared_gain_factor": np.broadcast_to(shared, (obs.ntime,)).tolist(),
             }
         else:
             if isinstance(payload, tuple):
@@ -2319,7 +2456,8 @@ def _diagnose_once(
         if eff.name in consistency:
             step_extra["band_consistency"] = consistency[eff.name]
         if eff.order:
-            params["order"] = {"value": float(eff.order), "sigma": 0.0}
+            if eff.basis not in ("integration", "feed_integration"):
+                params["order"] = {"value": float(eff.order), "sigma": 0.0}
             step_extra["time_basis"] = eff.basis
         diag.steps.append(
             {
@@ -2341,6 +2479,7 @@ def _diagnose_once(
             logger.info("step %d: %s detected, negligible for the products", step + 1, eff.name)
         else:
             diag.effects.append(eff.name)
+        _supersede(diag, feed_accepted)
     # final backward pass (also run after every accepted step, below)
     active, current = _retest_accepted(
         obs, tpl, active, current, w, prior_kw, bic_threshold, diag, "the final model"
@@ -2479,7 +2618,10 @@ def _time_change_text(impact: dict[str, Any]) -> str:
 
 
 def write_diagnosis(diag: Diagnosis, out_dir: str | Path, obs: Observation | None = None) -> Path:
-    """Write ``diagnosis.json``, ``summary.txt`` and residual plots (before/after each step).
+    """Write ``diagnosis.json``, ``summary.txt`` and plots.
+
+    The plots: residual waterfalls before/after each step, and ``gain_series.png`` (the
+    per-integration gain series of ``gain_jitter`` / ``antenna_gain_jitter`` steps).
 
     Parameters
     ----------
@@ -2495,7 +2637,7 @@ def write_diagnosis(diag: Diagnosis, out_dir: str | Path, obs: Observation | Non
     Path
         The folder.
     """
-    from autocal.plots import plot_residuals
+    from autocal.plots import plot_gain_series, plot_residuals
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -2516,5 +2658,6 @@ def write_diagnosis(diag: Diagnosis, out_dir: str | Path, obs: Observation | Non
         )
     if len(snaps) == 1 and obs is not None:
         plot_residuals([snaps[0][0]], snaps[0][1][None], obs.freqs, obs.lsts, out / "residuals.png")
+    plot_gain_series(diag.steps, out / "gain_series.png")
     logger.info("wrote diagnosis to %s", out)
     return out

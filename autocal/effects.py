@@ -63,6 +63,7 @@ EFFECT_NAMES = (
     "cable_reflection",
     "timing_offset",
     "antenna_gain_jitter",
+    "antenna_gain_drift",
 )
 #: Shortest LST span (hours) for which the diurnal drift variants are candidates.
 DIURNAL_MIN_SPAN_H = 6.0
@@ -327,7 +328,7 @@ class Effect:
         ``"tsky"`` (additive change of Tsky), ``"gain"`` (relative achromatic gain
         drift), ``"noise"`` (relative achromatic noise drift), ``"bandpass"`` or
         ``"feed_gain"`` (one gain series per antenna-pol, fitted feed by feed:
-        :func:`autocal.diagnose.fit_feed_jitter`).
+        :func:`autocal.diagnose.fit_feed_gains`).
     params
         Parameter names.
     units
@@ -348,7 +349,9 @@ class Effect:
     order: int = 0
     fixed: tuple[float, ...] | None = None
     signature: str = ""
-    basis: Literal["legendre", "diurnal", "integration", "feed_integration"] = "legendre"
+    basis: Literal["legendre", "diurnal", "integration", "feed_integration", "feed_legendre"] = (
+        "legendre"
+    )
 
     def time_basis(self, lsts: np.ndarray) -> np.ndarray:
         """``(k, Ntime)`` time basis of a drift effect (:func:`time_basis`)."""
@@ -451,9 +454,10 @@ def catalogue(
         Number of integrations: with 3 or more, include ``gain_jitter`` (one broadband
         gain factor per integration, the first one the reference).
     nfeeds
-        Number of antenna-pols: with 2 or more (and ``ntime`` >= 3), include
-        ``antenna_gain_jitter``, every antenna-pol its own ``gain_jitter`` series (tested
-        against a common series once ``gain_jitter`` is in the model).
+        Number of antenna-pols: with 2 or more, include ``antenna_gain_drift`` (every
+        antenna-pol its own Legendre drift, orders ``1..max_drift_order``) and (with
+        ``ntime`` >= 3) ``antenna_gain_jitter``, every antenna-pol its own ``gain_jitter``
+        series (tested against a common series once ``gain_jitter`` is in the model).
     """
     out: list[Effect] = []
     if ntime is not None and ntime >= 3:
@@ -485,6 +489,20 @@ def catalogue(
             )
     for order in range(1, max_drift_order + 1):
         names = tuple(f"d_{k}" for k in range(1, order + 1))
+        if nfeeds is not None and nfeeds >= 2:
+            out.append(
+                Effect(
+                    "antenna_gain_drift",
+                    "feed_gain",
+                    names,
+                    ("1",) * order,
+                    order,
+                    signature="G_a(t) = G_a (1 + sum_k d_a,k P_k(s)), every antenna-pol its "
+                    "own achromatic drift (one signal chain's gain changing against the "
+                    "others')",
+                    basis="feed_legendre",
+                )
+            )
         out.append(
             Effect(
                 "gain_drift",

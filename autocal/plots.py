@@ -348,3 +348,53 @@ def plot_residuals(
         fig.colorbar(mesh, cax=fig.add_subplot(grid[row, 1]), label="(R - model) / sigma")
     axes[-1].set_xlabel("frequency [MHz]")
     return save_figure(fig, path)
+
+
+def plot_gain_series(steps: list[dict[str, Any]], path: str | Path) -> Path | None:
+    """Plot a diagnosis's per-integration gain series against LST.
+
+    One panel per ``gain_jitter`` / ``antenna_gain_jitter`` step, one line per
+    antenna-pol (and the common series).
+
+    Parameters
+    ----------
+    steps
+        ``diagnosis.json`` steps; those with a ``series`` are drawn, one panel each.
+    path
+        Output image.
+
+    Returns
+    -------
+    Path or None
+        The image, or ``None`` when no step has a series.
+    """
+    found = [st for st in steps if st.get("series") and "dropped_in_backward_pass" not in st]
+    if not found:
+        return None
+    fig, axes = _figure(len(found), 1, (9, 2.8 * len(found) + 0.4))
+    axes = np.atleast_1d(axes)
+    for ax, st in zip(axes, found, strict=True):
+        series = st["series"]
+        lst = np.asarray(series["lst_h"], float)
+        factors = np.asarray(series["gain_factor"], float)
+        if factors.ndim == 1:
+            ax.plot(lst, 100 * (factors - 1), lw=1, label="all antennas")
+        else:
+            feeds = st.get("per_feed") or []
+            labels = [f"{f['antenna']} {f['pol']}" for f in feeds]
+            flat = factors.reshape(-1, factors.shape[-1])
+            for i, row in enumerate(flat):
+                label = labels[i] if i < len(labels) and flat.shape[0] <= 12 else None
+                ax.plot(lst, 100 * (row - 1), lw=0.8, alpha=0.8, label=label)
+            shared = series.get("shared_gain_factor")
+            if shared is not None:
+                ax.plot(lst, 100 * (np.asarray(shared) - 1), "k--", lw=1, label="common")
+        rms = st["parameters"].get("rms", {}).get("value", float("nan"))
+        ax.set(
+            ylabel="gain factor - 1 [%]",
+            title=f"{st['name']}: per-integration gain (rms {100 * rms:.2g} %)",
+        )
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7, ncol=4, loc="upper right")
+    axes[-1].set_xlabel("LST [h]")
+    return save_figure(fig, path)

@@ -16,6 +16,8 @@ catalogue's definitions, without autocal's simulation or hidden-effect code:
                         ``eps_i ~ N(0, rms)`` from its own seed, rms 0.1-1 %
 ``antenna_gain_jitter`` every antenna-pol its own ``f_i`` series (seeds differ by
                         feed), rms 0.2-1 %
+``antenna_gain_drift``  every antenna-pol its own linear gain drift, 1-5 % from first to
+                        last integration, each of random sign
 ``noise_drift``         ``Trxr(t) = Trxr (1 + e_1 s)``, ``s`` the time (linear in LST)
                         mapped onto ``[-1, 1]`` over the span, ``|e_1|`` 1-5 %
 ``cable_reflection``    ``G(nu) (1 + a cos(2 pi nu tau + phi))``: ``a`` 1e-3-1e-2,
@@ -86,6 +88,7 @@ HIDDEN_NAMES = (
     "sky_scale",
     "sky_offset",
     "antenna_gain_jitter",
+    "antenna_gain_drift",
 )
 #: Ground temperature the diagnosis's model assumes, kelvin.
 MODEL_TGND_K = 300.0
@@ -275,6 +278,18 @@ def feed_jitter_factors(rms: float, seed: int, nant: int, npol: int, ntime: int)
     )
 
 
+def feed_drift_factors(seed: int, nant: int, npol: int, ntime: int) -> np.ndarray:
+    """``(Nant, Npol, Ntime)``: every antenna-pol its own linear drift (mean 1).
+
+    Each changes by ``+-U(1 %, 5 %)`` from the first to the last integration.
+    """
+    rng = np.random.default_rng(int(seed))
+    size = (nant, npol)
+    amplitude = rng.choice([-1.0, 1.0], size) * rng.uniform(0.01, 0.05, size)
+    t_frac = np.linspace(-0.5, 0.5, ntime) if ntime > 1 else np.zeros(1)
+    return 1.0 + amplitude[..., None] * t_frac
+
+
 def draw_effect(name: str, span: Span, rng: np.random.Generator) -> Hidden:
     """Draw one hidden effect's parameters in its range (see the module table).
 
@@ -322,6 +337,8 @@ def draw_effect(name: str, span: Span, rng: np.random.Generator) -> Hidden:
         return Hidden(
             base, {"rms": rng.uniform(1e-3, 1e-2), "seed": int(rng.integers(0, 2**31 - 1))}
         )
+    if base == "antenna_gain_drift":
+        return Hidden(base, {"seed": int(rng.integers(0, 2**31 - 1))})
     if base == "antenna_gain_jitter":
         return Hidden(
             base, {"rms": rng.uniform(2e-3, 1e-2), "seed": int(rng.integers(0, 2**31 - 1))}
@@ -424,6 +441,10 @@ def simulation_kwargs(case: Case) -> dict[str, Any]:
             factors = factors * (1.0 + drift)
         elif eff.name == "gain_jitter":
             factors = factors * jitter_factors(p["rms"], p["seed"], ntime)
+        elif eff.name == "antenna_gain_drift":
+            kwargs["feed_gain"] = feed_drift_factors(
+                p["seed"], len(case.antennas), len(case.pols), ntime
+            )
         elif eff.name == "antenna_gain_jitter":
             kwargs["feed_gain"] = feed_jitter_factors(
                 p["rms"], p["seed"], len(case.antennas), len(case.pols), ntime
@@ -506,6 +527,8 @@ def effect_parameters(effect: Hidden, ntime: int, nfeeds: int = 1) -> int:
         return ntime - 1
     if effect.name == "antenna_gain_jitter":
         return nfeeds * (ntime - 1)
+    if effect.name == "antenna_gain_drift":
+        return nfeeds
     if effect.name == "missing_cmb":
         return 0
     if effect.name == "cable_reflection":
@@ -686,6 +709,7 @@ def _step_row(step: dict[str, Any]) -> dict[str, Any]:
         "product_impact": _impact(step.get("product_impact")),
         "dropped_in_backward_pass": step.get("dropped_in_backward_pass"),
         "superseded_by": step.get("superseded_by"),
+        "per_feed": step.get("per_feed"),
         "band_consistency": step.get("band_consistency"),
     }
 
@@ -832,7 +856,7 @@ def case_seed(name: str, seed: int = SUITE_SEED) -> int:
 
 
 def suite_plan(seed: int = SUITE_SEED) -> list[Case]:
-    """Return the fixed-seed suite (50 cases).
+    """Return the fixed-seed suite (51 cases).
 
     * 8 clean controls: the dipole over a day (1 antenna ee, twice with different noise;
       2 antennas ee + nn), over a short span at LST 3.23 h (1 antenna ee; 2 antennas
@@ -846,7 +870,8 @@ def suite_plan(seed: int = SUITE_SEED) -> list[Case]:
       show (expected misses, see :func:`effect_strength`);
     * nn, two antennas or the HERA beam (7 cases);
     * every antenna-pol its own gain jitter: 2 antennas x ee + nn over a short span, 3
-      antennas (ee) over a day (2 cases);
+      antennas (ee) over a day; its own gain drift, 2 antennas x ee + nn over a short span
+      (3 cases);
     * pairs: the 6 of autocal's own suite over a day, 2 over a short span, 1 with the
       HERA beam over a day (9 cases).
 
@@ -920,6 +945,7 @@ def suite_plan(seed: int = SUITE_SEED) -> list[Case]:
     # every antenna-pol its own gain jitter (the common series is not the answer)
     add("antenna_gain_jitter_short_2ant_eenn", ("antenna_gain_jitter",), "short", **two)
     add("antenna_gain_jitter_day_3ant", ("antenna_gain_jitter",), "day", antennas=(0, 1, 2))
+    add("antenna_gain_drift_short_2ant_eenn", ("antenna_gain_drift",), "short", **two)
     # pairs
     for a, b in _PAIRS:
         add(f"{a.split(':')[0]}+{b}_day", (a, b), "day")

@@ -482,3 +482,19 @@ def test_band_consistency_with_a_partner(setup):
     # alone: both halves biased (0.046 and 0.034 against 0.02), and significantly apart
     assert check is not None and check["p_value"] < 1e-3 and both["p_value"] > 1e-3
     assert check["relative_difference"] > 5 * both["relative_difference"]
+
+
+def test_robust_overdispersion_ignores_a_few_outliers() -> None:
+    """The bulk's scatter: 1 for unit normal residuals with 1 % huge outliers, which
+    multiply chi2/dof by ~100."""
+    from types import SimpleNamespace
+
+    from autocal.diagnose import robust_overdispersion
+
+    rng = np.random.default_rng(5)
+    res = rng.standard_normal((1, 2, 200, 100))
+    res.flat[::100] = 100.0
+    res[0, 0, 0, 0] = np.nan
+    fit = SimpleNamespace(residuals=res, reduced_chi2=float(np.nanmean(res**2)))
+    assert fit.reduced_chi2 > 50
+    assert robust_overdispersion(fit) == pytest.approx(1.0, abs=0.05)

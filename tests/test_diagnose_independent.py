@@ -1,6 +1,6 @@
 """The diagnosis on data from the independent forward model (a small, fast subset).
 
-The whole suite is ``scripts/diagnose_independent_suite.py`` (50 cases,
+The whole suite is ``scripts/diagnose_independent_suite.py`` (51 cases,
 ``docs/results/diagnose_independent/``). Here: the injection of the hidden effects into
 the independent model (cheap checks on a few integrations), the suite's plan and scoring,
 and a handful of cases diagnosed end to end by :func:`autocal.diagnose_run.run_diagnosis`.
@@ -267,6 +267,7 @@ FAST_CASES = (
     "beam_width_fwhm_day",
     "gain_jitter+noise_drift_short",
     "antenna_gain_jitter_short_2ant_eenn",
+    "antenna_gain_drift_short_2ant_eenn",
 )
 
 
@@ -374,6 +375,25 @@ def test_each_antenna_its_own_jitter(rows: dict[str, dict]) -> None:
 
 @pytest.mark.data
 @pytest.mark.slow
+def test_each_antenna_its_own_drift(rows: dict[str, dict]) -> None:
+    """Each of 2 antennas x 2 pols drifts its own way: antenna_gain_drift, each antenna-pol's
+    d_1 recovered; the drift they share is superseded, not named."""
+    row = rows["antenna_gain_drift_short_2ant_eenn"]
+    assert row["named"] == ["antenna_gain_drift"]
+    case = next(c for c in ie.suite_plan() if c.name == row["case"]["name"])
+    factors = ie.simulation_kwargs(case)["feed_gain"]
+    step = next(s for s in row["steps"] if s["name"] == "antenna_gain_drift")
+    for feed in step["per_feed"]:
+        ia = list(case.antennas).index(feed["antenna"])
+        truth = factors[ia, list(case.pols).index(feed["pol"])]
+        half_change = 0.5 * (truth[-1] - truth[0])  # d_1 of 1 + d_1 s, s from -1 to 1
+        assert abs(feed["d_1"] - half_change) < 0.1 * abs(half_change), (feed, half_change)
+    shared = [s for s in row["steps"] if s["name"] == "gain_drift"]
+    assert all(s["superseded_by"] == "antenna_gain_drift" for s in shared)
+
+
+@pytest.mark.data
+@pytest.mark.slow
 def test_suite_report_from_rows(rows: dict[str, dict], tmp_path: Path) -> None:
     """The script's summary and markdown are built from the rows."""
     script = _script()
@@ -400,6 +420,7 @@ def test_suite_report_from_rows(rows: dict[str, dict], tmp_path: Path) -> None:
         "beam_width",
         "gain_jitter",
         "antenna_gain_jitter",
+        "antenna_gain_drift",
     }
     assert 0 <= s["exact"] <= s["correct"] <= s["cases"]
     text = script.markdown(result)
