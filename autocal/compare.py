@@ -124,6 +124,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from autocal.errors import AutocalError
+
 if TYPE_CHECKING:
     from autocal.fit import Solution
     from autocal.io.calsol import ReferenceGains
@@ -163,7 +165,7 @@ HERA_SIM_BEAM_INTEGRALS = "hera/instrument/HERA_H1C_BEAM_INTEGRALS.npz"
 DEFAULT_POL_CONVENTION = "avg"
 
 
-class CompareError(ValueError):
+class CompareError(AutocalError):
     """The solution and the reference cannot be compared as asked."""
 
 
