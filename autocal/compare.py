@@ -874,6 +874,12 @@ class Comparison:
     reference_series: np.ndarray | None = None
     auto_series: dict[tuple[int, str], tuple[np.ndarray, np.ndarray]] | None = None
 
+    def __repr__(self) -> str:
+        """Return one line; arrays as their type and shape (:func:`~autocal.reprs.compact_repr`)."""
+        from autocal.reprs import compact_repr
+
+        return compact_repr(self)
+
 
 def _match_axes(
     solution: Solution,

@@ -207,6 +207,12 @@ class NormalSums:
     lst_max: float = -np.inf
     info: dict[str, Any] = field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        """Return one line; arrays as their type and shape (:func:`~autocal.reprs.compact_repr`)."""
+        from autocal.reprs import compact_repr
+
+        return compact_repr(self)
+
     @classmethod
     def zeros(cls, model: FitModel, nant: int, npol: int, nfreq: int) -> NormalSums:
         """Empty sums."""

@@ -191,6 +191,12 @@ class CalibrationResult:
     summary: dict[str, Any]
     timings: dict[str, float] = field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        """Return one line; arrays as their type and shape (:func:`~autocal.reprs.compact_repr`)."""
+        from autocal.reprs import compact_repr
+
+        return compact_repr(self)
+
 
 # inputs ---------------------------------------------------------------------------------
 

@@ -74,6 +74,12 @@ class TrxrPrior:
     pols: tuple[str, ...] | None = None
     sha256: str | None = None
 
+    def __repr__(self) -> str:
+        """Return one line; arrays as their type and shape (:func:`~autocal.reprs.compact_repr`)."""
+        from autocal.reprs import compact_repr
+
+        return compact_repr(self)
+
     def __post_init__(self) -> None:
         trxr = np.array(self.trxr_k, dtype=float)
         sigma = np.array(self.sigma_k, dtype=float)

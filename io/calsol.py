@@ -270,6 +270,12 @@ class ReferenceGains:
     cal_style: str = ""
     meta: dict[str, Any] = field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        """Return one line; arrays as their type and shape (:func:`~autocal.reprs.compact_repr`)."""
+        from autocal.reprs import compact_repr
+
+        return compact_repr(self)
+
     def __post_init__(self) -> None:
         shape = (len(self.antennas), len(self.pols), len(self.jds), len(self.freqs))
         if self.gains.shape != shape or self.flags.shape != shape:

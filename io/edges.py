@@ -239,6 +239,12 @@ class EdgesSpectra:
     aux: dict[str, np.ndarray] = field(default_factory=dict)
     meta: dict[str, Any] = field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        """Return one line; arrays as their type and shape (:func:`~autocal.reprs.compact_repr`)."""
+        from autocal.reprs import compact_repr
+
+        return compact_repr(self)
+
     def __post_init__(self) -> None:
         p = [np.atleast_2d(np.asarray(x, dtype=np.float64)) for x in (self.p0, self.p1, self.p2)]
         if not (p[0].shape == p[1].shape == p[2].shape) or p[0].ndim != 2:

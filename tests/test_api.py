@@ -181,3 +181,18 @@ def test_import_is_lazy_and_diagnose_is_callable() -> None:
         "assert issubclass(autocal.AutocalError, ValueError)\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_other_records_print_shapes_not_arrays() -> None:
+    from autocal.fit import FitModel, NormalSums
+    from autocal.priors import TrxrPrior
+
+    sums = NormalSums.zeros(FitModel.for_lsts(np.linspace(1, 2, 5)), 2, 1, 300)
+    text = repr(sums)
+    assert text.startswith("NormalSums(") and "float64(2, 1, 300, 2, 2)" in text
+    assert "array(" not in text and len(text) < 400
+    prior = TrxrPrior("table", np.linspace(1e8, 2e8, 50), np.full(50, 150.0), np.full(50, 5.0))
+    assert repr(prior) == (
+        "TrxrPrior(source='table', freqs_hz=float64(50,), trxr_k=float64(50,), "
+        "sigma_k=float64(50,))"
+    )
