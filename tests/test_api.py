@@ -196,3 +196,12 @@ def test_other_records_print_shapes_not_arrays() -> None:
         "TrxrPrior(source='table', freqs_hz=float64(50,), trxr_k=float64(50,), "
         "sigma_k=float64(50,))"
     )
+
+
+def test_autocal_diagnose_is_the_diagnosis_stage(hera_file: Path, tmp_path: Path) -> None:
+    summary = autocal.diagnose(hera_file, out=tmp_path, antennas=[ANTENNA], max_steps=0)
+    assert summary["effects"] == [] and (tmp_path / "summary.json").exists()
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="passes"):  # not a DiagnoseConfig field
+        autocal.diagnose(hera_file, out=tmp_path, passes=2)
