@@ -34,13 +34,15 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.special import j1
 
+from autocal.errors import AutocalError
+
 logger = logging.getLogger(__name__)
 
 C_LIGHT = 299792458.0
 POLS = ("ee", "nn")
 
 
-class BeamError(ValueError):
+class BeamError(AutocalError):
     """A beam cannot be built or evaluated as asked."""
 
 

@@ -32,8 +32,17 @@ import sys
 from collections.abc import Sequence
 
 from autocal.commands import CliError, parse_range
+from autocal.errors import AutocalError
 
-__all__ = ["CliError", "build_parser", "main", "parse_range"]
+__all__ = [
+    "EXIT_OK",
+    "EXIT_USER_ERROR",
+    "CliError",
+    "build_parser",
+    "main",
+    "parse_range",
+    "user_error_message",
+]
 
 logger = logging.getLogger("autocal.cli")
 
@@ -79,19 +88,64 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Exit status of a command that succeeded.
+EXIT_OK = 0
+#: Exit status of bad input: an :class:`~autocal.errors.AutocalError`, a file that is
+#: missing or cannot be written (:class:`OSError`), or options pydantic rejects.
+EXIT_USER_ERROR = 2
+
+
+def user_error_message(err: BaseException) -> str | None:
+    """Return the one-line message of an error the user caused, ``None`` for anything else.
+
+    User errors are :class:`~autocal.errors.AutocalError` (every autocal input error),
+    :class:`OSError` (a missing input, an existing output) and pydantic's
+    ``ValidationError`` (options out of range). Any other exception, a plain
+    ``ValueError`` from numpy included, is a bug and is not reported as bad input.
+
+    Parameters
+    ----------
+    err
+        The exception a command raised.
+
+    Returns
+    -------
+    str or None
+        The message to print, or ``None`` when ``err`` is not a user error.
+    """
+    from pydantic import ValidationError
+
+    if isinstance(err, ValidationError):
+        from autocal.commands import validation_message
+
+        return validation_message(err)
+    if isinstance(err, AutocalError | OSError):
+        return " ".join(str(err).split()) or type(err).__name__
+    return None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line; return the exit status."""
+    """Run the command line; return the exit status.
+
+    Returns
+    -------
+    int
+        :data:`EXIT_OK`, or :data:`EXIT_USER_ERROR` after printing a user error's message
+        to standard error. Other exceptions (bugs) propagate with their traceback (the
+        interpreter exits with status 1).
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     level = [logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         return int(args.func(args))
-    except (ValueError, FileExistsError, FileNotFoundError) as err:
-        # Every autocal input error is a ValueError subclass with a message that says
-        # what to do (sky, beam, Tsky, fit, observation, file-format and CLI errors).
-        print(f"autocal {args.command}: error: {err}", file=sys.stderr)
-        return 2
+    except Exception as err:
+        message = user_error_message(err)
+        if message is None:
+            raise
+        print(f"autocal {args.command}: error: {message}", file=sys.stderr)
+        return EXIT_USER_ERROR
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -124,6 +124,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from autocal.errors import AutocalError
+
 if TYPE_CHECKING:
     from autocal.fit import Solution
     from autocal.io.calsol import ReferenceGains
@@ -163,7 +165,7 @@ HERA_SIM_BEAM_INTEGRALS = "hera/instrument/HERA_H1C_BEAM_INTEGRALS.npz"
 DEFAULT_POL_CONVENTION = "avg"
 
 
-class CompareError(ValueError):
+class CompareError(AutocalError):
     """The solution and the reference cannot be compared as asked."""
 
 
@@ -871,6 +873,12 @@ class Comparison:
     reference_jds: np.ndarray | None = None
     reference_series: np.ndarray | None = None
     auto_series: dict[tuple[int, str], tuple[np.ndarray, np.ndarray]] | None = None
+
+    def __repr__(self) -> str:
+        """Return one line; arrays as their type and shape (:func:`~autocal.reprs.compact_repr`)."""
+        from autocal.reprs import compact_repr
+
+        return compact_repr(self)
 
 
 def _match_axes(

@@ -20,7 +20,13 @@ import healpy as hp
 import numpy as np
 from astropy.time import Time
 
+from autocal.errors import AutocalError
+
 J2000 = "J2000"
+
+
+class EpochError(AutocalError):
+    """An epoch or a set of times that is not a usable date."""
 
 
 def parse_epoch(epoch: str | float | Time | None) -> Time:
@@ -42,7 +48,7 @@ def parse_epoch(epoch: str | float | Time | None) -> Time:
         return Time("J2000", scale="utc")
     if isinstance(epoch, (int, float, np.floating)):
         if epoch < 2e6:
-            raise ValueError(f"epoch {epoch} is not a Julian date (expected > 2e6)")
+            raise EpochError(f"epoch {epoch} is not a Julian date (expected > 2e6)")
         return Time(float(epoch), format="jd", scale="utc")
     try:
         value = float(epoch)
@@ -50,7 +56,7 @@ def parse_epoch(epoch: str | float | Time | None) -> Time:
         try:
             return Time(epoch, scale="utc")
         except ValueError as err:
-            raise ValueError(
+            raise EpochError(
                 f"cannot parse epoch {epoch!r}: give 'J2000', an ISO date such as "
                 "'2018-01-01T00:00:00' or a Julian date"
             ) from err
@@ -91,15 +97,15 @@ def night_epoch(jds: np.ndarray | list[float] | float, lon_deg: float) -> float:
 
     Raises
     ------
-    ValueError
+    EpochError
         If ``jds`` is empty or not finite, or not a Julian date.
     """
     arr = np.asarray(jds, dtype=np.float64).ravel()
     if arr.size == 0 or not np.all(np.isfinite(arr)):
-        raise ValueError("the epoch needs at least one finite Julian date")
+        raise EpochError("the epoch needs at least one finite Julian date")
     mean = float(arr.mean())
     if mean < 2e6:
-        raise ValueError(f"time {mean} is not a Julian date (expected > 2e6)")
+        raise EpochError(f"time {mean} is not a Julian date (expected > 2e6)")
     if np.ptp(arr) > NIGHT_SPAN_DAYS:
         return mean
     # local mean solar time as a "local JD" (integer at local mean noon, like the JD at

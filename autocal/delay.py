@@ -14,8 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import get_window
 
+from autocal.errors import AutocalError
 
-class DelayError(ValueError):
+
+class DelayError(AutocalError):
     """Invalid input for a delay spectrum."""
 
 

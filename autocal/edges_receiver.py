@@ -72,6 +72,7 @@ import numpy as np
 
 from autocal.beams import file_checksum
 from autocal.coords import night_epoch
+from autocal.errors import AutocalError
 
 logger = logging.getLogger(__name__)
 
@@ -113,7 +114,7 @@ SOLUTIONS: dict[str, dict[str, Any]] = {
 _ALIASES = {"bowman2018": "edges2-lowband-2015", "edges2": "edges2-lowband-2015"}
 
 
-class ReceiverCalError(ValueError):
+class ReceiverCalError(AutocalError):
     """A receiver solution or calibration input is invalid."""
 
 
@@ -1222,7 +1223,14 @@ def fit_edges_day(
     if weights == "variance":
         keep = spec.freqs >= MIN_OBS_FREQ_HZ
         w = (1.0 / spec.variance(r)[:, keep])[None, None]
-    sol = fit(obs, tsky, model="constant", weights=w, config={"edges_day": cfg, "r": r})
+    sol = fit(  # pulls of the propagated noise: the covariance as it is, not inflated
+        obs,
+        tsky,
+        model="constant",
+        weights=w,
+        inflate_errors=False,
+        config={"edges_day": cfg, "r": r},
+    )
     exp = day.expected[r]
     g, sg = sol.G[0, 0], sol.sigma_G[0, 0]
     t, st = sol.Trxr[0, 0], sol.sigma_Trxr[0, 0]

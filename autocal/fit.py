@@ -35,6 +35,7 @@ import logging
 import os
 import sys
 import threading
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +44,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from numpy.polynomial import legendre
 
+from autocal.errors import AutocalError
 from autocal.observation import Observation
 from autocal.user_cache import user_cache_dir
 
@@ -62,7 +64,7 @@ FLAG_REASONS: dict[int, str] = {
 MAX_CONDITION = 1e12
 
 
-class FitError(ValueError):
+class FitError(AutocalError):
     """Invalid fit input."""
 
 
@@ -204,6 +206,12 @@ class NormalSums:
     lst_min: float = np.inf
     lst_max: float = -np.inf
     info: dict[str, Any] = field(default_factory=dict)
+
+    def __repr__(self) -> str:
+        """Return one line; arrays as their type and shape (:func:`~autocal.reprs.compact_repr`)."""
+        from autocal.reprs import compact_repr
+
+        return compact_repr(self)
 
     @classmethod
     def zeros(cls, model: FitModel, nant: int, npol: int, nfreq: int) -> NormalSums:
@@ -1183,6 +1191,73 @@ class Solution:
             total=total,
         )
 
+    def __repr__(self) -> str:
+        """Return one line: model, axes, ranges and medians (never the arrays)."""
+        from autocal.reprs import list_summary, median, span
+
+        ok = ~self.flags
+        with np.errstate(invalid="ignore", divide="ignore"):
+            gain = self.G
+            abs_g, trxr = np.sqrt(gain), self.n / gain
+        nant = len(self.antennas)
+        model = (
+            self.model.kind
+            if self.model.kind == "constant"
+            else (f"legendre order {self.model.order}")
+        )
+        errors = "statistical" if self.total is None else "total"
+        return (
+            f"Solution({model}: {nant} antenna{'s' * (nant != 1)} "
+            f"{list_summary(self.antennas)}, pols {list_summary(self.pols)}, "
+            f"{self.freqs.size} channels {span(self.freqs, 1e6, 'MHz')}, {self.lsts.size} "
+            f"times LST {span(self.lsts, 1, 'h')}; {int(self.flags.sum())} flagged; median "
+            f"|g| {median(abs_g, ok):.4g}, Trxr {median(trxr, ok):.4g} K "
+            f"+- {median(self.sigma_Trxr, ok):.3g} K ({errors}), "
+            f"chi2/dof {median(self.reduced_chi2, ok):.3g})"
+        )
+
+    # products -------------------------------------------------------------------------
+    def to_uvcal(self, **kwargs: Any) -> Any:
+        """Return the gains ``|g| = sqrt(G)`` as a pyuvdata ``UVCal``.
+
+        The object the calh5/calfits products hold (:func:`autocal.io.calsol.solution_to_uvcal`;
+        ``kwargs``: ``time_range``, ``per_time``, ``telescope``, ``site``, ``history``).
+        """
+        from autocal.io.calsol import solution_to_uvcal
+
+        return solution_to_uvcal(self, **kwargs)
+
+    def write(
+        self,
+        out: str | Path,
+        products: tuple[str, ...] | list[str] = ("calh5", "hdf5"),
+        *,
+        overwrite: bool = False,
+    ) -> dict[str, str]:
+        """Write products of this solution into the folder ``out`` (created).
+
+        The files and writers of ``autocal calibrate``
+        (:func:`autocal.pipeline.write_solution_products`): ``solution.calh5``,
+        ``solution.calfits``, ``solution.h5``, ``solution.png``.
+
+        Parameters
+        ----------
+        out
+            Output folder.
+        products
+            Any of ``"calh5"``, ``"calfits"``, ``"hdf5"``, ``"png"``.
+        overwrite
+            Replace existing files (otherwise an existing file is a ``FileExistsError``).
+
+        Returns
+        -------
+        dict
+            Product name -> path.
+        """
+        from autocal.pipeline import write_solution_products
+
+        return write_solution_products(self, out, products, overwrite=overwrite)
+
     # basic quantities ------------------------------------------------------------------
     @property
     def flags(self) -> np.ndarray:
@@ -1401,6 +1476,113 @@ def trxr_sigma(
     return np.sqrt(np.where(var >= 0, var, np.nan))
 
 
+# passes and error scaling: one definition for every fit ---------------------------------
+
+#: Radiometer weighting passes: ``"auto"`` (a second pass only when data weights would bias
+#: ``G`` by more than :data:`REWEIGHT_THRESHOLD`), ``1`` or ``2``.
+Passes = Literal["auto", 1, 2]
+#: Relative bias ``2 / (dnu dt N)`` of data-derived radiometer weights above which
+#: ``passes="auto"`` makes a second, model-weighted pass.
+REWEIGHT_THRESHOLD = 1e-5
+#: Default passes of every calibration (:class:`autocal.pipeline.CalibrationConfig` and
+#: :func:`fit` both use it).
+DEFAULT_PASSES: Passes = "auto"
+#: Default: radiometer-weighted covariances are multiplied by ``max(1, chi^2/dof)`` so the
+#: errors cover unmodelled structure (:class:`autocal.pipeline.CalibrationConfig` and
+#: :func:`fit` both use it).
+DEFAULT_INFLATE_ERRORS = True
+
+
+def covariance_scaling(
+    weights: str | np.ndarray, inflate_errors: bool = DEFAULT_INFLATE_ERRORS
+) -> bool | Literal["inflate"]:
+    """Return how :func:`solve_sums` scales the covariance for these weights.
+
+    Parameters
+    ----------
+    weights
+        ``"radiometer"``, ``"identity"`` or an array of inverse variances.
+    inflate_errors
+        Inflate inverse-variance errors by ``max(1, chi^2/dof)``.
+
+    Returns
+    -------
+    bool or "inflate"
+        ``True`` (times ``chi^2/dof``) for identity weights, which are not inverse
+        variances; otherwise ``"inflate"`` or ``False`` as ``inflate_errors`` says.
+    """
+    if isinstance(weights, str) and weights == "identity":
+        return True
+    return "inflate" if inflate_errors else False
+
+
+def data_weight_bias(bt_min: float) -> float:
+    """Relative bias ``2 / (dnu dt N)`` of ``G`` from data-derived radiometer weights.
+
+    ``bt_min`` is the smallest ``dnu dt N`` of the used samples (0 when there is none).
+    """
+    return 2.0 / bt_min if np.isfinite(bt_min) and bt_min > 0 else 0.0
+
+
+def run_passes(
+    one_pass: Callable[[np.ndarray | None, int, int], tuple[Any, NormalSums, float]],
+    *,
+    passes: Passes,
+    radiometer: bool,
+    min_samples: int | None = None,
+) -> tuple[Any, int]:
+    """Run the weighting passes of a fit: the one pass loop of autocal.
+
+    Pass 1 weights by the data. With radiometer weights and ``passes`` 2 (or ``"auto"``
+    when the first pass shows a data-weight bias :func:`data_weight_bias` of at least
+    :data:`REWEIGHT_THRESHOLD`) a second pass weights by the first pass's model. The
+    in-memory :func:`fit` and the streamed :func:`autocal.pipeline.run_calibration`
+    both run through here, so they decide the same.
+
+    Parameters
+    ----------
+    one_pass
+        ``one_pass(coeffs, ipass, npass) -> (result, sums, bt_min)``: accumulate the data
+        once, weighting radiometer weights by the model of ``coeffs``
+        (``(Nant, Npol, Nfreq, nparam)``; ``None`` in the first pass: by the data);
+        ``npass`` is the number of passes planned so far (for progress). It returns
+        anything the caller needs, the pass's fitted sums and the smallest ``dnu dt N``
+        of the used samples (``inf`` when unknown).
+    passes
+        ``"auto"``, ``1`` or ``2``.
+    radiometer
+        Whether the weights are radiometer weights (other weights need one pass).
+    min_samples
+        Passed to :func:`solve_sums` for the model of the next pass.
+
+    Returns
+    -------
+    tuple
+        The last pass's ``result`` and the number of passes made.
+    """
+    if passes not in ("auto", 1, 2):
+        raise FitError(f"passes must be 'auto', 1 or 2, got {passes!r}")
+    npass = 1 if not radiometer or passes == 1 else 2
+    coeffs = None
+    ipass = 0
+    result: Any = None
+    while ipass < npass:
+        result, sums, bt_min = one_pass(coeffs, ipass, npass)
+        if ipass == 0 and passes == "auto" and npass == 2:
+            bias = data_weight_bias(bt_min)
+            if bias < REWEIGHT_THRESHOLD:
+                logger.info(
+                    "data-weight bias 2/(dnu dt N) = %.2g < %.0e: one pass",
+                    bias,
+                    REWEIGHT_THRESHOLD,
+                )
+                npass = 1
+        if ipass + 1 < npass:
+            coeffs = solve_sums(sums, min_samples=min_samples)["coeffs"]
+        ipass += 1
+    return result, npass
+
+
 # the in-memory driver -------------------------------------------------------------------
 
 
@@ -1411,15 +1593,22 @@ def fit(
     model: str | FitModel = "constant",
     order: int = 1,
     weights: str | np.ndarray = "radiometer",
-    iterations: int = 2,
+    passes: Passes = DEFAULT_PASSES,
+    inflate_errors: bool = DEFAULT_INFLATE_ERRORS,
     min_samples: int | None = None,
-    scale_covariance: bool | None = None,
+    scale_covariance: bool | Literal["inflate"] | None = None,
     return_residuals: bool = False,
     config: dict[str, Any] | None = None,
     uncertainty: Literal["total", "statistical"] = "total",
     trxr_prior: Any = None,
 ) -> Solution:
-    """Fit gain and receiver noise to an observation held in memory.
+    """Fit gain and receiver noise to an observation and a Tsky array held in memory.
+
+    The low-level fit: no files, no Tsky computation, no products. Its defaults (passes,
+    error inflation) are those of :class:`autocal.pipeline.CalibrationConfig`
+    (:data:`DEFAULT_PASSES`, :data:`DEFAULT_INFLATE_ERRORS`) and its passes run through
+    :func:`run_passes`, like :func:`autocal.calibrate`; to calibrate files (or an
+    observation, Tsky computed for you) call :func:`autocal.calibrate`.
 
     Parameters
     ----------
@@ -1434,13 +1623,20 @@ def fit(
         Legendre order for ``model="legendre"``.
     weights
         ``"radiometer"``, ``"identity"`` or an array of ``1 / sigma^2``.
-    iterations
-        Passes for radiometer weights: pass 1 weights by the data, later passes by the
-        fitted model (removes the weight-noise correlation bias). Ignored otherwise.
+    passes
+        Radiometer weighting passes (:func:`run_passes`): pass 1 weights by the data, a
+        second pass by the fitted model (removes the weight-noise correlation bias);
+        ``"auto"`` makes the second only when that bias exceeds
+        :data:`REWEIGHT_THRESHOLD`. Other weights: one pass.
+    inflate_errors
+        Multiply the covariance of inverse-variance weights by ``max(1, chi^2/dof)``
+        (identity weights are always scaled by ``chi^2/dof``).
     min_samples
         Fewest used samples per channel.
     scale_covariance
-        Scale the covariance by ``chi^2 / dof``; default ``True`` for identity weights.
+        Override the covariance scaling (:func:`solve_sums`): ``True``, ``False`` or
+        ``"inflate"``; ``None`` (default): :func:`covariance_scaling` of ``weights`` and
+        ``inflate_errors``.
     return_residuals
         Store normalised residuals in the solution.
     config
@@ -1476,32 +1672,38 @@ def fit(
         fit_model = FitModel.for_lsts(obs.lsts, model, 0 if model == "constant" else order)
     tsky = _check_tsky(tsky, len(obs.pols), obs.ntime, obs.nfreq)
     is_radiometer = isinstance(weights, str) and weights == "radiometer"
-    if iterations < 1:
-        raise FitError("iterations must be >= 1")
-    npass = iterations if is_radiometer else 1
     bt = obs.bandwidth_time() if is_radiometer else None
-    if is_radiometer and not np.all(bt[~obs.flags] > 0):
-        raise FitError(
-            "radiometer weights need positive channel width, integration time and nsamples; "
-            "the observation lacks them: use weights='identity'"
-        )
-    reference = None
-    solved: dict[str, np.ndarray] = {}
-    sums: NormalSums | None = None
+    bt_min = np.inf
+    if bt is not None:
+        used = np.broadcast_to(~obs.flags, bt.shape)
+        if not np.all(bt[used] > 0):
+            raise FitError(
+                "radiometer weights need positive channel width, integration time and "
+                "nsamples; the observation lacks them: use weights='identity'"
+            )
+        bt_min = float(np.min(bt, where=used, initial=np.inf))
     scale = (
-        (isinstance(weights, str) and weights == "identity")
+        covariance_scaling(weights, inflate_errors)
         if scale_covariance is None
-        else scale_covariance
+        else (scale_covariance)
     )
     if uncertainty not in ("total", "statistical"):
         raise FitError(f"uncertainty must be 'total' or 'statistical', got {uncertainty!r}")
-    blocks = None
     edges = None
     if uncertainty == "total":
         nbytes = sums_nbytes(extended_model(fit_model), obs.nant, len(obs.pols), obs.nfreq)
         edges = block_edges(obs.ntime, bytes_per_block=nbytes)
-    for ipass in range(npass):
+
+    def one_pass(
+        coeffs: np.ndarray | None, ipass: int, npass: int
+    ) -> tuple[tuple[NormalSums, Any, np.ndarray | None], NormalSums, float]:
+        reference = None
+        if coeffs is not None:
+            pred = np.einsum("pftm,apfm->aptf", design(fit_model, tsky, obs.lsts), coeffs)
+            # Channels that failed keep data-based weights.
+            reference = np.where(np.isfinite(pred) & (pred > 0), pred, obs.data)
         kwargs = {"flags": obs.flags, "weights": weights, "bandwidth_time": bt}
+        blocks = None
         if edges is None:
             sums = accumulate(fit_model, obs.data, tsky, obs.lsts, reference=reference, **kwargs)
         else:
@@ -1509,14 +1711,13 @@ def fit(
                 fit_model, obs.data, tsky, obs.lsts, edges, reference=reference, **kwargs
             )
             sums = blocks.fitted_total()
-        solved = solve_sums(sums, min_samples=min_samples, scale_covariance=scale)
-        if ipass + 1 < npass:
-            a = design(fit_model, tsky, obs.lsts)
-            pred = np.einsum("pftm,apfm->aptf", a, solved["coeffs"])
-            # Channels that failed keep data-based weights.
-            reference = np.where(np.isfinite(pred) & (pred > 0), pred, obs.data)
-    assert sums is not None
+        return (sums, blocks, reference), sums, bt_min
+
+    (sums, blocks, reference), npass = run_passes(
+        one_pass, passes=passes, radiometer=is_radiometer, min_samples=min_samples
+    )
     prior_fn = None
+    solve_from = sums
     if trxr_prior is not None:
         if hasattr(trxr_prior, "at"):
             ptrxr, psigma = trxr_prior.at(obs.freqs, antennas=obs.antennas, pols=obs.pols)
@@ -1526,8 +1727,8 @@ def fit(
         def prior_fn(part: NormalSums, pvg: np.ndarray, pvn: np.ndarray) -> NormalSums:
             return add_trxr_prior(part, pvg, pvn, ptrxr, psigma, scale_covariance=scale)
 
-        vg, vn = mean_vectors(fit_model, obs.lsts)
-        solved = solve_sums(prior_fn(sums, vg, vn), min_samples=min_samples, scale_covariance=scale)
+        solve_from = prior_fn(sums, *mean_vectors(fit_model, obs.lsts))
+    solved = solve_sums(solve_from, min_samples=min_samples, scale_covariance=scale)
     nbad = int(np.sum(solved["flag_reason"] != 0))
     if nbad:
         logger.warning(
@@ -1542,8 +1743,8 @@ def fit(
         )
     cfg = {
         "weights": weights if isinstance(weights, str) else "user",
-        "iterations": npass,
-        "scale_covariance": bool(scale),
+        "passes": npass,
+        "scale_covariance": scale,
         "min_samples": min_samples if min_samples is not None else fit_model.nparam + 1,
         **(config or {}),
     }

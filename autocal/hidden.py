@@ -34,6 +34,7 @@ import numpy as np
 
 from autocal.coords import night_epoch
 from autocal.effects import Effect, ScaledBeam, SkyTemplates, catalogue, sky_templates
+from autocal.errors import AutocalError
 from autocal.observation import Observation
 from autocal.simulate import (
     SimulationConfig,
@@ -62,7 +63,7 @@ HIDDEN_KINDS = (
 NEEDS_PRIOR = ("sky_spectral_index", "ground_temperature", "missing_cmb")
 
 
-class HiddenError(ValueError):
+class HiddenError(AutocalError):
     """Invalid hidden-effect case."""
 
 

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from autocal.errors import AutocalError
 from autocal.sites import Site
 
 logger = logging.getLogger(__name__)
@@ -25,7 +26,7 @@ logger = logging.getLogger(__name__)
 KNOWN_POLS = ("ee", "nn", "en", "ne", "xx", "yy", "xy", "yx")
 
 
-class ObservationError(ValueError):
+class ObservationError(AutocalError):
     """An observation is inconsistent or a selection is invalid."""
 
 
@@ -164,6 +165,19 @@ class Observation:
             ("antenna_names", names),
         ):
             object.__setattr__(self, key, value)
+
+    def __repr__(self) -> str:
+        """Return one line: telescope, antennas, pols, shape, ranges (never the arrays)."""
+        from autocal.reprs import list_summary, span
+
+        nant = self.nant
+        return (
+            f"Observation({self.telescope_name} at {self.site.name}: "
+            f"{nant} antenna{'s' * (nant != 1)} {list_summary(self.antennas)}, "
+            f"pols {list_summary(self.pols)}, {self.ntime} times x {self.nfreq} channels; "
+            f"{span(self.freqs, 1e6, 'MHz')}, LST {span(self.lsts, 1, 'h')}, "
+            f"JD {span(self.jds, 1, '', 13)}; {100 * float(np.mean(self.flags)):.3g} % flagged)"
+        )
 
     # shape helpers ---------------------------------------------------------------------
     @property

@@ -246,11 +246,12 @@ class PaperRun:
         """Simulate and fit one scenario (``noise=False``: its systematic part only)."""
         obs, gain = self.observation(scenario, seed, noise)
         model_tsky = self.tsky(scenario.model_sky, False)
-        sol = fit(
+        sol = fit(  # the paper's statistical errors: radiometer covariance, not inflated
             obs,
             model_tsky,
             model=scenario.fit_model,
             order=scenario.order,
+            inflate_errors=False,
             config={
                 "scenario": scenario.name,
                 "beam": self.beam,

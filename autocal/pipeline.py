@@ -30,7 +30,7 @@ import logging
 import os
 import shutil
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -39,12 +39,19 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from autocal.coords import night_epoch
+from autocal.errors import AutocalError
 from autocal.fit import (
+    DEFAULT_INFLATE_ERRORS,
+    DEFAULT_PASSES,
+    REWEIGHT_THRESHOLD,
     FitModel,
     NormalSums,
+    Passes,
     Solution,
     accumulate,
+    covariance_scaling,
     design,
+    run_passes,
     solve_sums,
     weights_for,
 )
@@ -63,8 +70,17 @@ from autocal.uncertainty import (
 
 logger = logging.getLogger(__name__)
 
-#: Relative bias of data-derived radiometer weights above which a second pass is made.
-REWEIGHT_THRESHOLD = 1e-5
+__all__ = [
+    "REWEIGHT_THRESHOLD",
+    "CalibrationConfig",
+    "CalibrationResult",
+    "PipelineError",
+    "calibrate",
+    "read",
+    "read_summary",
+    "run_calibration",
+]
+
 #: Antenna-polarisations shown in the residual waterfall.
 MAX_PLOTTED = 4
 #: Rows (time bins) of the residual waterfall; longer observations are binned in time.
@@ -78,7 +94,7 @@ Progress = Callable[[float, str], None]
 DEFAULT_PRIOR_SIGMA_K = 10.0
 
 
-class PipelineError(ValueError):
+class PipelineError(AutocalError):
     """The calibration could not be configured or run."""
 
 
@@ -103,8 +119,9 @@ class CalibrationConfig(BaseModel):
     model: Literal["constant", "legendre"] = "constant"
     order: int = Field(1, ge=0, le=10, description="Legendre order (model=legendre)")
     weights: Literal["radiometer", "identity"] = "radiometer"
-    passes: Literal["auto", 1, 2] = Field(
-        "auto", description="radiometer weighting passes (auto: 2 only when data weights bias G)"
+    passes: Passes = Field(
+        DEFAULT_PASSES,
+        description="radiometer weighting passes (auto: 2 only when data weights bias G)",
     )
     antennas: list[int] | None = None
     pols: list[str] | None = None
@@ -115,7 +132,7 @@ class CalibrationConfig(BaseModel):
         None, description="reference gains (calfits/calh5) to compare |g| with"
     )
     inflate_errors: bool = Field(
-        True,
+        DEFAULT_INFLATE_ERRORS,
         description="radiometer weights: scale each channel's covariance by chi2/dof when it "
         "exceeds 1, so errors cover unmodelled structure (identity weights always scale)",
     )
@@ -173,6 +190,12 @@ class CalibrationResult:
     products: dict[str, str]
     summary: dict[str, Any]
     timings: dict[str, float] = field(default_factory=dict)
+
+    def __repr__(self) -> str:
+        """Return one line; arrays as their type and shape (:func:`~autocal.reprs.compact_repr`)."""
+        from autocal.reprs import compact_repr
+
+        return compact_repr(self)
 
 
 # inputs ---------------------------------------------------------------------------------
@@ -312,6 +335,20 @@ def _open_source(config: CalibrationConfig) -> _Source:
 
     obs = read_miriad(paths, **sel)  # small legacy data sets: read once and kept
     return _Source("miriad", paths, obs.lsts, obs.jds, obs.freqs, obs.pols, obs.site, obs)
+
+
+def _memory_source(obs: Observation, config: CalibrationConfig) -> _Source:
+    """Return the source of an observation in memory, the configuration's selection applied."""
+    sel = _selection(config)
+    if any(v is not None for v in sel.values()):
+        obs = obs.select(
+            antennas=sel["antennas"],
+            pols=sel["pols"],
+            freq_range=sel["freq_range"],
+            lst_range=sel["lst_range"],
+        )
+    files = [Path(f) for f in obs.meta.get("files") or []]
+    return _Source("memory", files, obs.lsts, obs.jds, obs.freqs, obs.pols, obs.site, obs)
 
 
 def _selection(config: CalibrationConfig) -> dict[str, Any]:
@@ -754,15 +791,16 @@ def _fold(
 
 def run_calibration(
     config: CalibrationConfig,
-    out: str | Path,
+    out: str | Path | None,
     *,
     progress: Progress | None = None,
     should_stop: Callable[[], bool] | None = None,
     dask_scheduler: str | None = None,
     dask_workers: int | None = None,
     block_size: int | None = None,
+    observation: Observation | None = None,
 ) -> CalibrationResult:
-    """Calibrate one observation and write its products.
+    """Calibrate one observation and write its products (the engine of :func:`calibrate`).
 
     Parameters
     ----------
@@ -771,7 +809,7 @@ def run_calibration(
     out
         Output folder (created). Products: ``solution.calh5``, ``solution.calfits``,
         ``solution.h5``, ``solution.png``, ``residuals.png`` (as configured) and always
-        ``summary.json``.
+        ``summary.json``. ``None``: nothing is written (no reference comparison then).
     progress
         Called with (fraction done, message).
     should_stop
@@ -785,6 +823,9 @@ def run_calibration(
         Workers of the local cluster (default: the number of CPUs).
     block_size
         Integrations read per block (default: about 8 M values per block).
+    observation
+        Calibrate this observation held in memory instead of reading ``config.inputs``
+        (which then only name it); the configuration's selection is applied to it.
 
     Returns
     -------
@@ -794,22 +835,26 @@ def run_calibration(
     """
     if block_size is not None and int(block_size) < 1:
         raise PipelineError(f"block_size must be at least 1 integration, got {block_size}")
+    if out is None and config.reference:
+        raise PipelineError("a comparison with reference gains writes products: give out")
+    folder = None if out is None else Path(out)
     if dask_scheduler is None:
-        return _calibrate(config, Path(out), progress, should_stop, None, block_size)
+        return _calibrate(config, folder, progress, should_stop, None, block_size, observation)
     from autocal.scaleout import dask_client
 
     # Connect first: a wrong address fails before any work is done.
     with dask_client(dask_scheduler, dask_workers) as executor:
-        return _calibrate(config, Path(out), progress, should_stop, executor, block_size)
+        return _calibrate(config, folder, progress, should_stop, executor, block_size, observation)
 
 
 def _calibrate(
     config: CalibrationConfig,
-    out: Path,
+    out: Path | None,
     progress: Progress | None,
     should_stop: Callable[[], bool] | None,
     executor: Any,
     block_size: int | None,
+    observation: Observation | None = None,
 ) -> CalibrationResult:
     """Run the calibration (see :func:`run_calibration`); ``executor``: Dask or None."""
     from autocal import __version__
@@ -824,7 +869,7 @@ def _calibrate(
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     report(0.0, "scanning inputs")
-    source = _open_source(config)
+    source = _open_source(config) if observation is None else _memory_source(observation, config)
     timings["scan_s"] = time.perf_counter() - t0
 
     pols = tuple(p.lower() for p in (config.pols or source.pols))
@@ -861,10 +906,7 @@ def _calibrate(
     )
     timings["fit_s"] = time.perf_counter() - t2
 
-    if config.weights == "identity":
-        scaling: bool | str = True
-    else:
-        scaling = "inflate" if config.inflate_errors else False
+    scaling = covariance_scaling(config.weights, config.inflate_errors)
     sums = run.sums
     prior_fn = None
     if prior is not None:
@@ -918,33 +960,226 @@ def _calibrate(
                 config, source, pols, model, epoch, scaling, block_size, prior_fn
             ),
         }
-    report(0.85, "writing products")
     t3 = time.perf_counter()
-    products = _write_products(config, solution, source, run, Path(out), comparison_inputs)
+    products: dict[str, str] = {}
+    if out is not None:
+        report(0.85, "writing products")
+        products = _write_products(config, solution, source, run, out, comparison_inputs)
     separation = separation_summary(solution)
     timings["products_s"] = time.perf_counter() - t3
     timings["total_s"] = time.perf_counter() - t0
     summary = {
         "solution": solution.describe(),
         "separation": separation,
-        "comparison": _comparison_summary(Path(out), products),
+        "comparison": _comparison_summary(products),
         "config": config.model_dump(mode="json"),
         "provenance": provenance,
         "products": products,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "execution": run.execution,
     }
-    summary_path = Path(out) / "summary.json"
-    from autocal.io.tskyfile import atomic_path
+    if out is not None:
+        summary_path = out / SUMMARY_NAME
+        from autocal.io.tskyfile import atomic_path
 
-    with atomic_path(summary_path) as tmp:
-        tmp.write_text(json.dumps(summary, indent=2, default=_json_default))
-    products["summary"] = str(summary_path)
+        with atomic_path(summary_path) as tmp:
+            tmp.write_text(json.dumps(summary, indent=2, default=_json_default))
+        products["summary"] = str(summary_path)
     report(1.0, "done")
     return CalibrationResult(solution, products, summary, timings)
 
 
-def _comparison_summary(out: Path, products: dict[str, str]) -> dict[str, Any] | None:
+#: Name of the run's JSON summary in the output folder.
+SUMMARY_NAME = "summary.json"
+
+
+def _config_for(
+    inputs: Any, config: CalibrationConfig | None, options: dict[str, Any]
+) -> tuple[CalibrationConfig, Observation | None]:
+    """Resolve :func:`calibrate`'s arguments into one validated configuration.
+
+    Options not given take :class:`CalibrationConfig`'s defaults (and nothing else's).
+    """
+    if isinstance(inputs, CalibrationConfig):
+        if config is not None:
+            raise PipelineError("give the configuration once: as inputs or as config")
+        config, inputs = inputs, None
+    observation = inputs if isinstance(inputs, Observation) else None
+    fields: dict[str, Any] = {} if config is None else config.model_dump()
+    unknown = sorted(set(options) - set(CalibrationConfig.model_fields) - {"inputs"})
+    if unknown:
+        raise PipelineError(
+            f"unknown calibration option(s) {unknown}: see autocal.CalibrationConfig "
+            "(the options of `autocal calibrate --help`)"
+        )
+    fields.update(options)
+    if observation is not None:
+        named = [str(f) for f in observation.meta.get("files") or []]
+        fields["inputs"] = named or ["<in-memory observation>"]
+    elif inputs is not None:
+        paths = [inputs] if isinstance(inputs, str | os.PathLike) else list(inputs)
+        fields["inputs"] = [str(p) for p in paths]
+    if "inputs" not in fields:
+        raise PipelineError("nothing to calibrate: give input files or an Observation")
+    return CalibrationConfig(**fields), observation
+
+
+def calibrate(
+    inputs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]] | Observation | Any,
+    config: CalibrationConfig | None = None,
+    *,
+    out: str | Path | None = None,
+    progress: Progress | None = None,
+    should_stop: Callable[[], bool] | None = None,
+    dask_scheduler: str | None = None,
+    dask_workers: int | None = None,
+    block_size: int | None = None,
+    **options: Any,
+) -> Solution:
+    """Calibrate one observation (``autocal.calibrate``; also the CLI's, service's and nightly's).
+
+    The one calibration function: ``autocal calibrate``, the job service's workers and
+    nightly runs call it. It reads the files block by block (or takes an observation in
+    memory), computes ``Tsky(nu, LST)`` of each polarisation's beam in the frame of the
+    data's night, fits ``R = G Tsky + n`` with the total uncertainty and, when ``out`` is
+    given, writes the products. Options not given take the defaults of
+    :class:`CalibrationConfig`, and of nothing else.
+
+    Parameters
+    ----------
+    inputs
+        A UVH5 file, Miriad folder or EDGES ACQ/HDF5 file, a list of them (consecutive in
+        time), an :class:`~autocal.observation.Observation` (e.g. from :func:`read`) or a
+        whole :class:`CalibrationConfig`.
+    config
+        Settings to start from (``options`` override them).
+    out
+        Output folder for the products (``config.products``) and ``summary.json``;
+        ``None`` (default) writes nothing.
+    progress
+        Called with (fraction done, message).
+    should_stop
+        Polled at checkpoints; returning ``True`` aborts with :class:`PipelineError`.
+    dask_scheduler, dask_workers
+        Map the files over a Dask cluster (:func:`run_calibration`); the same solution.
+    block_size
+        Integrations read per block (default: about 8 M values).
+    **options
+        :class:`CalibrationConfig` fields, e.g. ``antennas=[23]``, ``model="legendre"``,
+        ``freq_range_mhz=(110, 190)``.
+
+    Returns
+    -------
+    Solution
+        ``G``, ``n``, ``Trxr``, ``|g|`` with total errors (``sigma_*``) and their
+        statistical parts (``sigma_*_stat``), flags; ``config`` holds the resolved
+        configuration and provenance. :meth:`Solution.write` writes products later.
+
+    Raises
+    ------
+    autocal.errors.AutocalError
+        Bad input (missing or malformed files, options out of range, an empty
+        selection); pydantic's ``ValidationError`` for options of the wrong type.
+
+    Examples
+    --------
+    >>> import autocal
+    >>> sol = autocal.calibrate("zen.2458116.30448.HH.uvh5", antennas=[23])  # doctest: +SKIP
+    >>> print(sol)  # doctest: +SKIP
+    """
+    cfg, observation = _config_for(inputs, config, options)
+    result = run_calibration(
+        cfg,
+        out,
+        progress=progress,
+        should_stop=should_stop,
+        dask_scheduler=dask_scheduler,
+        dask_workers=dask_workers,
+        block_size=block_size,
+        observation=observation,
+    )
+    return result.solution
+
+
+def read_summary(out: str | Path) -> dict[str, Any]:
+    """Return the ``summary.json`` a calibration wrote into ``out``.
+
+    Its ``products`` map product names to paths, ``summary`` (the file itself) included.
+
+    Raises
+    ------
+    PipelineError
+        If ``out`` holds no calibration summary.
+    """
+    path = Path(out) / SUMMARY_NAME
+    try:
+        summary = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise PipelineError(f"{path}: no readable calibration summary ({err})") from err
+    summary["products"] = {**(summary.get("products") or {}), "summary": str(path)}
+    return summary
+
+
+def read(
+    paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
+    *,
+    antennas: list[int] | None = None,
+    pols: list[str] | None = None,
+    freq_range_mhz: tuple[float, float] | None = None,
+    lst_range_h: tuple[float, float] | None = None,
+    input_format: str | None = None,
+    edges_r: str | None = None,
+    edges_bin: int | None = None,
+) -> Observation:
+    """Read the auto-correlations of one observation into memory (``autocal.read``).
+
+    The formats and selections of :func:`calibrate` (UVH5 files, Miriad folders, EDGES
+    ACQ/HDF5 spectra; MHz and hours); options not given take :class:`CalibrationConfig`'s
+    defaults. For a long night prefer :func:`calibrate` on the files, which streams them.
+
+    Parameters
+    ----------
+    paths
+        Files or folders of one observation, consecutive in time.
+    antennas, pols
+        Selection (default: all).
+    freq_range_mhz, lst_range_h
+        Frequency range in MHz and LST range in hours (wraps at 24 h).
+    input_format
+        ``"auto"``, ``"uvh5"``, ``"miriad"`` or ``"edges"``.
+    edges_r, edges_bin
+        EDGES: the auto-correlation kind (``"q"`` or ``"p0"``) and native channels per bin.
+
+    Returns
+    -------
+    Observation
+        The data with flags, times, LSTs, frequencies, site and the files' checksums.
+    """
+    given = {
+        "antennas": antennas,
+        "pols": pols,
+        "freq_range_mhz": freq_range_mhz,
+        "lst_range_h": lst_range_h,
+        "input_format": input_format,
+        "edges_r": edges_r,
+        "edges_bin": edges_bin,
+    }
+    config, _ = _config_for(paths, None, {k: v for k, v in given.items() if v is not None})
+    files = [Path(p).expanduser().absolute() for p in config.inputs]
+    kind = _detect(files, config.input_format)
+    sel = _selection(config)
+    if kind == "edges":
+        return _open_edges(files, config, sel).observation  # type: ignore[return-value]
+    if kind == "miriad":
+        from autocal.io.miriad import read_miriad
+
+        return read_miriad(files, **sel)
+    from autocal.io.uvh5 import read_uvh5
+
+    return read_uvh5(files, **sel)
+
+
+def _comparison_summary(products: dict[str, str]) -> dict[str, Any] | None:
     path = products.get("compare_json")
     if path is None:
         return None
@@ -987,9 +1222,6 @@ def _run_passes(
     block_size: int | None,
 ) -> _Run:
     """Accumulate the normal sums file by file (one or two passes), serially or on Dask."""
-    npass = 1 if config.weights != "radiometer" or config.passes == 1 else 2
-    if source.weights is not None:
-        npass = 1  # inverse variances given by the format: nothing to re-weight
     tasks = source.tasks(tsky_all)
     ntime = source.lsts.size
     bin_size = max(1, -(-ntime // MAX_WATERFALL_ROWS))
@@ -1012,16 +1244,13 @@ def _run_passes(
         "bytes_on_disk": source.disk_bytes(),
     }
     stats_total: dict[str, int] = {}
-    coeffs = None
-    ipass = 0
-    infos: list[FilePartial] = []
-    sums: NormalSums | None = None
-    blocks: BlockSums | None = None
-    waterfall: np.ndarray | None = None
     client = executor if use_dask else None
     if client is not None:
         execution["dask"] = client.describe()
-    while ipass < npass:
+
+    def one_pass(
+        coeffs: np.ndarray | None, ipass: int, npass: int
+    ) -> tuple[tuple[BlockSums, NormalSums, np.ndarray, list[FilePartial]], NormalSums, float]:
         spec = PartialSpec(
             model,
             config.weights,
@@ -1044,26 +1273,21 @@ def _run_passes(
         blocks = BlockSums(
             [per_block[b] for b in range(len(edges) - 1)], model, edges, source.lsts, extended
         )
-        sums = blocks.fitted_total()
         for info in infos:
             for key, value in info.stats.items():
                 if key == "largest_array":
                     stats_total[key] = max(stats_total.get(key, 0), value)
                 else:
                     stats_total[key] = stats_total.get(key, 0) + value
-        if ipass == 0 and config.passes == "auto" and npass == 2:
-            bt_min = min(info.bt_min for info in infos)
-            bias = 2.0 / bt_min if np.isfinite(bt_min) and bt_min > 0 else 0.0
-            if bias < REWEIGHT_THRESHOLD:
-                logger.info(
-                    "data-weight bias 2/(dnu dt N) = %.2g < %.0e: one pass",
-                    bias,
-                    REWEIGHT_THRESHOLD,
-                )
-                npass = 1
-        if ipass + 1 < npass:
-            coeffs = solve_sums(sums)["coeffs"]
-        ipass += 1
+        bt_min = min(info.bt_min for info in infos)
+        total = blocks.fitted_total()
+        return (blocks, total, waterfall, infos), total, bt_min
+
+    # inverse variances given by the format (EDGES): nothing to re-weight, one pass
+    radiometer = config.weights == "radiometer" and source.weights is None
+    (blocks, sums, waterfall, infos), npass = run_passes(
+        one_pass, passes=config.passes, radiometer=radiometer
+    )
     if client is not None:
         execution["dask"]["worker_peak_rss_bytes"] = client.worker_peak_rss()
     assert sums is not None and waterfall is not None and infos
@@ -1268,6 +1492,76 @@ def _block_trend(
     )
 
 
+#: File name of each product of a solution (``CalibrationConfig.products``).
+PRODUCT_FILES: dict[str, str] = {
+    "calh5": "solution.calh5",
+    "calfits": "solution.calfits",
+    "hdf5": "solution.h5",
+    "png": "solution.png",
+}
+
+
+def write_solution_products(
+    solution: Solution,
+    out: str | Path,
+    products: Sequence[str],
+    *,
+    overwrite: bool = False,
+) -> dict[str, str]:
+    """Write a solution's products into ``out`` (:data:`PRODUCT_FILES`; each atomically).
+
+    The writers of ``autocal calibrate`` and :meth:`autocal.fit.Solution.write`:
+    calh5/calfits through pyuvdata ``UVCal`` (:mod:`autocal.io.calsol`), the HDF5 product
+    (:func:`autocal.io.products.write_solution`) and the solution plot.
+
+    Parameters
+    ----------
+    solution
+        The solution.
+    out
+        Folder (created).
+    products
+        Any of :data:`PRODUCT_FILES`' names.
+    overwrite
+        Replace existing files; otherwise an existing one is a ``FileExistsError``.
+
+    Returns
+    -------
+    dict
+        Product name -> path written.
+    """
+    unknown = sorted(set(products) - set(PRODUCT_FILES))
+    if unknown:
+        raise PipelineError(f"unknown product(s) {unknown}: use {sorted(PRODUCT_FILES)}")
+    folder = Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    written: dict[str, str] = {}
+    for name in PRODUCT_FILES:  # a fixed order, whatever the order asked for
+        if name not in products:
+            continue
+        path = folder / PRODUCT_FILES[name]
+        if name == "calh5":
+            from autocal.io.calsol import write_calh5
+
+            write_calh5(solution, path, overwrite=overwrite)
+        elif name == "calfits":
+            from autocal.io.calsol import write_calfits
+
+            write_calfits(solution, path, overwrite=overwrite)
+        elif name == "hdf5":
+            from autocal.io.products import write_solution
+
+            write_solution(solution, path, overwrite=overwrite)
+        else:
+            if path.exists() and not overwrite:
+                raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
+            from autocal.plots import plot_solution
+
+            plot_solution(solution, path)
+        written[name] = str(path)
+    return written
+
+
 def _write_products(
     config: CalibrationConfig,
     solution: Solution,
@@ -1280,32 +1574,15 @@ def _write_products(
     out.mkdir(parents=True, exist_ok=True)
     staging = out / f".staging-{os.getpid()}-{time.time_ns()}"
     staging.mkdir()
-    names = {
-        "calh5": "solution.calh5",
-        "calfits": "solution.calfits",
-        "hdf5": "solution.h5",
-    }
+    names = dict(PRODUCT_FILES)
     written: dict[str, str] = {}
     try:
-        if "calh5" in config.products:
-            from autocal.io.calsol import write_calh5
-
-            write_calh5(solution, staging / names["calh5"])
-        if "calfits" in config.products:
-            from autocal.io.calsol import write_calfits
-
-            write_calfits(solution, staging / names["calfits"])
-        if "hdf5" in config.products:
-            from autocal.io.products import write_solution
-
-            write_solution(solution, staging / names["hdf5"])
+        write_solution_products(solution, staging, config.products)
         if "png" in config.products:
-            from autocal.plots import plot_residuals, plot_solution
+            from autocal.plots import plot_residuals
 
-            plot_solution(solution, staging / "solution.png")
             labels, resid, bin_lsts = _waterfall_residuals(solution, run, config, source.lsts)
             plot_residuals(labels, resid, solution.freqs, bin_lsts, staging / "residuals.png")
-            names["png"] = "solution.png"
             names["residuals_png"] = "residuals.png"
         if config.reference:
             from autocal.compare import compare, write_comparison

@@ -29,6 +29,8 @@ from typing import Any
 import h5py
 import numpy as np
 
+from autocal.errors import AutocalError
+
 logger = logging.getLogger(__name__)
 
 #: Largest CSV table read (bytes).
@@ -39,7 +41,7 @@ _HEADERS = (("freq_mhz", "trxr_k"), ("freq_mhz", "trxr_k", "sigma_k"))
 _EXPECTED = "'freq_mhz,trxr_k' or 'freq_mhz,trxr_k,sigma_k'"
 
 
-class PriorError(ValueError):
+class PriorError(AutocalError):
     """A receiver-temperature prior is malformed, unreadable or does not fit the data."""
 
 
@@ -71,6 +73,12 @@ class TrxrPrior:
     antennas: tuple[int, ...] | None = None
     pols: tuple[str, ...] | None = None
     sha256: str | None = None
+
+    def __repr__(self) -> str:
+        """Return one line; arrays as their type and shape (:func:`~autocal.reprs.compact_repr`)."""
+        from autocal.reprs import compact_repr
+
+        return compact_repr(self)
 
     def __post_init__(self) -> None:
         trxr = np.array(self.trxr_k, dtype=float)

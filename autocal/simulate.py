@@ -29,6 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from autocal.beams import Beam, PerturbedBeam, get_beam, s1_airy, s1_dipole
 from autocal.coords import night_epoch
+from autocal.errors import AutocalError
 from autocal.observation import Observation
 from autocal.sites import get_site
 from autocal.tsky import compute_tsky
@@ -41,7 +42,7 @@ GAIN_PROFILES = ("constant", "a", "b", "c")
 SIDEREAL_DAY = 0.9972695663
 
 
-class SimulationError(ValueError):
+class SimulationError(AutocalError):
     """Invalid simulation settings."""
 
 

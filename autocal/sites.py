@@ -8,6 +8,12 @@ from functools import cached_property
 from astropy import units as u
 from astropy.coordinates import EarthLocation
 
+from autocal.errors import AutocalError
+
+
+class SiteError(AutocalError):
+    """An unknown or impossible observing site."""
+
 
 @dataclass(frozen=True)
 class Site:
@@ -30,9 +36,9 @@ class Site:
 
     def __post_init__(self) -> None:
         if not -90.0 <= self.lat_deg <= 90.0:
-            raise ValueError(f"site latitude {self.lat_deg} deg is outside [-90, 90]")
+            raise SiteError(f"site latitude {self.lat_deg} deg is outside [-90, 90]")
         if not -360.0 <= self.lon_deg <= 360.0:
-            raise ValueError(f"site longitude {self.lon_deg} deg is outside [-360, 360]")
+            raise SiteError(f"site longitude {self.lon_deg} deg is outside [-360, 360]")
 
     @cached_property
     def location(self) -> EarthLocation:
@@ -71,7 +77,7 @@ def get_site(spec: str | Site) -> Site:
 
     Raises
     ------
-    ValueError
+    SiteError
         If the name is unknown and the string is not ``lat,lon[,alt]``.
     """
     if isinstance(spec, Site):
@@ -87,7 +93,7 @@ def get_site(spec: str | Site) -> Site:
             values = []
         if values:
             return Site("custom", values[0], values[1], values[2] if len(values) == 3 else 0.0)
-    raise ValueError(
+    raise SiteError(
         f"unknown site {spec!r}: use one of {sorted(set(SITES))} or 'LAT,LON[,ALT]' "
         "(degrees, degrees, metres)"
     )

@@ -37,6 +37,7 @@ from autocal.coords import (
     parse_epoch,
     resample_galactic_to_equatorial,
 )
+from autocal.errors import AutocalError
 
 logger = logging.getLogger(__name__)
 
@@ -50,7 +51,7 @@ _COMPONENTS: dict[tuple[Any, ...], SkyComponents] = {}
 _COMPONENTS_LOCK = threading.Lock()
 
 
-class SkyModelError(ValueError):
+class SkyModelError(AutocalError):
     """A sky model was asked for something it cannot deliver."""
 
 
@@ -83,11 +84,11 @@ class SkyComponents:
 
     def __post_init__(self) -> None:
         if self.maps.ndim != 2 or self.maps.shape[1] != hp.nside2npix(self.nside):
-            raise ValueError(f"maps must be (Ncomp, {hp.nside2npix(self.nside)})")
+            raise SkyModelError(f"maps must be (Ncomp, {hp.nside2npix(self.nside)})")
         if self.spectra.shape != (self.freqs.size, self.maps.shape[0]):
-            raise ValueError("spectra must be (Nfreq, Ncomp)")
+            raise SkyModelError("spectra must be (Nfreq, Ncomp)")
         if len(self.labels) != self.maps.shape[0]:
-            raise ValueError("one label per component is required")
+            raise SkyModelError("one label per component is required")
 
     @property
     def ncomp(self) -> int:

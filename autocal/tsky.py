@@ -47,6 +47,7 @@ from tqdm.auto import tqdm
 
 from autocal.beams import Beam, BeamEvaluator, get_beam
 from autocal.coords import hadec_to_altaz, healpix_ra_dec, parse_epoch
+from autocal.errors import AutocalError
 from autocal.sites import Site, get_site
 from autocal.sky import SkyComponents, SkyModel, get_sky
 
@@ -58,7 +59,7 @@ T_GROUND = 300.0
 ENGINE_VERSION = "ringfft-2"
 
 
-class TskyError(ValueError):
+class TskyError(AutocalError):
     """Invalid input to the Tsky computation."""
 
 
@@ -95,6 +96,25 @@ class TskyResult:
     components: np.ndarray | None = None
     spectra: np.ndarray | None = None
 
+    def __repr__(self) -> str:
+        """Return one line: sky, beam, site, grid and Tsky's range (never the arrays)."""
+        from autocal.reprs import median, span
+
+        sky = (self.meta.get("sky") or {}).get("model", "?")
+        beam_meta = self.meta.get("beam") or {}
+        beam = f"{beam_meta.get('beam', '?')} {beam_meta.get('pol', '')}".rstrip()
+        site = (self.meta.get("site") or {}).get("name", "?")
+        tsky = np.asarray(self.tsky)
+        finite = tsky[np.isfinite(tsky)]
+        trange = f"{finite.min():.4g}-{finite.max():.4g} K" if finite.size else "-"
+        comps = "" if self.components is None else f", {self.components.shape[-1]} components"
+        return (
+            f"TskyResult(sky {sky}, beam {beam}, site {site}: {self.lsts.size} LSTs "
+            f"{span(self.lsts, 1, 'h')} x {self.freqs.size} channels "
+            f"{span(self.freqs, 1e6, 'MHz')}; Tsky {trange}, median {median(tsky):.4g} K, "
+            f"median f_below {median(self.f_below):.3g}{comps})"
+        )
+
 
 @dataclass(frozen=True)
 class TskyHarmonics:
@@ -127,6 +147,15 @@ class TskyHarmonics:
     sum_all: np.ndarray
     sum_below: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
+
+    def __repr__(self) -> str:
+        """Return one line: the harmonics' shape and band (never the arrays)."""
+        from autocal.reprs import span
+
+        return (
+            f"TskyHarmonics({self.coef.shape[0]} harmonics x {self.freqs.size} channels "
+            f"{span(self.freqs, 1e6, 'MHz')})"
+        )
 
     def __post_init__(self) -> None:
         nf = self.freqs.shape

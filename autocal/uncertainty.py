@@ -155,6 +155,12 @@ class BlockSums:
     lsts: np.ndarray
     extended: NormalSums
 
+    def __repr__(self) -> str:
+        """Return one line; arrays as their type and shape (:func:`~autocal.reprs.compact_repr`)."""
+        from autocal.reprs import compact_repr
+
+        return compact_repr(self)
+
     def __post_init__(self) -> None:
         if len(self.blocks) != len(self.edges) - 1:
             raise FitError(f"{len(self.blocks)} block sums for {len(self.edges) - 1} blocks")
@@ -259,6 +265,12 @@ class TotalUncertainty:
     profile_G: np.ndarray  # noqa: N815 - the physics symbol
     nblocks: int
     notes: tuple[str, ...] = ()
+
+    def __repr__(self) -> str:
+        """Return one line; arrays as their type and shape (:func:`~autocal.reprs.compact_repr`)."""
+        from autocal.reprs import compact_repr
+
+        return compact_repr(self)
 
     def separation(self) -> np.ndarray:
         """``(Nant, Npol)`` ``True`` where ``G`` and ``n`` separate weakly.

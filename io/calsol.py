@@ -92,6 +92,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from autocal.beams import file_checksum
+from autocal.errors import AutocalError
 from autocal.io.pyuvdata_helpers import warnings_to_log
 from autocal.io.pyuvdata_helpers import x_orientation as feed_orientation
 from autocal.io.tskyfile import atomic_path
@@ -114,7 +115,7 @@ _FITS_MAGIC = b"SIMPLE  ="
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 
 
-class CalsolFormatError(ValueError):
+class CalsolFormatError(AutocalError):
     """A file is missing, corrupt, truncated, not a calibration file, or cannot be joined."""
 
 
@@ -268,6 +269,12 @@ class ReferenceGains:
     gain_scale: str | None = None
     cal_style: str = ""
     meta: dict[str, Any] = field(default_factory=dict)
+
+    def __repr__(self) -> str:
+        """Return one line; arrays as their type and shape (:func:`~autocal.reprs.compact_repr`)."""
+        from autocal.reprs import compact_repr
+
+        return compact_repr(self)
 
     def __post_init__(self) -> None:
         shape = (len(self.antennas), len(self.pols), len(self.jds), len(self.freqs))

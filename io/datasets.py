@@ -12,6 +12,7 @@ import logging
 import os
 from pathlib import Path
 
+from autocal.errors import AutocalError
 from autocal.offline import downloads_allowed
 
 logger = logging.getLogger(__name__)
@@ -31,8 +32,8 @@ EDGES_BEAM_FILES = {
 EDGES_2018_SPECTRUM = "edges/published/edges2018_figure1_plotdata.csv"
 
 
-class DataFileMissingError(FileNotFoundError):
-    """A reference data file is not available locally."""
+class DataFileMissingError(FileNotFoundError, AutocalError):
+    """A reference data file is not available locally (a missing file and a user error)."""
 
 
 def data_dir(required: bool = False) -> Path | None:

@@ -69,6 +69,7 @@ from typing import Any, Literal
 import numpy as np
 
 from autocal.beams import file_checksum
+from autocal.errors import AutocalError
 from autocal.io.tskyfile import atomic_path
 from autocal.observation import Observation
 from autocal.sites import EDGES, Site
@@ -103,7 +104,7 @@ R_DEFINITIONS = {
 RKind = Literal["q", "p0"]
 
 
-class EdgesFormatError(ValueError):
+class EdgesFormatError(AutocalError):
     """A file is not a readable EDGES spectrum file (ACQ or autocal HDF5), or is corrupt."""
 
 
@@ -147,7 +148,7 @@ def channel_bins(
         If ``bin_factor`` is not a positive integer or nothing is selected.
     """
     if int(bin_factor) != bin_factor or bin_factor < 1:
-        raise ValueError(f"bin_factor must be a positive integer, got {bin_factor!r}")
+        raise EdgesFormatError(f"bin_factor must be a positive integer, got {bin_factor!r}")
     bin_factor = int(bin_factor)
     freqs = np.asarray(freqs, dtype=np.float64)
     keep = freqs >= min_freq
@@ -157,7 +158,7 @@ def channel_bins(
     idx = np.flatnonzero(keep)
     nbin = idx.size // bin_factor
     if nbin == 0:
-        raise ValueError(
+        raise EdgesFormatError(
             f"no complete bin of {bin_factor} channel(s) in {freq_range} Hz (channels "
             f"cover {freqs[0]:.6g}-{freqs[-1]:.6g} Hz): widen freq_range or lower bin_factor"
         )
@@ -238,32 +239,40 @@ class EdgesSpectra:
     aux: dict[str, np.ndarray] = field(default_factory=dict)
     meta: dict[str, Any] = field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        """Return one line; arrays as their type and shape (:func:`~autocal.reprs.compact_repr`)."""
+        from autocal.reprs import compact_repr
+
+        return compact_repr(self)
+
     def __post_init__(self) -> None:
         p = [np.atleast_2d(np.asarray(x, dtype=np.float64)) for x in (self.p0, self.p1, self.p2)]
         if not (p[0].shape == p[1].shape == p[2].shape) or p[0].ndim != 2:
-            raise ValueError(
+            raise EdgesFormatError(
                 f"p0, p1, p2 must share one (Ntime, Nfreq) shape; got {[x.shape for x in p]}"
             )
         ntime, nfreq = p[0].shape
         freqs = np.atleast_1d(np.asarray(self.freqs, dtype=np.float64))
         if freqs.shape != (nfreq,):
-            raise ValueError(f"{freqs.size} frequencies for {nfreq} channels")
+            raise EdgesFormatError(f"{freqs.size} frequencies for {nfreq} channels")
         if nfreq > 1 and np.any(np.diff(freqs) <= 0):
-            raise ValueError("frequencies must be strictly increasing")
+            raise EdgesFormatError("frequencies must be strictly increasing")
         jds = np.atleast_1d(np.asarray(self.jds, dtype=np.float64))
         if jds.shape != (ntime,):
-            raise ValueError(f"{jds.size} times for {ntime} switch cycles")
+            raise EdgesFormatError(f"{jds.size} times for {ntime} switch cycles")
         width = np.broadcast_to(np.asarray(self.channel_width, np.float64), (nfreq,)).copy()
         tint = np.broadcast_to(np.asarray(self.integration_time, np.float64), (ntime,)).copy()
         if np.any(~np.isfinite(width) | (width <= 0)):
-            raise ValueError("channel widths must be positive")
+            raise EdgesFormatError("channel widths must be positive")
         if np.any(~np.isfinite(tint) | (tint <= 0)):
-            raise ValueError("integration times must be positive")
+            raise EdgesFormatError("integration times must be positive")
         aux = {}
         for key, value in self.aux.items():
             arr = np.asarray(value)
             if arr.shape[:1] != (ntime,):
-                raise ValueError(f"aux[{key!r}] has shape {arr.shape}; expected ({ntime}, ...)")
+                raise EdgesFormatError(
+                    f"aux[{key!r}] has shape {arr.shape}; expected ({ntime}, ...)"
+                )
             aux[key] = arr
         for name, value in zip(("p0", "p1", "p2"), p, strict=True):
             object.__setattr__(self, name, value)
@@ -369,7 +378,7 @@ class EdgesSpectra:
         spec = self.sorted()
         keep = spec.freqs >= MIN_OBS_FREQ_HZ
         if not np.any(keep):
-            raise ValueError("no channel at or above 1 MHz: nothing to put in an Observation")
+            raise EdgesFormatError("no channel at or above 1 MHz: nothing to put in an Observation")
         data = spec.auto(r)[:, keep]
         meta = {
             **spec.meta,
@@ -401,7 +410,7 @@ class EdgesSpectra:
     def concatenate(cls, pieces: Sequence[EdgesSpectra]) -> EdgesSpectra:
         """Join spectra of several files in time (same channels), in time order."""
         if not pieces:
-            raise ValueError("nothing to concatenate")
+            raise EdgesFormatError("nothing to concatenate")
         first = pieces[0]
         for other in pieces[1:]:
             if other.freqs.shape != first.freqs.shape or not np.allclose(
@@ -430,7 +439,7 @@ class EdgesSpectra:
 
 def _check_r(r: str) -> None:
     if r not in R_KINDS:
-        raise ValueError(f"unknown auto-correlation kind {r!r}: use one of {R_KINDS}")
+        raise EdgesFormatError(f"unknown auto-correlation kind {r!r}: use one of {R_KINDS}")
 
 
 # ---------------------------------------------------------------------------------------
@@ -614,7 +623,7 @@ def read_acq_spectra(
     """
     plist = [Path(paths)] if isinstance(paths, str | Path) else [Path(p) for p in paths]
     if not plist:
-        raise ValueError("no ACQ files given")
+        raise EdgesFormatError("no ACQ files given")
     pieces = []
     for path in plist:
         spec = _acq_one(path, allow_partial)
@@ -664,7 +673,7 @@ def write_acq(
     """
     read_acq = _read_acq_package()
     if not spectra.is_native:
-        raise ValueError(
+        raise EdgesFormatError(
             "ACQ files hold the native 32768-channel 0-200 MHz grid; these spectra are "
             "binned or resampled: write them with write_edges_hdf5 instead"
         )
@@ -674,13 +683,13 @@ def write_acq(
         or powers.min() < ACQ_FLOOR * (1 - 1e-9)
         or powers.max() > ACQ_MAX
     ):
-        raise ValueError(
+        raise EdgesFormatError(
             f"ACQ stores powers between {ACQ_FLOOR:.3g} and {ACQ_MAX} (-167 to 0 dB); these "
             f"span {np.nanmin(powers):.3g}-{np.nanmax(powers):.3g}: rescale them"
         )
     tint = spectra.integration_time
     if np.ptp(tint) > 1e-9 * tint.max():
-        raise ValueError("ACQ stores one integration time per file; write one file per value")
+        raise EdgesFormatError("ACQ stores one integration time per file; write one file per value")
     nblk = max(1, round(float(tint[0]) * DEFAULT_ADC_RATE_HZ / (2 * NATIVE_NCHAN)))
     chan = np.round(spectra.freqs / NATIVE_DF_HZ).astype(int)
     full = np.empty((3, spectra.ntime, NATIVE_NCHAN))
@@ -698,7 +707,7 @@ def write_acq(
     }
     for key, value in meta.items():
         if ": " in str(value) or "\n" in str(value):
-            raise ValueError(f"header value of {key!r} must not contain ': ' or a newline")
+            raise EdgesFormatError(f"header value of {key!r} must not contain ': ' or a newline")
     meta.update(
         {
             "temperature": int(temperature),
@@ -903,7 +912,7 @@ def read_edges_spectra(
     """
     plist = [Path(paths)] if isinstance(paths, str | Path) else [Path(p) for p in paths]
     if not plist:
-        raise ValueError("no EDGES files given")
+        raise EdgesFormatError("no EDGES files given")
     pieces = []
     for path in plist:
         if path.is_file() and _is_hdf5(path):

@@ -18,12 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
+from autocal.errors import AutocalError
+
 logger = logging.getLogger(__name__)
 
 _FREQ_RE = re.compile(r"^#FREQUENCY\s+([0-9.eE+-]+)\s*MHz")
 
 
-class BeamFileError(ValueError):
+class BeamFileError(AutocalError):
     """A beam file cannot be read or is inconsistent."""
 
 

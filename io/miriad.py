@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from autocal.beams import file_checksum
+from autocal.errors import AutocalError
 from autocal.io.pyuvdata_helpers import uvdata_class, warnings_to_log
 from autocal.io.uvh5 import UVH5FormatError, read_uvh5
 from autocal.observation import Observation
@@ -22,7 +23,7 @@ from autocal.observation import Observation
 logger = logging.getLogger(__name__)
 
 
-class MiriadFormatError(ValueError):
+class MiriadFormatError(AutocalError):
     """A path is not a readable Miriad data set with auto-correlations."""
 
 

@@ -51,6 +51,7 @@ from typing import TYPE_CHECKING, Any
 import h5py
 import numpy as np
 
+from autocal.errors import AutocalError
 from autocal.io.tskyfile import atomic_path
 
 if TYPE_CHECKING:
@@ -110,7 +111,7 @@ _CONVENTION_WORDS = (
 )
 
 
-class ProductFormatError(ValueError):
+class ProductFormatError(AutocalError):
     """A file is missing, not HDF5, truncated, or not an autocal solution product."""
 
 

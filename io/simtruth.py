@@ -15,9 +15,14 @@ from typing import Any
 import h5py
 import numpy as np
 
+from autocal.errors import AutocalError
 from autocal.io.tskyfile import atomic_path
 
 FORMAT = "autocal-simtruth-1"
+
+
+class SimTruthError(AutocalError):
+    """A file that is not an autocal simulation truth file."""
 
 
 def write_truth(path: str | Path, truth: Any, obs: Any) -> Path:
@@ -46,7 +51,7 @@ def read_truth(path: str | Path) -> dict[str, Any]:
     """Read a truth file into a dictionary of arrays plus ``config`` and ``pols``."""
     with h5py.File(path, "r") as h5:
         if h5.attrs.get("format") != FORMAT:
-            raise ValueError(f"{path} is not an autocal simulation truth file ({FORMAT})")
+            raise SimTruthError(f"{path} is not an autocal simulation truth file ({FORMAT})")
         out: dict[str, Any] = {k: h5[k][()] for k in h5}
         out["config"] = json.loads(h5.attrs["config"])
         out["pols"] = json.loads(h5.attrs["pols"])

@@ -26,8 +26,14 @@ from typing import Any
 import h5py
 import numpy as np
 
+from autocal.errors import AutocalError
+
 FORMAT = "autocal-tsky-1"
 HARMONICS_FORMAT = "autocal-tsky-harmonics-1"
+
+
+class TskyFileError(AutocalError):
+    """A file that is not a readable autocal Tsky table or harmonics file."""
 
 
 def _current_umask() -> int:
@@ -138,7 +144,7 @@ def read_tsky(path: str | Path) -> Any:
 
     Raises
     ------
-    ValueError
+    TskyFileError
         If the file is not an autocal Tsky table.
     """
     from autocal.tsky import TskyResult
@@ -147,11 +153,11 @@ def read_tsky(path: str | Path) -> Any:
     try:
         with h5py.File(path, "r") as h5:
             if h5.attrs.get("format") != FORMAT:
-                raise ValueError(f"{path} is not an autocal Tsky table")
+                raise TskyFileError(f"{path} is not an autocal Tsky table")
             arrays = {n: h5[n][()] for n in ("tsky", "freqs", "lsts", "f_above", "f_below")}
             meta = _read_meta(h5)
     except OSError as err:
-        raise ValueError(f"{path} is not a readable HDF5 file: {err}") from err
+        raise TskyFileError(f"{path} is not a readable HDF5 file: {err}") from err
     return TskyResult(meta=meta, **arrays)
 
 
@@ -183,7 +189,7 @@ def read_harmonics(path: str | Path) -> Any:
 
     Raises
     ------
-    ValueError
+    TskyFileError
         If the file is not autocal Tsky harmonics or its arrays are inconsistent.
     """
     from autocal.tsky import TskyError, TskyHarmonics
@@ -192,14 +198,14 @@ def read_harmonics(path: str | Path) -> Any:
     try:
         with h5py.File(path, "r") as h5:
             if h5.attrs.get("format") != HARMONICS_FORMAT:
-                raise ValueError(f"{path} is not an autocal Tsky harmonics file")
+                raise TskyFileError(f"{path} is not an autocal Tsky harmonics file")
             arrays = {n: h5[n][()] for n in _HARMONICS_ARRAYS}
             meta = _read_meta(h5)
     except OSError as err:
-        raise ValueError(f"{path} is not a readable HDF5 file: {err}") from err
+        raise TskyFileError(f"{path} is not a readable HDF5 file: {err}") from err
     if arrays["coef"].dtype.kind != "c":
-        raise ValueError(f"{path}: harmonics are not complex")
+        raise TskyFileError(f"{path}: harmonics are not complex")
     try:
         return TskyHarmonics(meta=meta, **arrays)
     except TskyError as err:
-        raise ValueError(f"{path}: {err}") from err
+        raise TskyFileError(f"{path}: {err}") from err

@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from autocal.beams import file_checksum
+from autocal.errors import AutocalError
 from autocal.io.pyuvdata_helpers import uvdata_class, warnings_to_log
 from autocal.io.pyuvdata_helpers import x_orientation as feed_orientation
 from autocal.io.tskyfile import atomic_path
@@ -67,7 +68,7 @@ ZENITH: dict[str, Any] = {
 _RESERVED_META = ("files", "sha256", "history", "extra_keywords")
 
 
-class UVH5FormatError(ValueError):
+class UVH5FormatError(AutocalError):
     """A file is missing, not UVH5, corrupt, lacks autos, or disagrees with its siblings."""
 
 

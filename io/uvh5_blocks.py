@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from autocal.beams import file_checksum
+from autocal.errors import AutocalError
 from autocal.io.uvh5 import (
     UVH5File,
     UVH5FormatError,
@@ -399,7 +400,7 @@ def iter_uvh5_blocks(
     if block_size is None:
         block_size = max(1, int(max_block_samples) // (nant * npol * nfreq))
     if int(block_size) < 1:
-        raise ValueError(f"block_size must be at least 1 integration, got {block_size}")
+        raise AutocalError(f"block_size must be at least 1 integration, got {block_size}")
     blocks = _time_blocks(kept, int(block_size))
 
     telescope = meta.uv.telescope

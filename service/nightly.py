@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from autocal.errors import AutocalError
 from autocal.pipeline import CalibrationConfig
 from autocal.service.paths import InputPathError, check_under_roots, resolve_input
 from autocal.service.settings import Settings
@@ -48,7 +49,7 @@ NAMED_BEAMS = frozenset(
 )
 
 
-class NightlyError(ValueError):
+class NightlyError(AutocalError):
     """A nightly submission found nothing or was asked wrongly.
 
     Parameters

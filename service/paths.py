@@ -17,6 +17,7 @@ import logging
 import re
 from pathlib import Path
 
+from autocal.errors import AutocalError
 from autocal.service.settings import Settings
 
 logger = logging.getLogger(__name__)
@@ -27,7 +28,7 @@ UPLOAD_ID = re.compile(r"^(?:upload:)?([0-9a-f]{32})$")
 PARTIAL_SUFFIX = ".part"
 
 
-class InputPathError(ValueError):
+class InputPathError(AutocalError):
     """A client-named path is refused.
 
     Parameters

@@ -39,6 +39,8 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.exc import IntegrityError, OperationalError, ProgrammingError
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 
+from autocal.errors import AutocalError
+
 logger = logging.getLogger(__name__)
 
 #: Lines of log kept per job.
@@ -58,7 +60,7 @@ class JobState(StrEnum):
 FINAL_STATES = {JobState.succeeded.value, JobState.failed.value, JobState.cancelled.value}
 
 
-class StoreError(ValueError):
+class StoreError(AutocalError):
     """A store operation is not allowed (unknown job, wrong state)."""
 
 

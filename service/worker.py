@@ -10,7 +10,7 @@ or many, sharing a PostgreSQL store) for parallelism. A job's life in the worker
    job was re-queued because this worker was presumed dead) the job's ``should_stop``
    flag is raised and the pipeline stops at its next checkpoint.
 3. The job's kind (:data:`KNOWN_KINDS`) picks what runs: ``calibrate`` ->
-   :func:`autocal.pipeline.run_calibration`, ``diagnose`` ->
+   :func:`autocal.calibrate` (:func:`autocal.pipeline.calibrate`), ``diagnose`` ->
    :func:`autocal.diagnose_run.run_diagnosis`. It writes the products into
    ``settings.products_dir / job_id / "attempt-N"`` (all or nothing); progress lines and
    warnings go to the job's log.
@@ -378,16 +378,17 @@ class Worker:
             )
             summary = read_summary(folder)
             return summary, dict(summary.get("products") or {})
-        from autocal.pipeline import CalibrationConfig, run_calibration
+        from autocal.pipeline import CalibrationConfig, calibrate, read_summary
 
-        result = run_calibration(
+        calibrate(  # autocal.calibrate: the same function as the CLI's and a notebook's
             CalibrationConfig(**config),
-            out,
+            out=out,
             progress=run.progress,
             should_stop=run.should_stop,
             dask_scheduler=self.settings.dask_scheduler or None,
         )
-        return result.summary, result.products
+        summary = read_summary(out)
+        return summary, dict(summary["products"])
 
     def _execute(self, run: _Run, job: dict[str, Any]) -> str | None:
         if job["kind"] not in KNOWN_KINDS:

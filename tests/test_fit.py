@@ -105,8 +105,8 @@ def test_model_weights_remove_the_data_weight_bias() -> None:
     tsky = toy_tsky(400)
     clean = (tsky + 150.0)[None, None]
     data = noisy(clean, rng, bt)
-    one = fit(make_obs(data, bt=bt), tsky, iterations=1)
-    two = fit(make_obs(data, bt=bt), tsky, iterations=2)
+    one = fit(make_obs(data, bt=bt), tsky, passes=1)
+    two = fit(make_obs(data, bt=bt), tsky, passes=2)
     sem = np.median(two.sigma_G) / np.sqrt(400)
     assert np.mean(one.G) - 1 < -5 * sem
     assert abs(np.mean(two.G) - 1) < 3 * sem
@@ -175,7 +175,7 @@ def test_user_weights_match_radiometer_weights() -> None:
     tsky = toy_tsky()
     data = noisy((tsky + 150.0)[None, None], rng)
     obs = make_obs(data)
-    radio = fit(obs, tsky, iterations=1)
+    radio = fit(obs, tsky, passes=1)
     user = fit(obs, tsky, weights=5e3 / data**2)
     np.testing.assert_allclose(user.coeffs, radio.coeffs, rtol=1e-12)
     np.testing.assert_allclose(user.cov, radio.cov, rtol=1e-12)

@@ -108,7 +108,7 @@ def test_block_streaming_equals_whole_file_reading(night, tmp_path) -> None:
             for p in whole.pols
         ]
     )
-    in_memory = fit(whole, tsky, iterations=1)
+    in_memory = fit(whole, tsky, passes=1)
     for other in (filewise, in_memory):
         np.testing.assert_allclose(streamed.coeffs, other.coeffs, rtol=1e-10, atol=0)
         # chi2 = yty - 2 x.aty + x.ata.x from sums: cancellation costs digits

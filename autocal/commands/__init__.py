@@ -10,6 +10,8 @@ from typing import Any
 
 import numpy as np
 
+from autocal.errors import AutocalError
+
 #: What ``--sky`` accepts (every command that computes Tsky).
 SKY_HELP = "gsm2008 | gsm2016 | lfsm | haslam | uniform:T0 | powerlaw:BASE@NU0MHZ:BETA"
 #: What ``--beam`` accepts.
@@ -19,7 +21,7 @@ BEAM_HELP = (
 )
 
 
-class CliError(ValueError):
+class CliError(AutocalError):
     """A command-line argument is invalid."""
 
 

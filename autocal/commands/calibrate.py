@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
     from tqdm import tqdm
 
-    from autocal.pipeline import CalibrationConfig, run_calibration
+    from autocal.pipeline import CalibrationConfig, calibrate, read_summary
 
     settings = calibration_settings(args)
     try:
@@ -74,16 +74,17 @@ def run(args: argparse.Namespace) -> int:
             bar.set_postfix_str(message[-60:])
             bar.refresh()
 
-        result = run_calibration(
+        calibrate(  # autocal.calibrate: the notebook's, the service's and nightly's function
             config,
-            args.out,
+            out=args.out,
             progress=progress,
             dask_scheduler=args.dask,
             dask_workers=args.dask_workers,
             block_size=args.block_size,
         )
-    print(json.dumps(result.summary["solution"], indent=2))
-    separation = result.summary.get("separation") or []
+    summary = read_summary(args.out)
+    print(json.dumps(summary["solution"], indent=2))
+    separation = summary.get("separation") or []
     shown = (
         separation
         if len(separation) <= 12
@@ -94,6 +95,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"{nweak} of {len(separation)} antenna-pols separate G and n weakly; the first:")
     for entry in shown:
         print(entry["message"])
-    for name, path in result.products.items():
+    for name, path in summary["products"].items():
         print(f"wrote {name}: {path}")
     return 0

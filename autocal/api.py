@@ -1,0 +1,76 @@
+"""The functions ``import autocal`` offers: one path for every caller.
+
+``autocal.read`` -> :class:`~autocal.observation.Observation`, ``autocal.compute_tsky`` ->
+:class:`~autocal.tsky.TskyResult`, ``autocal.calibrate`` -> :class:`~autocal.fit.Solution`
+(the function ``autocal calibrate``, the job service and nightly runs call, with the
+defaults of :class:`~autocal.pipeline.CalibrationConfig`), ``autocal.diagnose`` (the
+diagnosis stage, :func:`diagnose` here). The package imports them lazily
+(``autocal.__getattr__``), so ``import autocal`` stays fast.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+from autocal.fit import Solution
+from autocal.observation import Observation
+from autocal.pipeline import CalibrationConfig, calibrate, read, read_summary
+from autocal.tsky import TskyResult, compute_tsky
+
+__all__ = [
+    "CalibrationConfig",
+    "Observation",
+    "Solution",
+    "TskyResult",
+    "calibrate",
+    "compute_tsky",
+    "diagnose",
+    "read",
+    "read_summary",
+]
+
+
+def diagnose(
+    inputs: str | PathLike[str] | Sequence[str | PathLike[str]] | Any,
+    *,
+    out: str | Path,
+    progress: Callable[[float, str], None] | None = None,
+    should_stop: Callable[[], bool] | None = None,
+    **options: Any,
+) -> dict[str, Any]:
+    """Name the effects the model misses in one observation (``autocal.diagnose``).
+
+    A thin wrapper of :func:`autocal.diagnose_run.run_diagnosis`, the function behind
+    ``autocal diagnose`` and the service's diagnose jobs.
+
+    Parameters
+    ----------
+    inputs
+        UVH5 file(s) of one observation, or a whole
+        :class:`autocal.diagnose_run.DiagnoseConfig`.
+    out
+        Output folder of the products.
+    progress, should_stop
+        Progress callback and cancellation poll, as for :func:`autocal.calibrate`.
+    **options
+        :class:`~autocal.diagnose_run.DiagnoseConfig` fields (``antennas``, ``sky``,
+        ``freq_range_mhz``, ``trxr_prior``, ``max_steps``...); their defaults otherwise.
+
+    Returns
+    -------
+    dict
+        The diagnosis summary (``effects``, ``steps``, gaps, ``products``...).
+    """
+    from autocal.diagnose_run import DiagnoseConfig, run_diagnosis
+    from autocal.diagnose_run import read_summary as read_diagnosis
+
+    if isinstance(inputs, DiagnoseConfig):
+        config = DiagnoseConfig(**{**inputs.model_dump(), **options})
+    else:
+        paths = [inputs] if isinstance(inputs, str | PathLike) else list(inputs)
+        config = DiagnoseConfig(inputs=[str(p) for p in paths], **options)
+    folder = run_diagnosis(config, out, progress=progress, should_stop=should_stop)
+    return read_diagnosis(folder)
