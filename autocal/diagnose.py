@@ -66,6 +66,7 @@ from autocal.effects import (
     diurnal_basis,
     time_basis,
 )
+from autocal.errors import AutocalError
 from autocal.fit import unwrap_lsts
 from autocal.observation import Observation
 
@@ -91,7 +92,7 @@ PINV_RTOL = 1e-15
 ROUNDING_MARGIN = 100.0
 
 
-class DiagnoseError(ValueError):
+class DiagnoseError(AutocalError):
     """Invalid diagnosis input."""
 
 

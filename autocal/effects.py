@@ -41,6 +41,7 @@ import numpy as np
 from numpy.polynomial import legendre
 
 from autocal.beams import Beam, BeamEvaluator, get_beam
+from autocal.errors import AutocalError
 from autocal.sky import T_CMB
 from autocal.tsky import compute_tsky
 
@@ -71,7 +72,7 @@ DIURNAL_MIN_SPAN_H = 6.0
 LST_STEP_H = 2.0 / 60.0
 
 
-class EffectError(ValueError):
+class EffectError(AutocalError):
     """Invalid effect or template input."""
 
 

@@ -71,9 +71,7 @@ def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
     from tqdm import tqdm
 
-    from autocal.diagnose import DiagnoseError
     from autocal.diagnose_run import DiagnoseConfig, run_diagnosis
-    from autocal.effects import EffectError
 
     optional: dict[str, Any] = {
         "bic_threshold": args.bic_threshold,
@@ -104,11 +102,7 @@ def run(args: argparse.Namespace) -> int:
             bar.set_postfix_str(message[-60:])
             bar.refresh()
 
-        try:
-            out = run_diagnosis(config, args.out, progress=progress)
-        except (DiagnoseError, EffectError) as err:
-            # bad input named by the diagnosis (its errors are not yet AutocalErrors)
-            raise CliError(str(err)) from err
+        out = run_diagnosis(config, args.out, progress=progress)
     print((out / "summary.txt").read_text())
     print(f"wrote {out}")
     return 0
