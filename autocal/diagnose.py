@@ -29,7 +29,7 @@ import functools
 import json
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ParamSpec, TypeVar
@@ -89,6 +89,93 @@ def _blas_single_thread(func: Callable[P, R]) -> Callable[P, R]:
 
 # the extended fit -----------------------------------------------------------------------
 
+#: Samples (antenna x pol x integration x channel) in one chunk of antennas of the extended
+#: fit and of every pass over its model or residuals. Each channel's ``(G, n)`` belongs to
+#: one antenna and the global normal equations and chi^2 are sums over antennas, so the fit
+#: streams antennas through its sums; working arrays are a chunk's size, not the
+#: observation's, and elementwise work on a chunk of a few MB stays in the processor's
+#: caches (one HERA antenna, 0.6 M samples: ~6x faster per sample than 16 antennas at once,
+#: ``benchmarks/diagnose_scale.py``).
+CHUNK_SAMPLES = 1 << 20
+#: Observations with more samples than this are "large": their weights are kept in float32
+#: (:func:`radiometer_weights`) and the search screens its candidates by their score before
+#: fitting them (:func:`screen_candidates`). Smaller ones are diagnosed exactly as before.
+LARGE_SAMPLES = 1 << 24
+#: Samples of one ordinary calibration in :func:`product_sigmas` (~0.5 GB of working arrays).
+PRODUCT_SIGMA_SAMPLES = 1 << 23
+
+
+def antenna_chunks(shape: tuple[int, ...], chunk_antennas: int | None = None) -> list[slice]:
+    """Return the slices of antennas processed together (:data:`CHUNK_SAMPLES`).
+
+    Parameters
+    ----------
+    shape
+        ``(Nant, Npol, Ntime, Nfreq)``.
+    chunk_antennas
+        Antennas per chunk (default: as many as :data:`CHUNK_SAMPLES` allows, at least one).
+    """
+    per_antenna = max(1, math.prod(shape[1:]))
+    n = max(1, CHUNK_SAMPLES // per_antenna) if chunk_antennas is None else int(chunk_antennas)
+    if n < 1:
+        raise DiagnoseError(f"chunks need at least one antenna, got {chunk_antennas}")
+    return [slice(i, min(i + n, shape[0])) for i in range(0, shape[0], n)]
+
+
+def is_large(shape: tuple[int, ...]) -> bool:
+    """Return whether an observation of this shape is large (:data:`LARGE_SAMPLES`)."""
+    return math.prod(shape) > LARGE_SAMPLES
+
+
+def _usable_weights(weights: np.ndarray, chan_ok: np.ndarray | None = None) -> np.ndarray:
+    """Return a chunk's weights ``(a, P, T, F)`` as float64, zero where unusable.
+
+    Unusable: not finite, not positive, or in a channel without a ``(G, n)`` solution
+    (``chan_ok`` ``(a, P, F)`` false).
+    """
+    w = np.asarray(weights, np.float64)
+    ok = np.isfinite(w) & (w > 0)
+    if chan_ok is not None:
+        ok &= chan_ok[:, :, None, :]
+    return np.where(ok, w, 0.0)
+
+
+@dataclass(frozen=True, eq=False)
+class _ModelSource:
+    """What the model and residuals of a fit are computed from, a chunk at a time.
+
+    ``a1`` ``(P, T, F)`` is the model Tsky times the gain factor, ``a2`` ``(T,)`` the noise
+    factor times the gain factor: ``model = G a1 + n a2``. ``g``, ``nn`` ``(A, P, F)`` are
+    zero in channels without a solution. The observation and weights are references (not
+    copies) to the arrays the fit was given.
+    """
+
+    obs: Observation
+    weights: np.ndarray
+    chan_ok: np.ndarray
+    a1: np.ndarray
+    a2: np.ndarray
+    g: np.ndarray
+    nn: np.ndarray
+    chunks: list[slice]
+
+    def weights_chunk(self, sl: slice) -> np.ndarray:
+        """Weights the fit used for antennas ``sl``, ``(a, P, T, F)`` float64."""
+        return _usable_weights(self.weights[sl], self.chan_ok[sl])
+
+    def model_chunk(self, sl: slice) -> np.ndarray:
+        """Model autos of antennas ``sl``, ``(a, P, T, F)``."""
+        return (
+            self.g[sl][:, :, None, :] * self.a1[None]
+            + self.nn[sl][:, :, None, :] * self.a2[None, None, :, None]
+        )
+
+    def residual_chunk(self, sl: slice) -> np.ndarray:
+        """Normalised residuals of antennas ``sl`` (NaN where the weight is zero)."""
+        w = self.weights_chunk(sl)
+        with np.errstate(invalid="ignore"):
+            return np.where(w > 0, (self.obs.data[sl] - self.model_chunk(sl)) * np.sqrt(w), np.nan)
+
 
 @dataclass(frozen=True, eq=False)
 class ExtendedFit:
@@ -110,15 +197,16 @@ class ExtendedFit:
         Number of data used (with prior pseudo-observations).
     nparam
         Per-channel plus free global parameters.
-    model
-        ``(Nant, Npol, Ntime, Nfreq)`` model autos.
-    residuals
-        Normalised residuals ``(R - model) sqrt(w)``.
     identifiable
         ``{effect name: fraction of Fisher information left after the (G, n) projection}``
         (0 below :data:`IDENTIFIABLE_RESOLUTION`: degenerate with ``(G, n)``).
     iterations
         Gauss-Newton iterations used.
+    source
+        What :attr:`model` and :attr:`residuals` are computed from (``None`` once
+        :meth:`detached`). They are not stored: a whole HERA file's would be 1.6 GB each,
+        and a search keeps a fit of every candidate. :meth:`model_chunks` and
+        :meth:`residual_chunks` give them a chunk of antennas at a time.
     """
 
     effects: tuple[Effect, ...]
@@ -130,10 +218,9 @@ class ExtendedFit:
     chi2: float
     ndata: int
     nparam: int
-    model: np.ndarray
-    residuals: np.ndarray
     identifiable: dict[str, float]
     iterations: int
+    source: _ModelSource | None = field(default=None, repr=False)
 
     @property
     def dof(self) -> int:
@@ -151,14 +238,80 @@ class ExtendedFit:
         with np.errstate(divide="ignore", invalid="ignore"):
             return self.n / self.G
 
+    def _source(self) -> _ModelSource:
+        if self.source is None:
+            raise DiagnoseError("this fit was detached from its data: no model or residuals")
+        return self.source
 
-def radiometer_weights(obs: Observation, reference: np.ndarray) -> np.ndarray:
-    """Inverse variances ``dnu dt N / reference^2`` (zero where flagged or non-finite)."""
-    bt = obs.bandwidth_time()
-    usable = np.isfinite(obs.data) & ~obs.flags
-    with np.errstate(divide="ignore", invalid="ignore"):
-        w = bt / reference**2
-    return np.where(usable & np.isfinite(w) & (w > 0), w, 0.0)
+    def model_chunks(self) -> Iterator[tuple[slice, np.ndarray]]:
+        """Yield ``(antenna slice, (a, Npol, Ntime, Nfreq) model autos)``."""
+        src = self._source()
+        for sl in src.chunks:
+            yield sl, src.model_chunk(sl)
+
+    def residual_chunks(self) -> Iterator[tuple[slice, np.ndarray]]:
+        """Yield ``(antenna slice, normalised residuals (R - model) sqrt(w))``, NaN unused."""
+        src = self._source()
+        for sl in src.chunks:
+            yield sl, src.residual_chunk(sl)
+
+    @property
+    def model(self) -> np.ndarray:
+        """``(Nant, Npol, Ntime, Nfreq)`` model autos (computed on every access)."""
+        return np.concatenate([m for _, m in self.model_chunks()])
+
+    @property
+    def residuals(self) -> np.ndarray:
+        """Normalised residuals ``(R - model) sqrt(w)`` (computed on every access)."""
+        return np.concatenate([r for _, r in self.residual_chunks()])
+
+    def residuals_of(self, antenna: int, pol: int) -> np.ndarray:
+        """``(Ntime, Nfreq)`` normalised residuals of one antenna (index) and pol (index)."""
+        return self._source().residual_chunk(slice(antenna, antenna + 1))[0, pol]
+
+    def detached(self) -> ExtendedFit:
+        """Return the fit without its :attr:`source` (no reference to data or weights)."""
+        return dataclasses.replace(self, source=None)
+
+
+def weights_dtype(shape: tuple[int, ...]) -> type:
+    """Float64 weights, float32 for a large observation (:data:`LARGE_SAMPLES`).
+
+    The weights are held fixed while fits are compared, so their rounding to float32 (a
+    relative 6e-8) changes every compared chi^2 alike; every sum is accumulated in float64.
+    """
+    return np.float32 if is_large(shape) else np.float64
+
+
+def radiometer_weights(
+    obs: Observation, reference: np.ndarray | ExtendedFit, *, dtype: Any = None
+) -> np.ndarray:
+    """Inverse variances ``dnu dt N / reference^2`` (zero where flagged or non-finite).
+
+    Parameters
+    ----------
+    obs
+        The observation.
+    reference
+        ``(Nant, Npol, Ntime, Nfreq)`` reference autos, or a fit whose model is the
+        reference (computed a chunk of antennas at a time).
+    dtype
+        Of the result (default :func:`weights_dtype`).
+    """
+    out = np.empty(obs.shape, weights_dtype(obs.shape) if dtype is None else dtype)
+    width = obs.channel_width[None, None, None, :]
+    tint = obs.integration_time[None, None, :, None]
+    if isinstance(reference, ExtendedFit):
+        pieces: Iterator[tuple[slice, np.ndarray]] = reference.model_chunks()
+    else:
+        pieces = ((sl, reference[sl]) for sl in antenna_chunks(obs.shape))
+    for sl, ref in pieces:
+        bt = width * (tint * obs.nsamples[sl])
+        usable = np.isfinite(obs.data[sl]) & ~obs.flags[sl]
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            w = bt / ref**2
+        out[sl] = np.where(usable & np.isfinite(w) & (w > 0), w, 0.0)
+    return out
 
 
 def _split(effects: tuple[Effect, ...]) -> list[tuple[Effect, slice]]:
@@ -168,6 +321,21 @@ def _split(effects: tuple[Effect, ...]) -> list[tuple[Effect, slice]]:
         out.append((eff, slice(i, i + k)))
         i += k
     return out
+
+
+@dataclass
+class _State:
+    """One evaluation of the fit: model columns, channel solutions and chi^2."""
+
+    tt: np.ndarray
+    gfac: np.ndarray
+    nfac: np.ndarray
+    g: np.ndarray
+    nn: np.ndarray
+    inv: np.ndarray
+    good: np.ndarray
+    rp: np.ndarray
+    chi2: float
 
 
 @_blas_single_thread
@@ -182,8 +350,15 @@ def fit_extended(
     gain_ref: np.ndarray | None = None,
     max_iter: int = 30,
     tol: float = 1e-4,
+    start: dict[str, np.ndarray] | None = None,
+    chunk_antennas: int | None = None,
 ) -> ExtendedFit:
     """Fit per-channel ``(G, n)`` and the global parameters of ``effects``.
+
+    Antennas are streamed through the fit in chunks (:func:`antenna_chunks`): each
+    channel's ``(G, n)`` is solved within its chunk and the global normal equations and
+    chi^2 are summed over chunks, so memory holds the observation, the weights and a
+    chunk's working arrays; the result does not depend on the chunking (up to rounding).
 
     Parameters
     ----------
@@ -194,7 +369,8 @@ def fit_extended(
     effects
         Effects added to the model (``bandpass`` effects are ignored here).
     weights
-        ``(Nant, Npol, Ntime, Nfreq)`` inverse variances (hold them fixed to compare fits).
+        ``(Nant, Npol, Ntime, Nfreq)`` inverse variances (hold them fixed to compare fits);
+        float32 or float64, referenced by the fit's :attr:`ExtendedFit.source`.
     trxr_prior, trxr_prior_sigma
         Receiver prior in kelvin and its 1-sigma, each a scalar or an array broadcastable
         to ``(Nant, Npol, Nfreq)`` (:meth:`autocal.priors.TrxrPrior.at`); ``None`` for no
@@ -204,6 +380,11 @@ def fit_extended(
         without prior).
     max_iter, tol
         Gauss-Newton limits (``tol`` in units of the parameter sigma).
+    start
+        ``{effect name: values}`` to start the free parameters from (default zero), e.g.
+        those of a fit of fewer effects.
+    chunk_antennas
+        Antennas per chunk (default :data:`CHUNK_SAMPLES`).
 
     Returns
     -------
@@ -213,21 +394,40 @@ def fit_extended(
     effects = tuple(e for e in effects if e.kind != "bandpass")
     if tpl.total.shape[0] != len(obs.pols) or tpl.total.shape[1:] != (obs.ntime, obs.nfreq):
         raise DiagnoseError("templates do not match the observation's grid")
-    w = np.swapaxes(np.where(np.isfinite(weights) & (weights > 0), weights, 0.0), 2, 3)
+    weights = np.asarray(weights)
+    if weights.shape != obs.shape:
+        raise DiagnoseError(f"weights have shape {weights.shape}, the data {obs.shape}")
+    chunks = antenna_chunks(obs.shape, chunk_antennas)
+    shape3 = (obs.nant, len(obs.pols), obs.nfreq)
     # channels with fewer than 3 usable samples cannot constrain (G, n): leave them out
-    chan_ok = (w > 0).sum(-1) >= 3
-    w = np.where(chan_ok[..., None], w, 0.0)
-    y = np.where(w > 0, np.swapaxes(obs.data, 2, 3), 0.0)  # (A, P, F, T)
+    chan_ok = np.zeros(shape3, bool)
+    used = 0
+    for sl in chunks:
+        nuse = (_usable_weights(weights[sl]) > 0).sum(axis=2)
+        chan_ok[sl] = nuse >= 3
+        used += int(nuse[chan_ok[sl]].sum())
     if not chan_ok.any():
         raise DiagnoseError("no channel has 3 or more unflagged samples to fit")
+
+    def chunk_arrays(sl: slice) -> tuple[np.ndarray, np.ndarray]:
+        """Weights and data of antennas ``sl``, ``(a, P, F, T)`` (data zero where unused)."""
+        w = np.ascontiguousarray(np.swapaxes(_usable_weights(weights[sl], chan_ok[sl]), 2, 3))
+        with np.errstate(invalid="ignore"):
+            y = np.where(w > 0, np.swapaxes(obs.data[sl], 2, 3), 0.0)
+        return w, y
+
     blocks = _split(effects)
     nfree = sum(b.stop - b.start for _, b in blocks)
     p = np.zeros(nfree)
+    for eff, sl in blocks:
+        init = None if start is None else start.get(eff.name)
+        if init is not None and sl.stop > sl.start and np.size(init) == sl.stop - sl.start:
+            p[sl] = np.asarray(init, float)
     fixed = {e.name: np.asarray(e.fixed, float) for e in effects if e.fixed is not None}
     bases = {(e.basis, e.order): e.time_basis(obs.lsts) for e in effects if e.kind != "tsky"}
     prior = trxr_prior is not None
-    t0 = np.broadcast_to(np.asarray(trxr_prior if prior else 0.0, float), y.shape[:3])
-    sig0 = np.broadcast_to(np.asarray(trxr_prior_sigma, float), y.shape[:3])
+    t0 = np.broadcast_to(np.asarray(trxr_prior if prior else 0.0, float), shape3)
+    sig0 = np.broadcast_to(np.asarray(trxr_prior_sigma, float), shape3)
     has_prior = np.isfinite(t0) & np.isfinite(sig0) & (sig0 > 0)
     t0 = np.where(has_prior, t0, 0.0)
 
@@ -249,51 +449,70 @@ def fit_extended(
         tt = np.swapaxes(tsky, 1, 2)[None]  # (1, P, F, T)
         return tt, gfac, nfac
 
-    def solve_channels(a1: np.ndarray, a2: np.ndarray, wp: np.ndarray) -> tuple[np.ndarray, ...]:
-        n11 = (w * a1 * a1).sum(-1) + wp * t0**2
-        n12 = (w * a1 * a2).sum(-1) - wp * t0
-        n22 = (w * a2 * a2).sum(-1) + wp
+    def solve_channels(
+        sl: slice, w: np.ndarray, y: np.ndarray, a1: np.ndarray, a2: np.ndarray, wp: np.ndarray
+    ) -> tuple[np.ndarray, ...]:
+        n11 = (w * a1 * a1).sum(-1) + wp[sl] * t0[sl] ** 2
+        n12 = (w * a1 * a2).sum(-1) - wp[sl] * t0[sl]
+        n22 = (w * a2 * a2).sum(-1) + wp[sl]
         b1 = (w * a1 * y).sum(-1)
         b2 = (w * a2 * y).sum(-1)
         det = n11 * n22 - n12**2
-        good = chan_ok & np.isfinite(det) & (det > 1e-12 * np.abs(n11 * n22))
+        good = chan_ok[sl] & np.isfinite(det) & (det > 1e-12 * np.abs(n11 * n22))
         det = np.where(good, det, 1.0)
         inv = np.where(good, np.stack([n22 / det, -n12 / det, n11 / det]), 0.0)
         g = inv[0] * b1 + inv[1] * b2
         nn = inv[1] * b1 + inv[2] * b2
         return g, nn, inv, good
 
-    @dataclass
-    class _State:
-        tt: np.ndarray
-        gfac: np.ndarray
-        nfac: np.ndarray
-        a1: np.ndarray
-        a2: np.ndarray
-        g: np.ndarray
-        nn: np.ndarray
-        inv: np.ndarray
-        good: np.ndarray
-        r: np.ndarray
-        rp: np.ndarray
-        chi2: float
+    def residual(w: np.ndarray, y: np.ndarray, g: np.ndarray, nn: np.ndarray, a1, a2):
+        return np.where(w > 0, y - (g[..., None] * a1 + nn[..., None] * a2), 0.0)
 
     def evaluate(pv: np.ndarray, wp: np.ndarray) -> _State:
         tt, gfac, nfac = columns(pv)
-        a1 = np.broadcast_to(tt * gfac, y.shape)
-        a2 = np.broadcast_to(nfac * gfac, y.shape)
-        g, nn, inv, good = solve_channels(a1, a2, wp)
-        r = np.where(w > 0, y - (g[..., None] * a1 + nn[..., None] * a2), 0.0)
+        g, nn = np.zeros(shape3), np.zeros(shape3)
+        inv, good = np.zeros((3, *shape3)), np.zeros(shape3, bool)
+        chi2 = 0.0
+        for sl in chunks:
+            w, y = chunk_arrays(sl)
+            a1 = np.broadcast_to(tt * gfac, w.shape)
+            a2 = np.broadcast_to(nfac * gfac, w.shape)
+            g[sl], nn[sl], inv[:, sl], good[sl] = solve_channels(sl, w, y, a1, a2, wp)
+            r = residual(w, y, g[sl], nn[sl], a1, a2)
+            chi2 += float((w * r**2).sum())
         rp = np.where(good, -(nn - t0 * g), 0.0)
-        chi2 = float((w * r**2).sum() + (wp * rp**2).sum())
-        return _State(tt, gfac, nfac, a1, a2, g, nn, inv, good, r, rp, chi2)
+        chi2 += float((wp * rp**2).sum())
+        return _State(tt, gfac, nfac, g, nn, inv, good, rp, chi2)
+
+    def normal_equations(pv: np.ndarray, st: _State, wp: np.ndarray) -> tuple[np.ndarray, ...]:
+        ys = _block_bases(blocks, pv, tpl, bases)
+        h, grad, raw = np.zeros((nfree, nfree)), np.zeros(nfree), np.zeros(nfree)
+        for sl in chunks:
+            w, y = chunk_arrays(sl)
+            a1 = np.broadcast_to(st.tt * st.gfac, w.shape)
+            a2 = np.broadcast_to(st.nfac * st.gfac, w.shape)
+            g, nn, rp = st.g[sl], st.nn[sl], st.rp[sl]
+            r = residual(w, y, g, nn, a1, a2)
+            # A^T W r per channel (data and prior rows): ~0 at the channel solution
+            q1 = (w * a1 * r).sum(-1) - wp[sl] * t0[sl] * rp
+            q2 = (w * a2 * r).sum(-1) + wp[sl] * rp
+            factors = [
+                (bsl, _factor(kind, g, nn, st.tt, st.gfac, st.nfac), ymat) for bsl, kind, ymat in ys
+            ]
+            hc, gc, rc = projected_normal_equations(
+                factors, w, w * a1, w * a2, st.inv[:, sl], r, q1, q2, nfree
+            )
+            h += hc
+            grad += gc
+            raw += rc
+        return h, grad, raw
 
     # prior weights from a reference gain
-    wp = np.zeros(y.shape[:3])
+    wp = np.zeros(shape3)
     with np.errstate(over="ignore", invalid="ignore", under="ignore"):
         if prior:
             if gain_ref is None:
-                gain_ref = evaluate(p, wp).g
+                gain_ref = evaluate(np.zeros(nfree), wp).g
             gain_ref = np.where(np.abs(gain_ref) > 0, np.abs(gain_ref), np.inf)
             wp = np.where(chan_ok & has_prior, 1.0 / (gain_ref * sig0) ** 2, 0.0)
         st = evaluate(p, wp)
@@ -308,13 +527,7 @@ def fit_extended(
         for it in range(1, max_iter + 1):
             if nfree == 0:
                 break
-            factors = _jacobian_factors(blocks, p, tpl, bases, st.g, st.nn, st.tt, st.gfac, st.nfac)
-            # A^T W r per channel (data and prior rows): ~0 at the channel solution
-            q1 = (w * st.a1 * st.r).sum(-1) - wp * t0 * st.rp
-            q2 = (w * st.a2 * st.r).sum(-1) + wp * st.rp
-            h, grad, raw = projected_normal_equations(
-                factors, w, w * st.a1, w * st.a2, st.inv, st.r, q1, q2, nfree
-            )
+            h, grad, raw = normal_equations(p, st, wp)
             if not (np.all(np.isfinite(h)) and np.all(np.isfinite(grad))):
                 raise DiagnoseError("non-finite normal equations for the global parameters")
             if it == 1:
@@ -327,14 +540,7 @@ def fit_extended(
                 if any(ident.get(e.name, 1.0) < MIN_IDENTIFIABLE for e, _ in blocks):
                     cov = np.full((nfree, nfree), np.inf)
                     break
-            # scale to unit diagonal before the pseudo-inverse (parameters differ by 1e6);
-            # h is J^T W J less the (G, n) part, so its rounding error is ~eps * raw / diag(h)
-            # of the scaled matrix: directions below that are left out, not inverted
-            hdiag = np.diag(h)
-            dscale = 1.0 / np.sqrt(np.where(hdiag > 0, hdiag, 1.0))
-            lost = np.max(np.where(hdiag > 0, raw * dscale**2, 1.0))  # raw / projected
-            rtol = max(PINV_RTOL, ROUNDING_MARGIN * np.finfo(float).eps * lost)
-            cov = dscale[:, None] * np.linalg.pinv(dscale[:, None] * h * dscale, rtol=rtol) * dscale
+            cov = _scaled_pinv(h, raw)
             step = cov @ grad
             sig = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
             # damped Gauss-Newton: halve the step until chi^2 does not increase
@@ -353,7 +559,6 @@ def fit_extended(
                 break
     chi2 = st.chi2
     g, nn = np.where(st.good, st.g, np.nan), np.where(st.good, st.nn, np.nan)
-    used = int((w > 0).sum())
     nchan = int(st.good.sum())
     ndata = used + (nchan if prior else 0)
     params: dict[str, np.ndarray] = {}
@@ -364,8 +569,16 @@ def fit_extended(
         sigmas[eff.name] = (
             np.zeros(len(eff.params)) if eff.fixed is not None else sig_all[sl].copy()
         )
-    model = st.g[..., None] * st.a1 + st.nn[..., None] * st.a2
-    resid = np.swapaxes(np.where(w > 0, st.r * np.sqrt(w), np.nan), 2, 3)
+    source = _ModelSource(
+        obs=obs,
+        weights=weights,
+        chan_ok=chan_ok,
+        a1=np.swapaxes((st.tt * st.gfac)[0], 1, 2),
+        a2=st.nfac * st.gfac,
+        g=st.g,
+        nn=st.nn,
+        chunks=chunks,
+    )
     return ExtendedFit(
         effects=effects,
         params=params,
@@ -376,11 +589,24 @@ def fit_extended(
         chi2=chi2,
         ndata=ndata,
         nparam=2 * nchan + nfree,
-        model=np.swapaxes(model, 2, 3),
-        residuals=resid,
         identifiable=ident,
         iterations=it,
+        source=source,
     )
+
+
+def _scaled_pinv(h: np.ndarray, raw: np.ndarray) -> np.ndarray:
+    """Pseudo-inverse of the projected normal matrix ``h`` (``raw``: its unprojected diagonal).
+
+    ``h`` is scaled to unit diagonal first (parameters differ by 1e6); it is ``J^T W J``
+    less the ``(G, n)`` part, so its rounding error is ~eps * raw / diag(h) of the scaled
+    matrix: directions below that are left out, not inverted.
+    """
+    hdiag = np.diag(h)
+    dscale = 1.0 / np.sqrt(np.where(hdiag > 0, hdiag, 1.0))
+    lost = np.max(np.where(hdiag > 0, raw * dscale**2, 1.0))  # raw / projected
+    rtol = max(PINV_RTOL, ROUNDING_MARGIN * np.finfo(float).eps * lost)
+    return dscale[:, None] * np.linalg.pinv(dscale[:, None] * h * dscale, rtol=rtol) * dscale
 
 
 # normal equations of the global parameters ------------------------------------------------
@@ -394,41 +620,51 @@ def fit_extended(
 #     c_i = sum_t w a_i J,  (k1, k2) = N^-1 (c1, c2),  N the channel's 2 x 2 normal matrix,
 # so only J^T W J (antennas summed first, then the small bases), the c_i (one matrix product
 # per effect over time) and K x K products are needed: never the (samples x K) Jacobian,
-# which took most of a diagnosis's time and ~8 bytes x samples x K of memory.
+# which took most of a diagnosis's time and ~8 bytes x samples x K of memory. Every term is
+# a sum over antennas, so the fit adds them up a chunk of antennas at a time.
 
 
-def _jacobian_factors(
+def _block_bases(
     blocks: list[tuple[Effect, slice]],
     p: np.ndarray,
     tpl: SkyTemplates,
     bases: dict[tuple[str, int], np.ndarray],
-    g: np.ndarray,
-    nn: np.ndarray,
-    tt: np.ndarray,
-    gfac: np.ndarray,
-    nfac: np.ndarray,
-) -> list[tuple[slice, np.ndarray, np.ndarray]]:
-    """Return ``(slice, X, Y)`` for each block of free parameters (see above).
+) -> list[tuple[slice, str, np.ndarray]]:
+    """Return ``(slice, kind, Y)`` for each block of free parameters (see above).
 
-    ``X`` broadcasts to ``(A, P, F, T)``; ``Y`` is ``(P, F, T, k)`` for Tsky effects and
-    ``(1, 1, T, k)`` for gain and noise drifts. ``g``, ``nn``: ``(A, P, F)``; ``tt``: Tsky
-    ``(1, P, F, T)``; ``gfac``, ``nfac``: the drift factors ``(T,)``.
+    ``Y`` is ``(P, F, T, k)`` for Tsky effects and ``(1, 1, T, k)`` for gain and noise
+    drifts; it is shared by all antennas.
     """
     out = []
     for eff, sl in blocks:
         if sl.stop == sl.start:
             continue
         if eff.kind == "tsky":
-            x = g[..., None] * gfac
             ymat = np.swapaxes(eff.jacobian(p[sl], tpl), 1, 2)
-        elif eff.kind == "gain":
-            x = g[..., None] * tt + nn[..., None] * nfac
-            ymat = bases[eff.basis, eff.order].T[None, None]
         else:
-            x = nn[..., None] * gfac
             ymat = bases[eff.basis, eff.order].T[None, None]
-        out.append((sl, x, ymat))
+        out.append((sl, eff.kind, ymat))
     return out
+
+
+def _factor(
+    kind: str,
+    g: np.ndarray,
+    nn: np.ndarray,
+    tt: np.ndarray,
+    gfac: np.ndarray,
+    nfac: np.ndarray,
+) -> np.ndarray:
+    """Return the antenna-dependent factor ``X`` of a block (broadcasts to ``(a, P, F, T)``).
+
+    ``g``, ``nn``: ``(a, P, F)``; ``tt``: Tsky ``(1, P, F, T)``; ``gfac``, ``nfac``: the
+    drift factors ``(T,)``.
+    """
+    if kind == "tsky":
+        return g[..., None] * gfac
+    if kind == "gain":
+        return g[..., None] * tt + nn[..., None] * nfac
+    return nn[..., None] * gfac
 
 
 def _sum_time(v: np.ndarray, ymat: np.ndarray) -> np.ndarray:
@@ -470,7 +706,7 @@ def projected_normal_equations(
     Parameters
     ----------
     factors
-        :func:`_jacobian_factors` of the free parameters.
+        ``(slice, X, Y)`` of the free parameters (:func:`_factor`, :func:`_block_bases`).
     w, wa1, wa2
         ``(A, P, F, T)`` weights and the weighted ``(G, n)`` columns ``w a1``, ``w a2``.
     inv
@@ -511,6 +747,18 @@ def projected_normal_equations(
     return 0.5 * (h + h.T), grad, np.diag(jwj).copy()
 
 
+def _residual_pieces(fit: Any) -> Iterator[tuple[slice, np.ndarray]]:
+    """Yield ``(antenna slice, residuals)`` of a fit chunk by chunk.
+
+    Anything else with a ``residuals`` array gives it whole.
+    """
+    if hasattr(fit, "residual_chunks"):
+        yield from fit.residual_chunks()
+    else:
+        res = np.asarray(fit.residuals)
+        yield slice(0, res.shape[0]), res
+
+
 def flag_outliers(
     obs: Observation,
     fit: ExtendedFit,
@@ -527,7 +775,9 @@ def flag_outliers(
     a channel's fit by an outlier) is left alone and only features a few samples wide
     are flagged: samples deviating by more than ``threshold`` robust sigma
     (1.4826 x the median absolute deviation over all samples). A channel (integration)
-    that loses more than ``max_fraction`` of its samples is flagged entirely.
+    that loses more than ``max_fraction`` of its samples is flagged entirely. The
+    residuals are filtered a chunk of antennas at a time; the high-passed values of a
+    large observation (:func:`is_large`) are kept in float32 for the median over all.
 
     Parameters
     ----------
@@ -549,26 +799,35 @@ def flag_outliers(
     """
     from scipy.ndimage import median_filter
 
-    res = fit.residuals
-    ok = np.isfinite(res)
-    if not ok.any():
+    dev = np.empty(obs.shape, weights_dtype(obs.shape))
+    usable = np.zeros(obs.shape, bool)
+    for sl, res in _residual_pieces(fit):
+        ok = np.isfinite(res)
+        usable[sl] = ok
+        # high-pass in time, then in frequency: what a fit bent by an outlier spreads over
+        # its channel is smooth in time and goes; the outlier itself stays
+        filled = np.where(ok, res, 0.0)
+        hp = filled - median_filter(filled, size=(1, 1, window, 1), mode="mirror")
+        hp = hp - median_filter(hp, size=(1, 1, 1, window), mode="mirror")
+        dev[sl] = np.where(ok, hp, np.nan)
+    if not usable.any():
         return obs.flags.copy()
-    # high-pass in time, then in frequency: what a fit bent by an outlier spreads over
-    # its channel is smooth in time and goes; the outlier itself stays
-    filled = np.where(ok, res, 0.0)
-    hp = filled - median_filter(filled, size=(1, 1, window, 1), mode="mirror")
-    hp = hp - median_filter(hp, size=(1, 1, 1, window), mode="mirror")
-    dev = np.where(ok, hp, np.nan)
     centre = np.nanmedian(dev)
-    sigma = 1.4826 * np.nanmedian(np.abs(dev - centre))
+    np.subtract(dev, centre, out=dev)
+    np.abs(dev, out=dev)  # in place: |deviation from the centre|
+    sigma = 1.4826 * np.nanmedian(dev)
     if not np.isfinite(sigma) or sigma <= 0:
         return obs.flags.copy()
-    new = ok & (np.abs(dev - centre) > threshold * sigma)
-    count = np.maximum(ok.sum(axis=2, keepdims=True), 1)
-    new |= (new.sum(axis=2, keepdims=True) / count > max_fraction) & ok
-    count = np.maximum(ok.sum(axis=3, keepdims=True), 1)
-    new |= (new.sum(axis=3, keepdims=True) / count > max_fraction) & ok
-    return obs.flags | new
+    flags = obs.flags.copy()
+    for sl in antenna_chunks(obs.shape):
+        ok = usable[sl]
+        new = ok & (dev[sl] > threshold * sigma)
+        count = np.maximum(ok.sum(axis=2, keepdims=True), 1)
+        new |= (new.sum(axis=2, keepdims=True) / count > max_fraction) & ok
+        count = np.maximum(ok.sum(axis=3, keepdims=True), 1)
+        new |= (new.sum(axis=3, keepdims=True) / count > max_fraction) & ok
+        flags[sl] |= new
+    return flags
 
 
 # the bandpass domain --------------------------------------------------------------------
@@ -635,6 +894,51 @@ def _bandpass_chi2(
     chi2 = float(np.sum((a @ coef - np.where(ok, g, 0) * wsq) ** 2))
     cov = np.linalg.pinv(a.T @ a)
     return chi2, coef, cov
+
+
+class _RippleScan:
+    """Total chi^2 of :func:`_bandpass_chi2` with a ripple, summed over rows, for many delays.
+
+    The same least-squares fits, all rows at once: each row's weighted smooth basis is
+    factorised once (QR), and for every delay only the two ripple columns are projected
+    off it, so a scan costs a few batched matrix products per delay instead of a
+    least-squares solve per row and delay (a whole HERA file has 700 rows and ~370
+    delays). Rows whose smooth basis is (nearly) rank-deficient over their usable channels
+    are fitted one by one as before.
+    """
+
+    def __init__(self, freqs: np.ndarray, g2: np.ndarray, s2: np.ndarray, order: int) -> None:
+        x = 2 * (freqs - freqs[0]) / (freqs[-1] - freqs[0]) - 1
+        basis = legendre.legvander(x, order)  # (F, O+1)
+        ok = np.isfinite(g2) & np.isfinite(s2) & (s2 > 0)
+        wsq = np.where(ok, 1 / np.where(ok, s2, 1.0), 0.0)  # (R, F)
+        b = np.where(ok, g2, 0.0) * wsq
+        a = basis[None] * wsq[..., None]  # (R, F, O+1)
+        q, r = np.linalg.qr(a)
+        diag = np.abs(np.diagonal(r, axis1=1, axis2=2))
+        full = (ok.sum(axis=1) > order + 3) & (diag.min(axis=1) > 1e-10 * diag.max(axis=1))
+        self.freqs, self.order = freqs, order
+        self.rows = [(g2[i], s2[i]) for i in np.flatnonzero(~full)]
+        q, r, b, wsq = q[full], r[full], b[full], wsq[full]
+        qtb = np.einsum("rfk,rf->rk", q, b)
+        self.q, self.wsq = q, wsq
+        self.resid = b - np.einsum("rfk,rk->rf", q, qtb)  # off the smooth basis
+        self.null = (self.resid**2).sum(axis=1)
+        coef = np.linalg.solve(r, qtb[..., None])[..., 0]  # smooth fit of each row
+        self.smooth_w = (coef @ basis.T) * wsq  # weighted smooth bandpass (R, F)
+
+    def __call__(self, tau_s: float) -> float:
+        """Return the total chi^2 with a ripple of delay ``tau_s`` (seconds)."""
+        ph = 2 * np.pi * self.freqs * tau_s
+        cols = self.smooth_w[..., None] * np.stack([np.cos(ph), np.sin(ph)], axis=-1)
+        cols = cols - self.q @ (np.swapaxes(self.q, 1, 2) @ cols)  # (R, F, 2)
+        m = np.swapaxes(cols, 1, 2) @ cols  # (R, 2, 2)
+        v = np.einsum("rfk,rf->rk", cols, self.resid)
+        gain = np.einsum("rk,rkl,rl->r", v, np.linalg.pinv(m, hermitian=True), v)
+        total = float(np.sum(self.null - gain))
+        for g, s in self.rows:
+            total += _bandpass_chi2(self.freqs, g, s, self.order, tau_s)[0]
+        return total
 
 
 def auto_smooth_order(freqs: np.ndarray, min_delay_ns: float = 100.0) -> int:
@@ -729,10 +1033,11 @@ def fit_cable_reflection(
     )
     if grid.size < 3:
         return null, null
-    chis = np.array([total_chi2(t * 1e-9) for t in grid])
+    scan = _RippleScan(freqs, g2, s2, order)
+    chis = np.array([scan(t * 1e-9) for t in grid])
     i = int(np.argmin(chis))
     fine = np.linspace(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)], 41)
-    fchis = np.array([total_chi2(t * 1e-9) for t in fine])
+    fchis = np.array([scan(t * 1e-9) for t in fine])
     j = int(np.argmin(fchis))
     tau = float(fine[j])
     inside = fine[fchis <= fchis[j] + 1.0]
@@ -789,6 +1094,9 @@ def gap_metrics(
 ) -> dict[str, Any]:
     """Measure the disagreement between a fit and the data.
 
+    One pass over the residuals, a chunk of antennas at a time (:meth:`ExtendedFit.
+    residual_chunks`): every metric is a sum over antennas.
+
     Returns
     -------
     dict
@@ -804,17 +1112,43 @@ def gap_metrics(
         ``template_correlation`` (Pearson r of the residuals with Tsky, its Galactic part
         and the ground fraction), ``bandpass_reduced_chi2``.
     """
-    res = fit.residuals
-    ok = np.isfinite(res)
-    r0 = np.where(ok, res, 0.0)
     basis = time_basis(obs.lsts, n_time_modes - 1)
     basis = np.vstack([np.ones(obs.ntime), basis]) if basis.size else np.ones((1, obs.ntime))
     norm = basis / np.sqrt((basis**2).sum(axis=1, keepdims=True))
-    proj = np.einsum("kt,aptf->apfk", norm, r0)
-    ps = np.abs(np.fft.rfft(r0, axis=-1)) ** 2 / obs.nfreq
-    ps_mean = ps.reshape(-1, ps.shape[-1]).mean(axis=0)
+    fb = np.broadcast_to(tpl.f_below[:, None, :], tpl.total.shape)
+    templates = {"tsky": tpl.total, "galactic": tpl.galactic, "ground_fraction": fb}
+    mode_power = np.zeros(norm.shape[0])
+    nchan = 0
+    ps_sum = np.zeros(obs.nfreq // 2 + 1)
+    nspectra = 0
+    nused_total, sum_r, sum_r2 = 0, 0.0, 0.0
+    jitter_sum, nint = 0.0, 0
+    count = np.zeros(tpl.total.shape)  # antennas with a usable sample, (P, T, F)
+    sum_tr = dict.fromkeys(templates, 0.0)
+    for _, res in _residual_pieces(fit):
+        ok = np.isfinite(res)
+        r0 = np.where(ok, res, 0.0)
+        proj = np.einsum("kt,aptf->apfk", norm, r0)
+        mode_power += (proj**2).reshape(-1, proj.shape[-1]).sum(axis=0)
+        nchan += proj.size // proj.shape[-1]
+        ps = np.abs(np.fft.rfft(r0, axis=-1)) ** 2 / obs.nfreq
+        ps_sum += ps.reshape(-1, ps.shape[-1]).sum(axis=0)
+        nspectra += ps.size // ps.shape[-1]
+        nused_total += int(ok.sum())
+        sum_r += float(r0.sum())
+        sum_r2 += float((r0**2).sum())
+        nused = ok.sum(axis=-1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            per_int = r0.sum(axis=-1) / np.sqrt(nused)
+        jitter_sum += float((per_int[nused > 0] ** 2).sum())
+        nint += int((nused > 0).sum())
+        count += ok.sum(axis=0)
+        for name, t in templates.items():
+            sum_tr[name] += float(np.einsum("aptf,ptf->", r0, t))
+    ps_mean = ps_sum / max(nspectra, 1)
     delays = np.fft.rfftfreq(obs.nfreq, d=obs.freqs[1] - obs.freqs[0]) * 1e9
     k = int(np.argmax(ps_mean[1:]) + 1)
+    n = max(nused_total, 1)
 
     def peak(values: np.ndarray) -> dict[str, float]:
         try:
@@ -826,32 +1160,31 @@ def gap_metrics(
         i = int(np.nanargmax(amp))
         return {"amplitude": float(amp[i]), "delay_ns": float(ds.delays_ns[sel][i])}
 
-    def corr(template: np.ndarray) -> float:
-        t = np.broadcast_to(template[None], res.shape)[ok]
-        if np.std(t) == 0:
+    def corr(name: str) -> float:
+        # Pearson r over the usable samples; the template is shared by all antennas, so its
+        # moments are weighted by the number of antennas with a usable sample
+        t = np.asarray(templates[name], float)
+        seen = count > 0
+        if not seen.any() or np.ptp(t[seen]) == 0:
             return 0.0
-        return float(np.corrcoef(t, res[ok])[0, 1])
+        t_mean = float((count * t).sum()) / n
+        var_t = float((count * (t - t_mean) ** 2).sum())
+        r_mean = sum_r / n
+        var_r = sum_r2 - n * r_mean**2
+        cov = sum_tr[name] - t_mean * sum_r
+        return float(cov / math.sqrt(var_t * var_r)) if var_t > 0 and var_r > 0 else 0.0
 
-    fb = np.broadcast_to(tpl.f_below[:, None, :], tpl.total.shape)
-    nused = ok.sum(axis=-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        per_int = r0.sum(axis=-1) / np.sqrt(nused)
-    jitter = float(np.sqrt(np.mean(per_int[nused > 0] ** 2))) if (nused > 0).any() else 0.0
     return {
         "chi2": fit.chi2,
         "dof": fit.dof,
         "reduced_chi2": fit.reduced_chi2,
-        "rms_normalised_residual": float(np.sqrt(np.mean(res[ok] ** 2))),
-        "integration_jitter": jitter,
-        "time_mode_power": [float(v) for v in np.mean(proj**2, axis=(0, 1, 2))],
+        "rms_normalised_residual": float(np.sqrt(sum_r2 / n)),
+        "integration_jitter": float(np.sqrt(jitter_sum / nint)) if nint else 0.0,
+        "time_mode_power": [float(v) for v in mode_power / max(nchan, 1)],
         "residual_delay_power": {"max": float(ps_mean[k]), "delay_ns": float(delays[k])},
         "delay_peak_G": peak(fit.G),
         "delay_peak_Trxr": peak(fit.Trxr),
-        "template_correlation": {
-            "tsky": corr(tpl.total),
-            "galactic": corr(tpl.galactic),
-            "ground_fraction": corr(fb),
-        },
+        "template_correlation": {name: corr(name) for name in templates},
         "bandpass_reduced_chi2": None if bandpass is None else bandpass.reduced_chi2,
     }
 
@@ -1084,10 +1417,12 @@ def describe_unexplained(
         if delay["max"] > 4.0
         else "white in frequency"
     )
-    res = np.where(np.isfinite(fit.residuals), fit.residuals, 0.0)
-    per_feed = (res**2).sum(axis=(2, 3)) / np.maximum(
-        np.isfinite(fit.residuals).sum(axis=(2, 3)), 1
-    )
+    per_feed = np.zeros((len(obs.antennas), len(obs.pols)))
+    for sl, res in _residual_pieces(fit):
+        ok = np.isfinite(res)
+        per_feed[sl] = (np.where(ok, res, 0.0) ** 2).sum(axis=(2, 3)) / np.maximum(
+            ok.sum(axis=(2, 3)), 1
+        )
     feeds = sorted(
         (
             (float(per_feed[ia, ip]), int(a), str(p))
@@ -1168,12 +1503,29 @@ def product_sigmas(
     The constant-model fit of :func:`autocal.fit.fit` against the model Tsky, with
     radiometer weights, errors inflated by ``max(1, chi^2/dof)``, the total uncertainty
     (:mod:`autocal.uncertainty`) and the diagnosis's receiver prior ``(trxr, sigma)`` if
-    any: the yardstick of :func:`product_impact`.
+    any: the yardstick of :func:`product_impact`. Every channel is fitted on its own, so a
+    large observation is fitted :data:`PRODUCT_SIGMA_SAMPLES` at a time (the fit holds a
+    few float64 copies of what it is given).
     """
     from autocal.fit import fit
 
-    sol = fit(obs, tpl.total, scale_covariance="inflate", trxr_prior=prior)
-    return sol.sigma_G, sol.sigma_Trxr
+    per_antenna = math.prod(obs.shape[1:])
+    chunks = antenna_chunks(obs.shape, max(1, PRODUCT_SIGMA_SAMPLES // per_antenna))
+    if len(chunks) == 1:
+        sol = fit(obs, tpl.total, scale_covariance="inflate", trxr_prior=prior)
+        return sol.sigma_G, sol.sigma_Trxr
+    shape3 = (obs.nant, len(obs.pols), obs.nfreq)
+    sigma_g, sigma_t = np.empty(shape3), np.empty(shape3)
+    for sl in chunks:
+        part = obs.select(antennas=[int(a) for a in obs.antennas[sl]])
+        part_prior = (
+            None
+            if prior is None
+            else tuple(np.broadcast_to(np.asarray(v, float), shape3)[sl] for v in prior)
+        )
+        sol = fit(part, tpl.total, scale_covariance="inflate", trxr_prior=part_prior)
+        sigma_g[sl], sigma_t[sl] = sol.sigma_G, sol.sigma_Trxr
+    return sigma_g, sigma_t
 
 
 def product_impact(
@@ -1450,9 +1802,9 @@ def _diagnose_once(
     progress(0.0, "fitting the starting model")
     w = radiometer_weights(obs, obs.data)
     current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
-    w = radiometer_weights(obs, current.model)
+    w = radiometer_weights(obs, current)
     current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
-    base_fit = current
+    base_fit = current.detached()  # its G and Trxr only: no reference to these weights
     sigma_g, sigma_t = product_sigmas(
         obs, tpl, None if trxr_prior is None else (trxr_prior, trxr_prior_sigma)
     )
@@ -1461,7 +1813,7 @@ def _diagnose_once(
         obs.freqs, current.G, current.sigma_G, smooth_order=smooth_order
     )
     diag.initial_gap = gap_metrics(current, obs, tpl, bp_null)
-    diag.residual_snapshots.append(("initial model", current.residuals[0, 0]))
+    diag.residual_snapshots.append(("initial model", current.residuals_of(0, 0)))
     for step in range(max_steps):
         results = []
         for icand, eff in enumerate(cands):
@@ -1598,7 +1950,7 @@ def _diagnose_once(
             gap_after = dict(gap_before)
             gap_after["bandpass_reduced_chi2"] = rip.reduced_chi2
             bp_null = rip
-            diag.residual_snapshots.append((f"after {eff.name}", current.residuals[0, 0]))
+            diag.residual_snapshots.append((f"after {eff.name}", current.residuals_of(0, 0)))
         else:
             if isinstance(payload, tuple):
                 _, free_fit, fixed_eff = payload
@@ -1617,7 +1969,7 @@ def _diagnose_once(
             # and reported as negligible, not named among the effects
             step_extra["negligible"] = is_negligible(impact)
             # re-weight with the improved model for the next step
-            w = radiometer_weights(obs, new.model)
+            w = radiometer_weights(obs, new)
             current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
             # the effects accepted before are re-tested against the refit: one that the
             # new effect explains away is dropped now, before the search goes on
@@ -1633,7 +1985,7 @@ def _diagnose_once(
                 f"step {step + 1}",
                 keep=active[-1],
             )
-            diag.residual_snapshots.append((f"after {eff.name}", current.residuals[0, 0]))
+            diag.residual_snapshots.append((f"after {eff.name}", current.residuals_of(0, 0)))
             if not isinstance(payload, tuple):
                 params = _params_dict(eff, current)
             if eff.basis == "integration":
