@@ -1763,8 +1763,13 @@ def _diagnose_once(
     progress: Callable[[float, str], None] = lambda fraction, message: None,
 ) -> Diagnosis:
     """One search for effects (:func:`diagnose` without the outlier flagging)."""
-    if not np.all(obs.bandwidth_time()[~obs.flags] > 0):
-        raise DiagnoseError("diagnose needs radiometer weights: channel width, integration time")
+    width = obs.channel_width[None, None, None, :]
+    tint = obs.integration_time[None, None, :, None]
+    for sl in antenna_chunks(obs.shape):
+        if not np.all((width * (tint * obs.nsamples[sl]))[~obs.flags[sl]] > 0):
+            raise DiagnoseError(
+                "diagnose needs radiometer weights: channel width, integration time"
+            )
     cands = (
         list(candidates)
         if candidates is not None
