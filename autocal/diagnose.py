@@ -325,7 +325,11 @@ def _split(effects: tuple[Effect, ...]) -> list[tuple[Effect, slice]]:
 
 @dataclass
 class _State:
-    """One evaluation of the fit: model columns, channel solutions and chi^2."""
+    """One evaluation of the fit: model columns, channel solutions and chi^2.
+
+    ``tt`` ``(P, T, F)`` Tsky; ``gfac``, ``nfac`` ``(T,)`` the gain and noise factors;
+    the model is ``G a1 + n a2`` with ``a1 = tt gfac`` and ``a2 = nfac gfac``.
+    """
 
     tt: np.ndarray
     gfac: np.ndarray
@@ -336,6 +340,275 @@ class _State:
     good: np.ndarray
     rp: np.ndarray
     chi2: float
+
+    @property
+    def a1(self) -> np.ndarray:
+        """``(P, T, F)`` the gain's column: Tsky times the gain factor."""
+        return self.tt * self.gfac[:, None]
+
+    @property
+    def a2(self) -> np.ndarray:
+        """``(T,)`` the noise's column: the noise factor times the gain factor."""
+        return self.nfac * self.gfac
+
+
+def _contract(w: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """``sum_t w[a, p, t, f] z[p, t, f]`` -> ``(a, P, F)`` (``z`` broadcast to ``(P, T, F)``)."""
+    return np.einsum("aptf,ptf->apf", w, np.broadcast_to(z, w.shape[1:]))
+
+
+class _Problem:
+    """The extended fit of one observation, weights and set of effects (:func:`fit_extended`).
+
+    Holds what every evaluation shares (usable channels, prior, bases) and streams the
+    antennas through :meth:`evaluate` (channel solutions and chi^2) and
+    :meth:`normal_equations` (the projected normal equations of the global parameters,
+    the sums of :func:`projected_normal_equations` contracted template by template, so
+    that a chunk's samples are read a few times and never copied per parameter).
+    """
+
+    def __init__(
+        self,
+        obs: Observation,
+        tpl: SkyTemplates,
+        effects: tuple[Effect, ...],
+        weights: np.ndarray,
+        trxr_prior: np.ndarray | float | None,
+        trxr_prior_sigma: np.ndarray | float,
+        gain_ref: np.ndarray | None,
+        chunk_antennas: int | None,
+    ) -> None:
+        if tpl.total.shape[0] != len(obs.pols) or tpl.total.shape[1:] != (
+            obs.ntime,
+            obs.nfreq,
+        ):
+            raise DiagnoseError("templates do not match the observation's grid")
+        weights = np.asarray(weights)
+        if weights.shape != obs.shape:
+            raise DiagnoseError(f"weights have shape {weights.shape}, the data {obs.shape}")
+        self.obs, self.tpl, self.effects, self.weights = obs, tpl, effects, weights
+        self.chunks = antenna_chunks(obs.shape, chunk_antennas)
+        self.shape3 = shape3 = (obs.nant, len(obs.pols), obs.nfreq)
+        # channels with fewer than 3 usable samples cannot constrain (G, n): leave them out
+        self.chan_ok = np.zeros(shape3, bool)
+        self.used = 0
+        # weights finite and >= 0, data finite: the chunks are used as they are
+        self.clean_weights = self.finite_data = True
+        for sl in self.chunks:
+            w = weights[sl]
+            usable = np.isfinite(w) & (w > 0)
+            self.clean_weights &= bool(np.all(usable | (w == 0)))
+            self.finite_data &= bool(np.all(np.isfinite(obs.data[sl])))
+            nuse = usable.sum(axis=2)
+            self.chan_ok[sl] = nuse >= 3
+            self.used += int(nuse[self.chan_ok[sl]].sum())
+        if not self.chan_ok.any():
+            raise DiagnoseError("no channel has 3 or more unflagged samples to fit")
+        self.blocks = _split(effects)
+        self.nfree = sum(b.stop - b.start for _, b in self.blocks)
+        self.fixed = {e.name: np.asarray(e.fixed, float) for e in effects if e.fixed is not None}
+        self.bases = {
+            (e.basis, e.order): e.time_basis(obs.lsts) for e in effects if e.kind != "tsky"
+        }
+        self.prior = trxr_prior is not None
+        t0 = np.broadcast_to(np.asarray(trxr_prior if self.prior else 0.0, float), shape3)
+        sig0 = np.broadcast_to(np.asarray(trxr_prior_sigma, float), shape3)
+        has_prior = np.isfinite(t0) & np.isfinite(sig0) & (sig0 > 0)
+        self.t0 = np.where(has_prior, t0, 0.0)
+        # prior weights from a reference gain
+        self.wp = np.zeros(shape3)
+        if self.prior:
+            with np.errstate(over="ignore", invalid="ignore", under="ignore"):
+                if gain_ref is None:
+                    gain_ref = self.evaluate(np.zeros(self.nfree)).g
+                gain_ref = np.where(np.abs(gain_ref) > 0, np.abs(gain_ref), np.inf)
+                self.wp = np.where(self.chan_ok & has_prior, 1.0 / (gain_ref * sig0) ** 2, 0.0)
+
+    def values(self, eff: Effect, sl: slice, pv: np.ndarray) -> np.ndarray:
+        """Return an effect's parameter values (its fixed values, or ``pv[sl]``)."""
+        return self.fixed[eff.name] if eff.fixed is not None else pv[sl]
+
+    def chunk_arrays(self, sl: slice) -> tuple[np.ndarray, np.ndarray]:
+        """Return weights and data of antennas ``sl``, ``(a, P, T, F)`` float64.
+
+        Weights are zero where unusable (channels without a solution included), data
+        zero where not finite; both are views of the inputs when nothing needs zeroing.
+        """
+        ok = self.chan_ok[sl]
+        if self.clean_weights:
+            w = np.asarray(self.weights[sl], np.float64)
+            if not ok.all():
+                w = w * ok[:, :, None, :]
+        else:
+            w = _usable_weights(self.weights[sl], ok)
+        y = self.obs.data[sl]
+        if not self.finite_data:
+            with np.errstate(invalid="ignore"):
+                y = np.where(w > 0, y, 0.0)
+        return w, y
+
+    def columns(self, pv: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Return Tsky ``(P, T, F)`` and the gain and noise factors ``(T,)`` at ``pv``."""
+        tsky = self.tpl.total.copy()
+        gfac = np.ones(self.obs.ntime)
+        nfac = np.ones(self.obs.ntime)
+        for eff, sl in self.blocks:
+            v = self.values(eff, sl, pv)
+            if eff.kind == "tsky":
+                tsky = tsky + eff.delta(v, self.tpl)
+            elif eff.kind == "gain":
+                gfac = gfac + v @ self.bases[eff.basis, eff.order]
+            else:
+                nfac = nfac + v @ self.bases[eff.basis, eff.order]
+        return tsky, gfac, nfac
+
+    @staticmethod
+    def residual(
+        y: np.ndarray, g: np.ndarray, nn: np.ndarray, a1: np.ndarray, a2: np.ndarray
+    ) -> np.ndarray:
+        """Return ``y - G a1 - n a2`` of a chunk (``a1`` ``(P, T, F)``, ``a2`` ``(T,)``)."""
+        r = g[:, :, None, :] * a1
+        r += nn[:, :, None, :] * a2[:, None]
+        np.subtract(y, r, out=r)
+        return r
+
+    def evaluate(self, pv: np.ndarray) -> _State:
+        """Solve every channel's ``(G, n)`` at global parameters ``pv``; chi^2."""
+        tt, gfac, nfac = self.columns(pv)
+        a1 = tt * gfac[:, None]
+        a2 = nfac * gfac
+        a1sq, a12, a2sq = a1 * a1, a1 * a2[:, None], (a2 * a2)[:, None]
+        shape3 = self.shape3
+        g, nn = np.zeros(shape3), np.zeros(shape3)
+        inv, good = np.zeros((3, *shape3)), np.zeros(shape3, bool)
+        chi2 = 0.0
+        for sl in self.chunks:
+            w, y = self.chunk_arrays(sl)
+            wp, t0 = self.wp[sl], self.t0[sl]
+            wy = w * y
+            n11 = _contract(w, a1sq) + wp * t0**2
+            n12 = _contract(w, a12) - wp * t0
+            n22 = _contract(w, a2sq) + wp
+            b1 = _contract(wy, a1)
+            b2 = _contract(wy, a2[:, None])
+            det = n11 * n22 - n12**2
+            ok = self.chan_ok[sl] & np.isfinite(det) & (det > 1e-12 * np.abs(n11 * n22))
+            det = np.where(ok, det, 1.0)
+            iv = np.where(ok, np.stack([n22 / det, -n12 / det, n11 / det]), 0.0)
+            gc = iv[0] * b1 + iv[1] * b2
+            nc = iv[1] * b1 + iv[2] * b2
+            g[sl], nn[sl], inv[:, sl], good[sl] = gc, nc, iv, ok
+            r = self.residual(y, gc, nc, a1, a2)
+            chi2 += float(np.einsum("aptf,aptf,aptf->", w, r, r))
+        rp = np.where(good, -(nn - self.t0 * g), 0.0)
+        chi2 += float((self.wp * rp**2).sum())
+        return _State(tt, gfac, nfac, g, nn, inv, good, rp, chi2)
+
+    def _terms(self, pv: np.ndarray, st: _State) -> list[tuple[slice, list, np.ndarray, str]]:
+        """Return each free block's factorised derivative ``sum_m alpha_m beta_m Y``.
+
+        ``(slice, [(alpha, beta)], Y, form)``: ``alpha`` ``"g"`` or ``"n"`` (the channel's
+        fitted gain or noise), ``beta`` broadcastable to ``(P, T, F)``, ``Y`` ``(P, T, F,
+        k)`` (``form`` ``"tsky"``), a time basis ``(T, k)`` (``"time"``) or the
+        per-integration basis (``"integration"``, parameter ``k`` = integration ``k + 1``).
+        """
+        out = []
+        gcol, ncol = st.gfac[:, None], st.nfac[:, None]
+        for eff, sl in self.blocks:
+            if sl.stop == sl.start:
+                continue
+            if eff.kind == "tsky":
+                terms = [("g", gcol)]
+                ymat, form = eff.jacobian(pv[sl], self.tpl), "tsky"
+            else:
+                terms = [("g", st.tt), ("n", ncol)] if eff.kind == "gain" else [("n", gcol)]
+                ymat = self.bases[eff.basis, eff.order].T
+                form = "integration" if eff.basis == "integration" else "time"
+            out.append((sl, terms, ymat, form))
+        return out
+
+    def normal_equations(
+        self, pv: np.ndarray, st: _State, groups: list[int] | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return ``h``, ``grad``, ``raw`` (:func:`projected_normal_equations`) at ``st``.
+
+        ``groups``: one per free block; the ``J^T W J`` block of two blocks of different
+        nonzero groups is not computed (left 0; see :func:`screen_candidates`).
+        """
+        specs = self._terms(pv, st)
+        nfree = self.nfree
+        a1, a2 = st.a1, st.a2
+        a2col = a2[:, None]
+        products = {
+            tuple(sorted(a + b))
+            for _, t1, _, _ in specs
+            for _, t2, _, _ in specs
+            for a, _ in t1
+            for b, _ in t2
+        }
+        wsum = {key: np.zeros(a1.shape) for key in products}  # sum_a w alpha alpha'
+        proj = np.zeros((nfree, nfree))
+        grad = np.zeros(nfree)
+        for sl in self.chunks:
+            w, y = self.chunk_arrays(sl)
+            alpha = {"g": st.g[sl], "n": st.nn[sl]}
+            wr = w * self.residual(y, alpha["g"], alpha["n"], a1, a2)
+            rp, wp, t0 = st.rp[sl], self.wp[sl], self.t0[sl]
+            # A^T W r per channel (data and prior rows): ~0 at the channel solution
+            q1 = _contract(wr, a1) - wp * t0 * rp
+            q2 = _contract(wr, a2col) + wp * rp
+            for key in wsum:
+                wsum[key] += np.einsum("aptf,apf->ptf", w, alpha[key[0]] * alpha[key[1]])
+            c1 = np.zeros((*alpha["g"].shape, nfree))
+            c2 = np.zeros_like(c1)
+            for bsl, terms, ymat, form in specs:
+                for name, beta in terms:
+                    al = alpha[name]
+                    if form == "integration":
+                        # one parameter per integration: the sums over time are the samples
+                        for col, dst in ((a1 * beta, c1), (a2col * beta, c2)):
+                            dst[..., bsl] += al[..., None] * np.moveaxis(
+                                (w * col)[:, :, 1:, :], 2, -1
+                            )
+                        grad[bsl] += np.einsum("apf,aptf->t", al, wr * beta)[1:]
+                        continue
+                    for k in range(ymat.shape[-1]):
+                        z = beta * (ymat[..., k] if form == "tsky" else ymat[:, k, None])
+                        i = bsl.start + k
+                        c1[..., i] += al * _contract(w, a1 * z)
+                        c2[..., i] += al * _contract(w, a2col * z)
+                        grad[i] += float(np.sum(al * _contract(wr, z)))
+            inv = st.inv[:, sl]
+            k1 = inv[0][..., None] * c1 + inv[1][..., None] * c2
+            k2 = inv[1][..., None] * c1 + inv[2][..., None] * c2
+            c1, c2, k1, k2 = (x.reshape(-1, nfree) for x in (c1, c2, k1, k2))
+            proj += c1.T @ k1 + c2.T @ k2
+            grad -= k1.T @ q1.reshape(-1) + k2.T @ q2.reshape(-1)
+        # J^T W J from the antenna sums: sum_{p,t,f} (sum_a w alpha alpha') beta beta' Y Y'
+        jwj = np.zeros((nfree, nfree))
+        grp = [0] * len(specs) if groups is None else groups
+        for i, (sl1, t1, y1, f1) in enumerate(specs):
+            for j in range(i, len(specs)):
+                sl2, t2, y2, f2 = specs[j]
+                if grp[i] and grp[j] and grp[i] != grp[j]:
+                    continue
+                v = sum(wsum[tuple(sorted(n1 + n2))] * b1 * b2 for n1, b1 in t1 for n2, b2 in t2)
+                block = _pair_sum(np.broadcast_to(v, a1.shape), y1, f1, y2, f2)
+                jwj[sl1, sl2] = block
+                jwj[sl2, sl1] = block.T
+        h = jwj - proj
+        return 0.5 * (h + h.T), grad, np.diag(jwj).copy()
+
+
+def _pair_sum(v: np.ndarray, y1: np.ndarray, f1: str, y2: np.ndarray, f2: str) -> np.ndarray:
+    """``sum_{p,t,f} v Y1[..., k] Y2[..., l]`` for Tsky ``(P, T, F, k)`` or time ``(T, k)`` Y."""
+    if f1 != "tsky" and f2 != "tsky":
+        return (y1.T * v.sum(axis=(0, 2))) @ y2
+    if f1 == "tsky" and f2 == "tsky":
+        return np.einsum("ptf,ptfk,ptfl->kl", v, y1, y2)
+    if f1 == "tsky":
+        return np.einsum("ptf,ptfk->tk", v, y1).T @ y2
+    return y1.T @ np.einsum("ptf,ptfl->tl", v, y2)
 
 
 @_blas_single_thread
@@ -392,130 +665,17 @@ def fit_extended(
         The fit.
     """
     effects = tuple(e for e in effects if e.kind != "bandpass")
-    if tpl.total.shape[0] != len(obs.pols) or tpl.total.shape[1:] != (obs.ntime, obs.nfreq):
-        raise DiagnoseError("templates do not match the observation's grid")
-    weights = np.asarray(weights)
-    if weights.shape != obs.shape:
-        raise DiagnoseError(f"weights have shape {weights.shape}, the data {obs.shape}")
-    chunks = antenna_chunks(obs.shape, chunk_antennas)
-    shape3 = (obs.nant, len(obs.pols), obs.nfreq)
-    # channels with fewer than 3 usable samples cannot constrain (G, n): leave them out
-    chan_ok = np.zeros(shape3, bool)
-    used = 0
-    for sl in chunks:
-        nuse = (_usable_weights(weights[sl]) > 0).sum(axis=2)
-        chan_ok[sl] = nuse >= 3
-        used += int(nuse[chan_ok[sl]].sum())
-    if not chan_ok.any():
-        raise DiagnoseError("no channel has 3 or more unflagged samples to fit")
-
-    def chunk_arrays(sl: slice) -> tuple[np.ndarray, np.ndarray]:
-        """Weights and data of antennas ``sl``, ``(a, P, F, T)`` (data zero where unused)."""
-        w = np.ascontiguousarray(np.swapaxes(_usable_weights(weights[sl], chan_ok[sl]), 2, 3))
-        with np.errstate(invalid="ignore"):
-            y = np.where(w > 0, np.swapaxes(obs.data[sl], 2, 3), 0.0)
-        return w, y
-
-    blocks = _split(effects)
-    nfree = sum(b.stop - b.start for _, b in blocks)
+    prob = _Problem(
+        obs, tpl, effects, weights, trxr_prior, trxr_prior_sigma, gain_ref, chunk_antennas
+    )
+    blocks, nfree = prob.blocks, prob.nfree
     p = np.zeros(nfree)
     for eff, sl in blocks:
         init = None if start is None else start.get(eff.name)
         if init is not None and sl.stop > sl.start and np.size(init) == sl.stop - sl.start:
             p[sl] = np.asarray(init, float)
-    fixed = {e.name: np.asarray(e.fixed, float) for e in effects if e.fixed is not None}
-    bases = {(e.basis, e.order): e.time_basis(obs.lsts) for e in effects if e.kind != "tsky"}
-    prior = trxr_prior is not None
-    t0 = np.broadcast_to(np.asarray(trxr_prior if prior else 0.0, float), shape3)
-    sig0 = np.broadcast_to(np.asarray(trxr_prior_sigma, float), shape3)
-    has_prior = np.isfinite(t0) & np.isfinite(sig0) & (sig0 > 0)
-    t0 = np.where(has_prior, t0, 0.0)
-
-    def values(eff: Effect, sl: slice, pv: np.ndarray) -> np.ndarray:
-        return fixed[eff.name] if eff.fixed is not None else pv[sl]
-
-    def columns(pv: np.ndarray) -> tuple[np.ndarray, ...]:
-        tsky = tpl.total.copy()
-        gfac = np.ones(obs.ntime)
-        nfac = np.ones(obs.ntime)
-        for eff, sl in blocks:
-            v = values(eff, sl, pv)
-            if eff.kind == "tsky":
-                tsky = tsky + eff.delta(v, tpl)
-            elif eff.kind == "gain":
-                gfac = gfac + v @ bases[eff.basis, eff.order]
-            else:
-                nfac = nfac + v @ bases[eff.basis, eff.order]
-        tt = np.swapaxes(tsky, 1, 2)[None]  # (1, P, F, T)
-        return tt, gfac, nfac
-
-    def solve_channels(
-        sl: slice, w: np.ndarray, y: np.ndarray, a1: np.ndarray, a2: np.ndarray, wp: np.ndarray
-    ) -> tuple[np.ndarray, ...]:
-        n11 = (w * a1 * a1).sum(-1) + wp[sl] * t0[sl] ** 2
-        n12 = (w * a1 * a2).sum(-1) - wp[sl] * t0[sl]
-        n22 = (w * a2 * a2).sum(-1) + wp[sl]
-        b1 = (w * a1 * y).sum(-1)
-        b2 = (w * a2 * y).sum(-1)
-        det = n11 * n22 - n12**2
-        good = chan_ok[sl] & np.isfinite(det) & (det > 1e-12 * np.abs(n11 * n22))
-        det = np.where(good, det, 1.0)
-        inv = np.where(good, np.stack([n22 / det, -n12 / det, n11 / det]), 0.0)
-        g = inv[0] * b1 + inv[1] * b2
-        nn = inv[1] * b1 + inv[2] * b2
-        return g, nn, inv, good
-
-    def residual(w: np.ndarray, y: np.ndarray, g: np.ndarray, nn: np.ndarray, a1, a2):
-        return np.where(w > 0, y - (g[..., None] * a1 + nn[..., None] * a2), 0.0)
-
-    def evaluate(pv: np.ndarray, wp: np.ndarray) -> _State:
-        tt, gfac, nfac = columns(pv)
-        g, nn = np.zeros(shape3), np.zeros(shape3)
-        inv, good = np.zeros((3, *shape3)), np.zeros(shape3, bool)
-        chi2 = 0.0
-        for sl in chunks:
-            w, y = chunk_arrays(sl)
-            a1 = np.broadcast_to(tt * gfac, w.shape)
-            a2 = np.broadcast_to(nfac * gfac, w.shape)
-            g[sl], nn[sl], inv[:, sl], good[sl] = solve_channels(sl, w, y, a1, a2, wp)
-            r = residual(w, y, g[sl], nn[sl], a1, a2)
-            chi2 += float((w * r**2).sum())
-        rp = np.where(good, -(nn - t0 * g), 0.0)
-        chi2 += float((wp * rp**2).sum())
-        return _State(tt, gfac, nfac, g, nn, inv, good, rp, chi2)
-
-    def normal_equations(pv: np.ndarray, st: _State, wp: np.ndarray) -> tuple[np.ndarray, ...]:
-        ys = _block_bases(blocks, pv, tpl, bases)
-        h, grad, raw = np.zeros((nfree, nfree)), np.zeros(nfree), np.zeros(nfree)
-        for sl in chunks:
-            w, y = chunk_arrays(sl)
-            a1 = np.broadcast_to(st.tt * st.gfac, w.shape)
-            a2 = np.broadcast_to(st.nfac * st.gfac, w.shape)
-            g, nn, rp = st.g[sl], st.nn[sl], st.rp[sl]
-            r = residual(w, y, g, nn, a1, a2)
-            # A^T W r per channel (data and prior rows): ~0 at the channel solution
-            q1 = (w * a1 * r).sum(-1) - wp[sl] * t0[sl] * rp
-            q2 = (w * a2 * r).sum(-1) + wp[sl] * rp
-            factors = [
-                (bsl, _factor(kind, g, nn, st.tt, st.gfac, st.nfac), ymat) for bsl, kind, ymat in ys
-            ]
-            hc, gc, rc = projected_normal_equations(
-                factors, w, w * a1, w * a2, st.inv[:, sl], r, q1, q2, nfree
-            )
-            h += hc
-            grad += gc
-            raw += rc
-        return h, grad, raw
-
-    # prior weights from a reference gain
-    wp = np.zeros(shape3)
     with np.errstate(over="ignore", invalid="ignore", under="ignore"):
-        if prior:
-            if gain_ref is None:
-                gain_ref = evaluate(np.zeros(nfree), wp).g
-            gain_ref = np.where(np.abs(gain_ref) > 0, np.abs(gain_ref), np.inf)
-            wp = np.where(chan_ok & has_prior, 1.0 / (gain_ref * sig0) ** 2, 0.0)
-        st = evaluate(p, wp)
+        st = prob.evaluate(p)
         if not np.isfinite(st.chi2):
             raise DiagnoseError(
                 "the baseline fit is not finite: check the data for unflagged zeros, "
@@ -527,16 +687,11 @@ def fit_extended(
         for it in range(1, max_iter + 1):
             if nfree == 0:
                 break
-            h, grad, raw = normal_equations(p, st, wp)
+            h, grad, raw = prob.normal_equations(p, st)
             if not (np.all(np.isfinite(h)) and np.all(np.isfinite(grad))):
                 raise DiagnoseError("non-finite normal equations for the global parameters")
             if it == 1:
-                for eff, sl in blocks:
-                    if sl.stop > sl.start:
-                        frac = float(
-                            np.min(np.diag(h)[sl] / np.where(raw[sl] > 0, raw[sl], np.inf))
-                        )
-                        ident[eff.name] = frac if frac >= IDENTIFIABLE_RESOLUTION else 0.0
+                ident = _identifiable(blocks, h, raw)
                 if any(ident.get(e.name, 1.0) < MIN_IDENTIFIABLE for e, _ in blocks):
                     cov = np.full((nfree, nfree), np.inf)
                     break
@@ -546,7 +701,7 @@ def fit_extended(
             # damped Gauss-Newton: halve the step until chi^2 does not increase
             lam, trial = 1.0, None
             for _ in range(12):
-                cand = evaluate(p + lam * step, wp)
+                cand = prob.evaluate(p + lam * step)
                 if np.isfinite(cand.chi2) and cand.chi2 <= st.chi2 * (1 + 1e-12) + 1e-9:
                     trial = cand
                     break
@@ -560,24 +715,24 @@ def fit_extended(
     chi2 = st.chi2
     g, nn = np.where(st.good, st.g, np.nan), np.where(st.good, st.nn, np.nan)
     nchan = int(st.good.sum())
-    ndata = used + (nchan if prior else 0)
+    ndata = prob.used + (nchan if prob.prior else 0)
     params: dict[str, np.ndarray] = {}
     sigmas: dict[str, np.ndarray] = {}
     sig_all = np.sqrt(np.abs(np.diag(cov))) if nfree else np.zeros(0)
     for eff, sl in blocks:
-        params[eff.name] = values(eff, sl, p).copy()
+        params[eff.name] = prob.values(eff, sl, p).copy()
         sigmas[eff.name] = (
             np.zeros(len(eff.params)) if eff.fixed is not None else sig_all[sl].copy()
         )
     source = _ModelSource(
         obs=obs,
-        weights=weights,
-        chan_ok=chan_ok,
-        a1=np.swapaxes((st.tt * st.gfac)[0], 1, 2),
-        a2=st.nfac * st.gfac,
+        weights=prob.weights,
+        chan_ok=prob.chan_ok,
+        a1=st.a1,
+        a2=st.a2,
         g=st.g,
         nn=st.nn,
-        chunks=chunks,
+        chunks=prob.chunks,
     )
     return ExtendedFit(
         effects=effects,
@@ -593,6 +748,107 @@ def fit_extended(
         iterations=it,
         source=source,
     )
+
+
+def _identifiable(
+    blocks: list[tuple[Effect, slice]], h: np.ndarray, raw: np.ndarray
+) -> dict[str, float]:
+    """Return each free block's Fisher fraction left after the ``(G, n)`` projection."""
+    ident: dict[str, float] = {}
+    for eff, sl in blocks:
+        if sl.stop > sl.start:
+            frac = float(np.min(np.diag(h)[sl] / np.where(raw[sl] > 0, raw[sl], np.inf)))
+            ident[eff.name] = frac if frac >= IDENTIFIABLE_RESOLUTION else 0.0
+    return ident
+
+
+@dataclass(frozen=True)
+class Screening:
+    """A candidate's score from the current model (:func:`screen_candidates`).
+
+    Attributes
+    ----------
+    delta_chi2
+        ``Delta chi^2`` one Gauss-Newton step from the current model predicts for the
+        model with the candidate (its parameters from zero, the accepted effects' from
+        their fitted values): the score (Lagrange-multiplier) statistic.
+    identifiable
+        Fraction of the candidate's Fisher information left after the ``(G, n)``
+        projection (as :attr:`ExtendedFit.identifiable`, at the current model).
+    """
+
+    delta_chi2: float
+    identifiable: float
+
+
+@_blas_single_thread
+def screen_candidates(
+    obs: Observation,
+    tpl: SkyTemplates,
+    active: list[Effect],
+    current: ExtendedFit,
+    candidates: list[Effect],
+    *,
+    weights: np.ndarray,
+    trxr_prior: np.ndarray | float | None = None,
+    trxr_prior_sigma: np.ndarray | float = 1.0,
+) -> list[Screening]:
+    """Score every candidate against the current model in one pass over the data.
+
+    The projected normal equations of the accepted effects and of all candidates together
+    are summed in one stream of the antennas at the current model (the accepted effects
+    at their fitted values, the candidates at zero); for each candidate the accepted
+    effects' and its own rows give the ``Delta chi^2`` of one Gauss-Newton step,
+    ``grad^T H^-1 grad``: the score statistic, exact for an effect linear in its
+    parameters when ``(G, n)`` are held, and the first step of the candidate's own fit.
+    The ``J^T W J`` blocks between two candidates are not computed (never used).
+
+    Parameters
+    ----------
+    obs, tpl, weights, trxr_prior, trxr_prior_sigma
+        As for :func:`fit_extended` (the weights of ``current``).
+    active
+        The accepted effects.
+    current
+        The fit of ``active`` with these weights.
+    candidates
+        Time-domain candidates (not among ``active``).
+
+    Returns
+    -------
+    list[Screening]
+        One per candidate, in order.
+    """
+    effects = tuple(e for e in [*active, *candidates] if e.kind != "bandpass")
+    prob = _Problem(obs, tpl, effects, weights, trxr_prior, trxr_prior_sigma, None, None)
+    nact = len(active)
+    groups = [0 if i < nact else i for i, (_, sl) in enumerate(prob.blocks) if sl.stop > sl.start]
+    p = np.zeros(prob.nfree)
+    for eff, sl in prob.blocks[:nact]:
+        if sl.stop > sl.start:
+            p[sl] = current.params[eff.name]
+    with np.errstate(over="ignore", invalid="ignore", under="ignore"):
+        st = prob.evaluate(p)
+        h, grad, raw = prob.normal_equations(p, st, groups=groups)
+    act_idx = np.concatenate(
+        [np.arange(sl.start, sl.stop) for _, sl in prob.blocks[:nact]] + [np.zeros(0, int)]
+    ).astype(int)
+    out = []
+    for eff, sl in prob.blocks[nact:]:
+        idx = np.concatenate([act_idx, np.arange(sl.start, sl.stop)])
+        frac = _identifiable([(eff, sl)], h, raw).get(eff.name, 0.0)
+        if (
+            sl.stop == sl.start
+            or frac < MIN_IDENTIFIABLE
+            or not np.all(np.isfinite(h[idx][:, idx]))
+        ):
+            out.append(Screening(0.0, frac))
+            continue
+        hs = h[np.ix_(idx, idx)]
+        gs = grad[idx]
+        dchi = float(gs @ _scaled_pinv(hs, raw[idx]) @ gs)
+        out.append(Screening(max(dchi, 0.0), frac))
+    return out
 
 
 def _scaled_pinv(h: np.ndarray, raw: np.ndarray) -> np.ndarray:
@@ -622,49 +878,6 @@ def _scaled_pinv(h: np.ndarray, raw: np.ndarray) -> np.ndarray:
 # per effect over time) and K x K products are needed: never the (samples x K) Jacobian,
 # which took most of a diagnosis's time and ~8 bytes x samples x K of memory. Every term is
 # a sum over antennas, so the fit adds them up a chunk of antennas at a time.
-
-
-def _block_bases(
-    blocks: list[tuple[Effect, slice]],
-    p: np.ndarray,
-    tpl: SkyTemplates,
-    bases: dict[tuple[str, int], np.ndarray],
-) -> list[tuple[slice, str, np.ndarray]]:
-    """Return ``(slice, kind, Y)`` for each block of free parameters (see above).
-
-    ``Y`` is ``(P, F, T, k)`` for Tsky effects and ``(1, 1, T, k)`` for gain and noise
-    drifts; it is shared by all antennas.
-    """
-    out = []
-    for eff, sl in blocks:
-        if sl.stop == sl.start:
-            continue
-        if eff.kind == "tsky":
-            ymat = np.swapaxes(eff.jacobian(p[sl], tpl), 1, 2)
-        else:
-            ymat = bases[eff.basis, eff.order].T[None, None]
-        out.append((sl, eff.kind, ymat))
-    return out
-
-
-def _factor(
-    kind: str,
-    g: np.ndarray,
-    nn: np.ndarray,
-    tt: np.ndarray,
-    gfac: np.ndarray,
-    nfac: np.ndarray,
-) -> np.ndarray:
-    """Return the antenna-dependent factor ``X`` of a block (broadcasts to ``(a, P, F, T)``).
-
-    ``g``, ``nn``: ``(a, P, F)``; ``tt``: Tsky ``(1, P, F, T)``; ``gfac``, ``nfac``: the
-    drift factors ``(T,)``.
-    """
-    if kind == "tsky":
-        return g[..., None] * gfac
-    if kind == "gain":
-        return g[..., None] * tt + nn[..., None] * nfac
-    return nn[..., None] * gfac
 
 
 def _sum_time(v: np.ndarray, ymat: np.ndarray) -> np.ndarray:
@@ -700,13 +913,15 @@ def projected_normal_equations(
     q1: np.ndarray,
     q2: np.ndarray,
     nfree: int,
+    groups: list[int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Gauss-Newton normal equations of the global parameters, ``(G, n)`` projected out.
 
     Parameters
     ----------
     factors
-        ``(slice, X, Y)`` of the free parameters (:func:`_factor`, :func:`_block_bases`).
+        ``(slice, X, Y)`` of the free parameters: ``X`` broadcastable to ``w``, ``Y``
+        ``(P, F, T, k)`` or, for a time basis, ``(1, 1, T, k)``.
     w, wa1, wa2
         ``(A, P, F, T)`` weights and the weighted ``(G, n)`` columns ``w a1``, ``w a2``.
     inv
@@ -718,6 +933,9 @@ def projected_normal_equations(
         ``(A, P, F)`` ``A^T W r`` of each channel (data and prior rows).
     nfree
         Number of free global parameters.
+    groups
+        One per factor: the ``J^T W J`` block of two factors whose groups differ and are
+        both nonzero is left 0 (its projection part is still subtracted); default all 0.
 
     Returns
     -------
@@ -730,12 +948,15 @@ def projected_normal_equations(
     grad = np.zeros(nfree)
     c1 = np.zeros((*w.shape[:3], nfree))
     c2 = np.zeros_like(c1)
+    grp = [0] * len(factors) if groups is None else groups
     for i, (sl, x, ymat) in enumerate(factors):
         wx = w * x
         c1[..., sl] = _sum_time(wa1 * x, ymat)
         c2[..., sl] = _sum_time(wa2 * x, ymat)
         grad[sl] = _sum_all((wx * r).sum(axis=0), ymat)
-        for sl2, x2, y2 in factors[i:]:
+        for j, (sl2, x2, y2) in enumerate(factors[i:], i):
+            if grp[i] and grp[j] and grp[i] != grp[j]:
+                continue
             block = _sum_pair(np.broadcast_to(wx * x2, w.shape).sum(axis=0), ymat, y2)
             jwj[sl, sl2] = block
             jwj[sl2, sl] = block.T
@@ -1708,7 +1929,7 @@ def _retest_accepted(
     active: list[Effect],
     current: ExtendedFit,
     w: np.ndarray,
-    prior_kw: dict[str, Any],
+    fit_kw: dict[str, Any],
     bic_threshold: float,
     diag: Diagnosis,
     when: str,
@@ -1730,7 +1951,7 @@ def _retest_accepted(
                 continue
             rest = [a for a in active if a is not eff]
             try:
-                without = fit_extended(obs, tpl, rest, weights=w, **prior_kw)
+                without = fit_extended(obs, tpl, rest, weights=w, **fit_kw)
             except (DiagnoseError, np.linalg.LinAlgError):
                 continue
             stat = (without.chi2 - current.chi2) / chat_f - eff.nfree * math.log(current.ndata)
@@ -1743,10 +1964,106 @@ def _retest_accepted(
                 for st in diag.steps:
                     if st["name"] == eff.name and "dropped_in_backward_pass" not in st:
                         st["dropped_in_backward_pass"] = {"statistic": float(stat), "at": when}
-                current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
+                current = fit_extended(obs, tpl, active, weights=w, **fit_kw)
                 changed = True
                 break
     return active, current
+
+
+#: A step of a large search fits in full at least this many time-domain candidates (those
+#: with the best scores, :class:`_StepScreen`) ...
+SCREEN_FITS = 2
+#: ... and then every one whose score-based Delta BIC comes within this much of the best
+#: fitted candidate's Delta BIC, or within :data:`SCREEN_FRACTION` of it if that is more.
+SCREEN_MARGIN = BIC_THRESHOLD
+#: See :data:`SCREEN_MARGIN`. The score misses the full fit's Delta chi^2 by < 1 % for the
+#: candidates near the data's effect and overestimates it by up to 25 % for strong ones far
+#: from it (``beam_width`` against a gain drift; the test of :func:`screen_candidates`).
+SCREEN_FRACTION = 0.25
+
+
+class _StepScreen:
+    """Which candidates one step of a large search fits in full.
+
+    All time-domain candidates are scored at once from the current model
+    (:func:`screen_candidates`); they are tried best score first, each fitted in full,
+    until :data:`SCREEN_FITS` have passed the checks and the next one's score-based Delta
+    BIC is out of reach of the best fitted one (:data:`SCREEN_MARGIN`,
+    :data:`SCREEN_FRACTION`). Candidates the projection leaves unidentifiable are not
+    fitted (a full fit would be refused for the same reason). The bandpass candidate
+    (``cable_reflection``) is always tried.
+    """
+
+    def __init__(
+        self,
+        obs: Observation,
+        tpl: SkyTemplates,
+        active: list[Effect],
+        current: ExtendedFit,
+        cands: list[Effect],
+        weights: np.ndarray,
+        prior_kw: dict[str, Any],
+        diag: Diagnosis,
+    ) -> None:
+        names = {a.name for a in active}
+        jitter = any(a.kind == "gain" and a.basis == "integration" for a in active)
+        scored = [
+            c
+            for c in cands
+            if c.kind != "bandpass" and c.name not in names and not (c.kind == "gain" and jitter)
+        ]
+        self.diag, self.lnn = diag, math.log(max(current.ndata, 2))
+        self.scores: dict[int, Screening] = {}
+        try:
+            scores = screen_candidates(
+                obs, tpl, active, current, scored, weights=weights, **prior_kw
+            )
+        except (DiagnoseError, np.linalg.LinAlgError) as exc:
+            logger.warning("candidate screening failed (%s): every candidate is fitted", exc)
+            scores = []
+        self.scores = {id(c): s for c, s in zip(scored, scores, strict=False)}
+        self.approx = {id(c): self._approx(c) for c in scored if id(c) in self.scores}
+        ranked = sorted(
+            (c for c in scored if id(c) in self.scores),
+            key=lambda c: (
+                -self.approx[id(c)]
+                if self.scores[id(c)].identifiable >= MIN_IDENTIFIABLE
+                else math.inf
+            ),
+        )
+        rest = [c for c in cands if c.kind != "bandpass" and id(c) not in self.scores]
+        self.order = [c for c in cands if c.kind == "bandpass"] + ranked + rest
+        self.skipped: dict[str, float] = {}
+        self.fitted: list[str] = []
+
+    def _approx(self, eff: Effect, chat: float = 1.0) -> float:
+        """Return the candidate's Delta BIC from its score (overdispersion ``chat``)."""
+        return self.scores[id(eff)].delta_chi2 / chat - eff.nfree * self.lnn
+
+    def skip(self, eff: Effect, results: list[tuple]) -> bool:
+        """Return whether to skip the candidate given the step's results so far."""
+        score = self.scores.get(id(eff))
+        if score is None:
+            return False
+        label = f"{eff.name}/{eff.basis}{eff.order}"
+        if score.identifiable < MIN_IDENTIFIABLE:
+            self.diag.identifiability.setdefault(eff.name, score.identifiable)
+            return True
+        fitted = [r for r in results if r[3].kind != "bandpass"]
+        if len(fitted) >= SCREEN_FITS:
+            chat = max(1.0, min(r[5] for r in fitted))
+            best = max(r[1] / chat - r[2] * self.lnn for r in fitted)
+            approx = self._approx(eff, chat)
+            if approx < best - max(SCREEN_MARGIN, SCREEN_FRACTION * abs(best)):
+                self.skipped[label] = approx
+                self.diag.identifiability.setdefault(eff.name, score.identifiable)
+                return True
+        self.fitted.append(label)
+        return False
+
+    def report(self) -> dict[str, Any]:
+        """Return what the step fitted and the score-based Delta BIC of what it did not."""
+        return {"fitted": list(self.fitted), "screened_out": dict(self.skipped)}
 
 
 def _diagnose_once(
@@ -1819,9 +2136,17 @@ def _diagnose_once(
     )
     diag.initial_gap = gap_metrics(current, obs, tpl, bp_null)
     diag.residual_snapshots.append(("initial model", current.residuals_of(0, 0)))
+    # a large observation: fits start from the current model's parameters, and each step
+    # fits in full only the candidates whose score says they could win (_StepScreen)
+    large = is_large(obs.shape)
+    warm: dict[str, np.ndarray] = {}
+    fit_kw = {**prior_kw, "start": warm} if large else prior_kw
     for step in range(max_steps):
         results = []
-        for icand, eff in enumerate(cands):
+        warm.clear()
+        warm.update(current.params)
+        plan = _StepScreen(obs, tpl, active, current, cands, w, prior_kw, diag) if large else None
+        for icand, eff in enumerate(cands if plan is None else plan.order):
             progress(
                 (step + icand / len(cands)) / max_steps,
                 f"step {step + 1}: trying {eff.name} ({eff.basis}, order {eff.order})",
@@ -1829,6 +2154,8 @@ def _diagnose_once(
             if any(a.name == eff.name for a in active) or (
                 eff.kind == "bandpass" and cable is not None
             ):
+                continue
+            if plan is not None and plan.skip(eff, results):
                 continue
             if eff.kind == "bandpass":
                 null, rip = fit_cable_reflection(
@@ -1851,7 +2178,7 @@ def _diagnose_once(
             ):
                 continue  # nested: a per-integration gain already absorbs any gain drift
             try:
-                trial = fit_extended(obs, tpl, [*active, eff], weights=w, **prior_kw)
+                trial = fit_extended(obs, tpl, [*active, eff], weights=w, **fit_kw)
             except (DiagnoseError, np.linalg.LinAlgError) as exc:
                 label = f"{eff.name}/{eff.basis}{eff.order}"
                 logger.warning("candidate %s failed: %s", label, exc)
@@ -1904,12 +2231,14 @@ def _diagnose_once(
                 # no free parameter, so that it wins over sky_offset when it fits as well
                 m = 1.0 if trial.params[eff.name][0] > 0 else -1.0
                 fixed_eff = Effect(**{**eff.__dict__, "fixed": (m,)})
-                stat_fit = fit_extended(obs, tpl, [*active, fixed_eff], weights=w, **prior_kw)
+                stat_fit = fit_extended(obs, tpl, [*active, fixed_eff], weights=w, **fit_kw)
                 k = 0
                 stat_fit = (stat_fit, trial, fixed_eff)  # type: ignore[assignment]
             fit_for_chi = stat_fit[0] if isinstance(stat_fit, tuple) else stat_fit
             dchi = current.chi2 - fit_for_chi.chi2
             results.append((math.nan, dchi, k, eff, stat_fit, fit_for_chi.reduced_chi2))
+        if plan is not None:
+            diag.config.setdefault("screening", []).append({"step": step + 1, **plan.report()})
         if not results:
             break
         # one overdispersion for every time-domain candidate of a step (as in QAIC, from
@@ -1965,7 +2294,8 @@ def _diagnose_once(
             else:
                 params = _params_dict(eff, payload)
                 active.append(eff)
-            new = fit_extended(obs, tpl, active, weights=w, **prior_kw)
+                warm.update(payload.params)
+            new = fit_extended(obs, tpl, active, weights=w, **fit_kw)
             impact = product_impact(current, new, sigma_g, sigma_t)
             gap_after = gap_metrics(new, obs, tpl, bp_null)
             step_extra["product_impact"] = impact
@@ -1975,7 +2305,8 @@ def _diagnose_once(
             step_extra["negligible"] = is_negligible(impact)
             # re-weight with the improved model for the next step
             w = radiometer_weights(obs, new)
-            current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
+            warm.update(new.params)
+            current = fit_extended(obs, tpl, active, weights=w, **fit_kw)
             # the effects accepted before are re-tested against the refit: one that the
             # new effect explains away is dropped now, before the search goes on
             active, current = _retest_accepted(
@@ -1984,7 +2315,7 @@ def _diagnose_once(
                 active,
                 current,
                 w,
-                prior_kw,
+                fit_kw,
                 bic_threshold,
                 diag,
                 f"step {step + 1}",
@@ -2025,7 +2356,7 @@ def _diagnose_once(
             diag.effects.append(eff.name)
     # final backward pass (also run after every accepted step, below)
     active, current = _retest_accepted(
-        obs, tpl, active, current, w, prior_kw, bic_threshold, diag, "the final model"
+        obs, tpl, active, current, w, fit_kw, bic_threshold, diag, "the final model"
     )
     diag.final_gap = gap_metrics(current, obs, tpl, bp_null)
     diag.final_fit = current
