@@ -172,12 +172,15 @@ def _beam_pols(pols: tuple[str, ...]) -> tuple[str, ...]:
 
 
 #: Peak memory of a diagnosis: this much plus :data:`BYTES_PER_SAMPLE` per sample (antenna x
-#: pol x channel x integration), measured with ``autocal diagnose`` on a file of the HERA-size
-#: night (192 integrations; README, "Diagnosing", **Size.**): 1.22 GB for 10 antennas x 2
-#: pols x 307 channels (1.2 M samples), 4.73 GB for 30 antennas x 2 pols x 1536 channels.
-BASE_BYTES = 1.0e9
-#: See :data:`BASE_BYTES` (the slope between those two runs, 212 bytes, rounded up).
-BYTES_PER_SAMPLE = 220.0
+#: pol x channel x integration), measured with ``benchmarks/diagnose_scale.py`` (``autocal
+#: diagnose`` on the first file of the HERA-size night, 192 integrations x 1536 channels x 2
+#: pols; README, "Diagnosing", **Size.**): 1.83 GB for 30 antennas (17.7 M samples), 6.33 GB
+#: for all 350 (206 M). The fit streams antennas in chunks (:func:`autocal.diagnose.
+#: fit_extended`), so what grows with the samples is the observation (float64 data, flags),
+#: the float32 weights and, while outliers are flagged, their high-passed residuals.
+BASE_BYTES = 1.5e9
+#: See :data:`BASE_BYTES` (the slope between those two runs, 23.8 bytes, rounded up).
+BYTES_PER_SAMPLE = 26.0
 
 
 def available_memory() -> float | None:
