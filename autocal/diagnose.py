@@ -968,6 +968,59 @@ def projected_normal_equations(
     return 0.5 * (h + h.T), grad, np.diag(jwj).copy()
 
 
+#: Compare-exchange pairs of a median-of-9 sorting network (19 exchanges; Paeth, Devillard):
+#: afterwards element 4 holds the median.
+_MEDIAN9 = (
+    (1, 2),
+    (4, 5),
+    (7, 8),
+    (0, 1),
+    (3, 4),
+    (6, 7),
+    (1, 2),
+    (4, 5),
+    (7, 8),
+    (0, 3),
+    (5, 8),
+    (4, 7),
+    (3, 6),
+    (1, 4),
+    (2, 5),
+    (4, 7),
+    (4, 2),
+    (6, 4),
+    (4, 2),
+)
+
+
+def _running_median(x: np.ndarray, window: int, axis: int) -> np.ndarray:
+    """Return the running median of ``x`` over ``window`` samples along ``axis``.
+
+    That of ``scipy.ndimage.median_filter`` (mode ``"mirror"``, a footprint along ``axis``
+    only). A window of 9 over an axis longer than 9 uses a sorting network on whole arrays (the
+    same values as ``median_filter``, ~4x faster on a HERA antenna); other windows call
+    ``median_filter``.
+    """
+    n = x.shape[axis]
+    if window != 9 or n <= window:
+        from scipy.ndimage import median_filter
+
+        size = [1] * x.ndim
+        size[axis] = window
+        return median_filter(x, size=tuple(size), mode="mirror")
+    half = window // 2
+    pad = [(0, 0)] * x.ndim
+    pad[axis] = (half, half)
+    xp = np.pad(x, pad, mode="reflect")  # scipy's "mirror"
+    lead = (slice(None),) * (axis % x.ndim)
+    p = [np.array(xp[(*lead, slice(i, i + n))]) for i in range(window)]
+    for a, b in _MEDIAN9:
+        low = np.minimum(p[a], p[b])
+        np.maximum(p[a], p[b], out=p[b])
+        p[a] = low
+    return p[4]
+
+
 def _residual_pieces(fit: Any) -> Iterator[tuple[slice, np.ndarray]]:
     """Yield ``(antenna slice, residuals)`` of a fit chunk by chunk.
 
@@ -1018,8 +1071,6 @@ def flag_outliers(
     numpy.ndarray
         ``(Nant, Npol, Ntime, Nfreq)`` flags (the observation's own included).
     """
-    from scipy.ndimage import median_filter
-
     dev = np.empty(obs.shape, weights_dtype(obs.shape))
     usable = np.zeros(obs.shape, bool)
     for sl, res in _residual_pieces(fit):
@@ -1028,8 +1079,8 @@ def flag_outliers(
         # high-pass in time, then in frequency: what a fit bent by an outlier spreads over
         # its channel is smooth in time and goes; the outlier itself stays
         filled = np.where(ok, res, 0.0)
-        hp = filled - median_filter(filled, size=(1, 1, window, 1), mode="mirror")
-        hp = hp - median_filter(hp, size=(1, 1, 1, window), mode="mirror")
+        hp = filled - _running_median(filled, window, axis=2)
+        hp = hp - _running_median(hp, window, axis=3)
         dev[sl] = np.where(ok, hp, np.nan)
     if not usable.any():
         return obs.flags.copy()
@@ -1142,19 +1193,27 @@ class _RippleScan:
         self.rows = [(g2[i], s2[i]) for i in np.flatnonzero(~full)]
         q, r, b, wsq = q[full], r[full], b[full], wsq[full]
         qtb = np.einsum("rfk,rf->rk", q, b)
-        self.q, self.wsq = q, wsq
         self.resid = b - np.einsum("rfk,rk->rf", q, qtb)  # off the smooth basis
         self.null = (self.resid**2).sum(axis=1)
         coef = np.linalg.solve(r, qtb[..., None])[..., 0]  # smooth fit of each row
-        self.smooth_w = (coef @ basis.T) * wsq  # weighted smooth bandpass (R, F)
+        smooth_w = (coef @ basis.T) * wsq  # weighted smooth bandpass (R, F)
+        # the ripple columns are smooth_w cos / sin: with c = s cos(2 pi nu tau) etc.,
+        # Q^T c = (Q s)^T cos and |c - Q Q^T c|^2 = |c|^2 - |Q^T c|^2 (Q orthonormal), and
+        # the residual is orthogonal to Q: every delay needs three small matrix products
+        self.qs = np.ascontiguousarray(np.swapaxes(q * smooth_w[..., None], 1, 2))  # (R, K, F)
+        self.s2 = smooth_w**2
+        self.sr = smooth_w * self.resid
 
     def __call__(self, tau_s: float) -> float:
         """Return the total chi^2 with a ripple of delay ``tau_s`` (seconds)."""
         ph = 2 * np.pi * self.freqs * tau_s
-        cols = self.smooth_w[..., None] * np.stack([np.cos(ph), np.sin(ph)], axis=-1)
-        cols = cols - self.q @ (np.swapaxes(self.q, 1, 2) @ cols)  # (R, F, 2)
-        m = np.swapaxes(cols, 1, 2) @ cols  # (R, 2, 2)
-        v = np.einsum("rfk,rf->rk", cols, self.resid)
+        cs = np.stack([np.cos(ph), np.sin(ph)], axis=-1)  # (F, 2)
+        qtc = (self.qs.reshape(-1, cs.shape[0]) @ cs).reshape(*self.qs.shape[:2], 2)
+        trig = np.stack([cs[:, 0] ** 2, cs[:, 0] * cs[:, 1], cs[:, 1] ** 2], axis=-1)
+        cc = self.s2 @ trig  # (R, 3): c^T c
+        m = np.stack([cc[:, 0], cc[:, 1], cc[:, 1], cc[:, 2]], axis=-1).reshape(-1, 2, 2)
+        m = m - np.swapaxes(qtc, 1, 2) @ qtc
+        v = self.sr @ cs  # (R, 2)
         gain = np.einsum("rk,rkl,rl->r", v, np.linalg.pinv(m, hermitian=True), v)
         total = float(np.sum(self.null - gain))
         for g, s in self.rows:

@@ -172,3 +172,17 @@ def test_large_path_reaches_the_same_diagnosis(several, monkeypatch) -> None:
             assert a["parameters"][par]["value"] == pytest.approx(
                 value["value"], abs=0.05 * value["sigma"]
             )
+
+
+def test_running_median_is_scipys_median_filter() -> None:
+    """The sorting network of the outlier flagging gives median_filter's values exactly."""
+    from scipy.ndimage import median_filter
+
+    rng = np.random.default_rng(5)
+    x = rng.normal(size=(2, 2, 30, 40))
+    x[..., ::7] = 0.0  # ties
+    for axis, window in ((2, 9), (3, 9), (3, 5), (2, 31)):
+        size = [1, 1, 1, 1]
+        size[axis] = window
+        expected = median_filter(x, size=tuple(size), mode="mirror")
+        np.testing.assert_array_equal(dg._running_median(x, window, axis), expected)
