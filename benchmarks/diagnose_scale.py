@@ -92,9 +92,14 @@ class _RssSampler(threading.Thread):
 def run_one(file: Path, nants: int, data: Path, pythonpath: str | None) -> dict:
     """Diagnose the first ``nants`` antennas of ``file`` in a fresh ``autocal`` process."""
     out = data / "diagnose" / f"ants{nants}"
-    env = dict(os.environ, AUTOCAL_CACHE_DIR=str(data / "tsky-cache"))
-    if pythonpath:
-        env["PYTHONPATH"] = pythonpath
+    # the measured autocal: this checkout, or --pythonpath (run outside the checkout, so
+    # that "python -m" does not put it first on the path)
+    paths = [pythonpath or str(ROOT), os.environ.get("PYTHONPATH", "")]
+    env = dict(
+        os.environ,
+        AUTOCAL_CACHE_DIR=str(data / "tsky-cache"),
+        PYTHONPATH=os.pathsep.join(p for p in paths if p),
+    )
     cmd = [sys.executable, "-m", "autocal.cli", "diagnose", str(file), "--out", str(out)]
     if nants < 350:
         cmd += ["--antennas", ",".join(str(a) for a in range(nants))]
@@ -102,7 +107,7 @@ def run_one(file: Path, nants: int, data: Path, pythonpath: str | None) -> dict:
     load = os.getloadavg()
     t0 = time.perf_counter()
     log = (data / f"diagnose-ants{nants}.log").open("w")
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+    proc = subprocess.Popen(cmd, cwd=data, env=env, stdout=log, stderr=subprocess.STDOUT)
     sampler = _RssSampler(proc.pid)
     sampler.start()
     _, status, usage = os.wait4(proc.pid, 0)
@@ -122,6 +127,7 @@ def run_one(file: Path, nants: int, data: Path, pythonpath: str | None) -> dict:
         "load_avg_1_5_15_before": [round(x, 2) for x in load],
         "load_avg_1_5_15_after": [round(x, 2) for x in os.getloadavg()],
         "command": " ".join(["autocal", *cmd[3:]]),
+        "pythonpath": env["PYTHONPATH"],
         "log": str(data / f"diagnose-ants{nants}.log"),
     }
     summary = out / "summary.json"
