@@ -36,6 +36,13 @@ Jacobian projected orthogonally to each channel's ``(G, n)`` design, so the cova
 the global parameters is marginalised over all ``(G, n)``. An optional receiver prior
 (``Trxr(nu) = Trxr0 +- sigma``) enters as one pseudo-observation per channel,
 ``n - Trxr0 G = 0 +- G sigma``.
+
+Scale: the fit streams antennas through its sums a chunk at a time (:func:`antenna_chunks`),
+and a fit's model and residuals are computed from its inputs when needed, never stored, so a
+whole HERA file (350 antennas, 206 M samples) is diagnosed in ~6 GB. Above
+:data:`LARGE_SAMPLES` the weights are float32, fits start from the current model's
+parameters and each step scores all candidates in one pass (:func:`screen_candidates`)
+before fitting only those that could win in full (:class:`_StepScreen`).
 """
 
 from __future__ import annotations
@@ -45,7 +52,7 @@ import functools
 import json
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ParamSpec, TypeVar
@@ -115,6 +122,93 @@ def _blas_single_thread(func: Callable[P, R]) -> Callable[P, R]:
 
 # the extended fit -----------------------------------------------------------------------
 
+#: Samples (antenna x pol x integration x channel) in one chunk of antennas of the extended
+#: fit and of every pass over its model or residuals. Each channel's ``(G, n)`` belongs to
+#: one antenna and the global normal equations and chi^2 are sums over antennas, so the fit
+#: streams antennas through its sums; working arrays are a chunk's size, not the
+#: observation's, and elementwise work on a chunk of a few MB stays in the processor's
+#: caches (one HERA antenna, 0.6 M samples: ~6x faster per sample than 16 antennas at once,
+#: ``benchmarks/diagnose_scale.py``).
+CHUNK_SAMPLES = 1 << 20
+#: Observations with more samples than this are "large": their weights are kept in float32
+#: (:func:`radiometer_weights`) and the search screens its candidates by their score before
+#: fitting them (:func:`screen_candidates`). Smaller ones are diagnosed exactly as before.
+LARGE_SAMPLES = 1 << 24
+#: Samples of one ordinary calibration in :func:`product_sigmas` (~0.5 GB of working arrays).
+PRODUCT_SIGMA_SAMPLES = 1 << 23
+
+
+def antenna_chunks(shape: tuple[int, ...], chunk_antennas: int | None = None) -> list[slice]:
+    """Return the slices of antennas processed together (:data:`CHUNK_SAMPLES`).
+
+    Parameters
+    ----------
+    shape
+        ``(Nant, Npol, Ntime, Nfreq)``.
+    chunk_antennas
+        Antennas per chunk (default: as many as :data:`CHUNK_SAMPLES` allows, at least one).
+    """
+    per_antenna = max(1, math.prod(shape[1:]))
+    n = max(1, CHUNK_SAMPLES // per_antenna) if chunk_antennas is None else int(chunk_antennas)
+    if n < 1:
+        raise DiagnoseError(f"chunks need at least one antenna, got {chunk_antennas}")
+    return [slice(i, min(i + n, shape[0])) for i in range(0, shape[0], n)]
+
+
+def is_large(shape: tuple[int, ...]) -> bool:
+    """Return whether an observation of this shape is large (:data:`LARGE_SAMPLES`)."""
+    return math.prod(shape) > LARGE_SAMPLES
+
+
+def _usable_weights(weights: np.ndarray, chan_ok: np.ndarray | None = None) -> np.ndarray:
+    """Return a chunk's weights ``(a, P, T, F)`` as float64, zero where unusable.
+
+    Unusable: not finite, not positive, or in a channel without a ``(G, n)`` solution
+    (``chan_ok`` ``(a, P, F)`` false).
+    """
+    w = np.asarray(weights, np.float64)
+    ok = np.isfinite(w) & (w > 0)
+    if chan_ok is not None:
+        ok &= chan_ok[:, :, None, :]
+    return np.where(ok, w, 0.0)
+
+
+@dataclass(frozen=True, eq=False)
+class _ModelSource:
+    """What the model and residuals of a fit are computed from, a chunk at a time.
+
+    ``a1`` ``(P, T, F)`` is the model Tsky times the gain factor, ``a2`` ``(T,)`` the noise
+    factor times the gain factor: ``model = G a1 + n a2``. ``g``, ``nn`` ``(A, P, F)`` are
+    zero in channels without a solution. The observation and weights are references (not
+    copies) to the arrays the fit was given.
+    """
+
+    obs: Observation
+    weights: np.ndarray
+    chan_ok: np.ndarray
+    a1: np.ndarray
+    a2: np.ndarray
+    g: np.ndarray
+    nn: np.ndarray
+    chunks: list[slice]
+
+    def weights_chunk(self, sl: slice) -> np.ndarray:
+        """Weights the fit used for antennas ``sl``, ``(a, P, T, F)`` float64."""
+        return _usable_weights(self.weights[sl], self.chan_ok[sl])
+
+    def model_chunk(self, sl: slice) -> np.ndarray:
+        """Model autos of antennas ``sl``, ``(a, P, T, F)``."""
+        return (
+            self.g[sl][:, :, None, :] * self.a1[None]
+            + self.nn[sl][:, :, None, :] * self.a2[None, None, :, None]
+        )
+
+    def residual_chunk(self, sl: slice) -> np.ndarray:
+        """Normalised residuals of antennas ``sl`` (NaN where the weight is zero)."""
+        w = self.weights_chunk(sl)
+        with np.errstate(invalid="ignore"):
+            return np.where(w > 0, (self.obs.data[sl] - self.model_chunk(sl)) * np.sqrt(w), np.nan)
+
 
 @dataclass(frozen=True, eq=False)
 class ExtendedFit:
@@ -136,10 +230,6 @@ class ExtendedFit:
         Number of data used (with prior pseudo-observations).
     nparam
         Per-channel plus free global parameters.
-    model
-        ``(Nant, Npol, Ntime, Nfreq)`` model autos.
-    residuals
-        Normalised residuals ``(R - model) sqrt(w)``.
     identifiable
         ``{effect name: fraction of Fisher information left after the (G, n) projection}``
         (0 below :data:`IDENTIFIABLE_RESOLUTION`: degenerate with ``(G, n)``).
@@ -149,6 +239,11 @@ class ExtendedFit:
         ``(Ntime,)`` the achromatic factors of ``G`` and ``n`` over time
         (``G(t) = G gain_factor(t)``, ``n(t) = n noise_factor(t)``; ones without drift or
         jitter).
+    source
+        What :attr:`model` and :attr:`residuals` are computed from (``None`` once
+        :meth:`detached`). They are not stored: a whole HERA file's would be 1.6 GB each,
+        and a search keeps a fit of every candidate. :meth:`model_chunks` and
+        :meth:`residual_chunks` give them a chunk of antennas at a time.
     """
 
     effects: tuple[Effect, ...]
@@ -160,12 +255,11 @@ class ExtendedFit:
     chi2: float
     ndata: int
     nparam: int
-    model: np.ndarray
-    residuals: np.ndarray
     identifiable: dict[str, float]
     iterations: int
     gain_factor: np.ndarray | None = None
     noise_factor: np.ndarray | None = None
+    source: _ModelSource | None = field(default=None, repr=False)
 
     @property
     def dof(self) -> int:
@@ -183,14 +277,80 @@ class ExtendedFit:
         with np.errstate(divide="ignore", invalid="ignore"):
             return self.n / self.G
 
+    def _source(self) -> _ModelSource:
+        if self.source is None:
+            raise DiagnoseError("this fit was detached from its data: no model or residuals")
+        return self.source
 
-def radiometer_weights(obs: Observation, reference: np.ndarray) -> np.ndarray:
-    """Inverse variances ``dnu dt N / reference^2`` (zero where flagged or non-finite)."""
-    bt = obs.bandwidth_time()
-    usable = np.isfinite(obs.data) & ~obs.flags
-    with np.errstate(divide="ignore", invalid="ignore"):
-        w = bt / reference**2
-    return np.where(usable & np.isfinite(w) & (w > 0), w, 0.0)
+    def model_chunks(self) -> Iterator[tuple[slice, np.ndarray]]:
+        """Yield ``(antenna slice, (a, Npol, Ntime, Nfreq) model autos)``."""
+        src = self._source()
+        for sl in src.chunks:
+            yield sl, src.model_chunk(sl)
+
+    def residual_chunks(self) -> Iterator[tuple[slice, np.ndarray]]:
+        """Yield ``(antenna slice, normalised residuals (R - model) sqrt(w))``, NaN unused."""
+        src = self._source()
+        for sl in src.chunks:
+            yield sl, src.residual_chunk(sl)
+
+    @property
+    def model(self) -> np.ndarray:
+        """``(Nant, Npol, Ntime, Nfreq)`` model autos (computed on every access)."""
+        return np.concatenate([m for _, m in self.model_chunks()])
+
+    @property
+    def residuals(self) -> np.ndarray:
+        """Normalised residuals ``(R - model) sqrt(w)`` (computed on every access)."""
+        return np.concatenate([r for _, r in self.residual_chunks()])
+
+    def residuals_of(self, antenna: int, pol: int) -> np.ndarray:
+        """``(Ntime, Nfreq)`` normalised residuals of one antenna (index) and pol (index)."""
+        return self._source().residual_chunk(slice(antenna, antenna + 1))[0, pol]
+
+    def detached(self) -> ExtendedFit:
+        """Return the fit without its :attr:`source` (no reference to data or weights)."""
+        return dataclasses.replace(self, source=None)
+
+
+def weights_dtype(shape: tuple[int, ...]) -> type:
+    """Float64 weights, float32 for a large observation (:data:`LARGE_SAMPLES`).
+
+    The weights are held fixed while fits are compared, so their rounding to float32 (a
+    relative 6e-8) changes every compared chi^2 alike; every sum is accumulated in float64.
+    """
+    return np.float32 if is_large(shape) else np.float64
+
+
+def radiometer_weights(
+    obs: Observation, reference: np.ndarray | ExtendedFit, *, dtype: Any = None
+) -> np.ndarray:
+    """Inverse variances ``dnu dt N / reference^2`` (zero where flagged or non-finite).
+
+    Parameters
+    ----------
+    obs
+        The observation.
+    reference
+        ``(Nant, Npol, Ntime, Nfreq)`` reference autos, or a fit whose model is the
+        reference (computed a chunk of antennas at a time).
+    dtype
+        Of the result (default :func:`weights_dtype`).
+    """
+    out = np.empty(obs.shape, weights_dtype(obs.shape) if dtype is None else dtype)
+    width = obs.channel_width[None, None, None, :]
+    tint = obs.integration_time[None, None, :, None]
+    if isinstance(reference, ExtendedFit):
+        pieces: Iterator[tuple[slice, np.ndarray]] = reference.model_chunks()
+    else:
+        pieces = ((sl, reference[sl]) for sl in antenna_chunks(obs.shape))
+    for sl, ref in pieces:
+        bt = width * (tint * obs.nsamples[sl])
+        usable = np.isfinite(obs.data[sl]) & ~obs.flags[sl]
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            w = bt / ref**2
+        out[sl] = np.where(usable & np.isfinite(w) & (w > 0), w, 0.0)
+    return out
 
 
 def _split(effects: tuple[Effect, ...]) -> list[tuple[Effect, slice]]:
@@ -200,6 +360,294 @@ def _split(effects: tuple[Effect, ...]) -> list[tuple[Effect, slice]]:
         out.append((eff, slice(i, i + k)))
         i += k
     return out
+
+
+@dataclass
+class _State:
+    """One evaluation of the fit: model columns, channel solutions and chi^2.
+
+    ``tt`` ``(P, T, F)`` Tsky; ``gfac``, ``nfac`` ``(T,)`` the gain and noise factors;
+    the model is ``G a1 + n a2`` with ``a1 = tt gfac`` and ``a2 = nfac gfac``.
+    """
+
+    tt: np.ndarray
+    gfac: np.ndarray
+    nfac: np.ndarray
+    g: np.ndarray
+    nn: np.ndarray
+    inv: np.ndarray
+    good: np.ndarray
+    rp: np.ndarray
+    chi2: float
+
+    @property
+    def a1(self) -> np.ndarray:
+        """``(P, T, F)`` the gain's column: Tsky times the gain factor."""
+        return self.tt * self.gfac[:, None]
+
+    @property
+    def a2(self) -> np.ndarray:
+        """``(T,)`` the noise's column: the noise factor times the gain factor."""
+        return self.nfac * self.gfac
+
+
+def _contract(w: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """``sum_t w[a, p, t, f] z[p, t, f]`` -> ``(a, P, F)`` (``z`` broadcast to ``(P, T, F)``)."""
+    return np.einsum("aptf,ptf->apf", w, np.broadcast_to(z, w.shape[1:]))
+
+
+class _Problem:
+    """The extended fit of one observation, weights and set of effects (:func:`fit_extended`).
+
+    Holds what every evaluation shares (usable channels, prior, bases) and streams the
+    antennas through :meth:`evaluate` (channel solutions and chi^2) and
+    :meth:`normal_equations` (the projected normal equations of the global parameters,
+    the sums of :func:`projected_normal_equations` contracted template by template, so
+    that a chunk's samples are read a few times and never copied per parameter).
+    """
+
+    def __init__(
+        self,
+        obs: Observation,
+        tpl: SkyTemplates,
+        effects: tuple[Effect, ...],
+        weights: np.ndarray,
+        trxr_prior: np.ndarray | float | None,
+        trxr_prior_sigma: np.ndarray | float,
+        gain_ref: np.ndarray | None,
+        chunk_antennas: int | None,
+    ) -> None:
+        if tpl.total.shape[0] != len(obs.pols) or tpl.total.shape[1:] != (
+            obs.ntime,
+            obs.nfreq,
+        ):
+            raise DiagnoseError("templates do not match the observation's grid")
+        weights = np.asarray(weights)
+        if weights.shape != obs.shape:
+            raise DiagnoseError(f"weights have shape {weights.shape}, the data {obs.shape}")
+        self.obs, self.tpl, self.effects, self.weights = obs, tpl, effects, weights
+        self.chunks = antenna_chunks(obs.shape, chunk_antennas)
+        self.shape3 = shape3 = (obs.nant, len(obs.pols), obs.nfreq)
+        # channels with fewer than 3 usable samples cannot constrain (G, n): leave them out
+        self.chan_ok = np.zeros(shape3, bool)
+        self.used = 0
+        # weights finite and >= 0, data finite: the chunks are used as they are
+        self.clean_weights = self.finite_data = True
+        for sl in self.chunks:
+            w = weights[sl]
+            usable = np.isfinite(w) & (w > 0)
+            self.clean_weights &= bool(np.all(usable | (w == 0)))
+            self.finite_data &= bool(np.all(np.isfinite(obs.data[sl])))
+            nuse = usable.sum(axis=2)
+            self.chan_ok[sl] = nuse >= 3
+            self.used += int(nuse[self.chan_ok[sl]].sum())
+        if not self.chan_ok.any():
+            raise DiagnoseError("no channel has 3 or more unflagged samples to fit")
+        self.blocks = _split(effects)
+        self.nfree = sum(b.stop - b.start for _, b in self.blocks)
+        self.fixed = {e.name: np.asarray(e.fixed, float) for e in effects if e.fixed is not None}
+        self.bases = {
+            (e.basis, e.order): e.time_basis(obs.lsts) for e in effects if e.kind != "tsky"
+        }
+        self.prior = trxr_prior is not None
+        t0 = np.broadcast_to(np.asarray(trxr_prior if self.prior else 0.0, float), shape3)
+        sig0 = np.broadcast_to(np.asarray(trxr_prior_sigma, float), shape3)
+        has_prior = np.isfinite(t0) & np.isfinite(sig0) & (sig0 > 0)
+        self.t0 = np.where(has_prior, t0, 0.0)
+        # prior weights from a reference gain
+        self.wp = np.zeros(shape3)
+        if self.prior:
+            with np.errstate(over="ignore", invalid="ignore", under="ignore"):
+                if gain_ref is None:
+                    gain_ref = self.evaluate(np.zeros(self.nfree)).g
+                gain_ref = np.where(np.abs(gain_ref) > 0, np.abs(gain_ref), np.inf)
+                self.wp = np.where(self.chan_ok & has_prior, 1.0 / (gain_ref * sig0) ** 2, 0.0)
+
+    def values(self, eff: Effect, sl: slice, pv: np.ndarray) -> np.ndarray:
+        """Return an effect's parameter values (its fixed values, or ``pv[sl]``)."""
+        return self.fixed[eff.name] if eff.fixed is not None else pv[sl]
+
+    def chunk_arrays(self, sl: slice) -> tuple[np.ndarray, np.ndarray]:
+        """Return weights and data of antennas ``sl``, ``(a, P, T, F)`` float64.
+
+        Weights are zero where unusable (channels without a solution included), data
+        zero where not finite; both are views of the inputs when nothing needs zeroing.
+        """
+        ok = self.chan_ok[sl]
+        if self.clean_weights:
+            w = np.asarray(self.weights[sl], np.float64)
+            if not ok.all():
+                w = w * ok[:, :, None, :]
+        else:
+            w = _usable_weights(self.weights[sl], ok)
+        y = self.obs.data[sl]
+        if not self.finite_data:
+            with np.errstate(invalid="ignore"):
+                y = np.where(w > 0, y, 0.0)
+        return w, y
+
+    def columns(self, pv: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Return Tsky ``(P, T, F)`` and the gain and noise factors ``(T,)`` at ``pv``."""
+        tsky = self.tpl.total.copy()
+        gfac = np.ones(self.obs.ntime)
+        nfac = np.ones(self.obs.ntime)
+        for eff, sl in self.blocks:
+            v = self.values(eff, sl, pv)
+            if eff.kind == "tsky":
+                tsky = tsky + eff.delta(v, self.tpl)
+            elif eff.kind == "gain":
+                gfac = gfac + v @ self.bases[eff.basis, eff.order]
+            else:
+                nfac = nfac + v @ self.bases[eff.basis, eff.order]
+        return tsky, gfac, nfac
+
+    @staticmethod
+    def residual(
+        y: np.ndarray, g: np.ndarray, nn: np.ndarray, a1: np.ndarray, a2: np.ndarray
+    ) -> np.ndarray:
+        """Return ``y - G a1 - n a2`` of a chunk (``a1`` ``(P, T, F)``, ``a2`` ``(T,)``)."""
+        r = g[:, :, None, :] * a1
+        r += nn[:, :, None, :] * a2[:, None]
+        np.subtract(y, r, out=r)
+        return r
+
+    def evaluate(self, pv: np.ndarray) -> _State:
+        """Solve every channel's ``(G, n)`` at global parameters ``pv``; chi^2."""
+        tt, gfac, nfac = self.columns(pv)
+        a1 = tt * gfac[:, None]
+        a2 = nfac * gfac
+        a1sq, a12, a2sq = a1 * a1, a1 * a2[:, None], (a2 * a2)[:, None]
+        shape3 = self.shape3
+        g, nn = np.zeros(shape3), np.zeros(shape3)
+        inv, good = np.zeros((3, *shape3)), np.zeros(shape3, bool)
+        chi2 = 0.0
+        for sl in self.chunks:
+            w, y = self.chunk_arrays(sl)
+            wp, t0 = self.wp[sl], self.t0[sl]
+            wy = w * y
+            n11 = _contract(w, a1sq) + wp * t0**2
+            n12 = _contract(w, a12) - wp * t0
+            n22 = _contract(w, a2sq) + wp
+            b1 = _contract(wy, a1)
+            b2 = _contract(wy, a2[:, None])
+            det = n11 * n22 - n12**2
+            ok = self.chan_ok[sl] & np.isfinite(det) & (det > 1e-12 * np.abs(n11 * n22))
+            det = np.where(ok, det, 1.0)
+            iv = np.where(ok, np.stack([n22 / det, -n12 / det, n11 / det]), 0.0)
+            gc = iv[0] * b1 + iv[1] * b2
+            nc = iv[1] * b1 + iv[2] * b2
+            g[sl], nn[sl], inv[:, sl], good[sl] = gc, nc, iv, ok
+            r = self.residual(y, gc, nc, a1, a2)
+            chi2 += float(np.einsum("aptf,aptf,aptf->", w, r, r))
+        rp = np.where(good, -(nn - self.t0 * g), 0.0)
+        chi2 += float((self.wp * rp**2).sum())
+        return _State(tt, gfac, nfac, g, nn, inv, good, rp, chi2)
+
+    def _terms(self, pv: np.ndarray, st: _State) -> list[tuple[slice, list, np.ndarray, str]]:
+        """Return each free block's factorised derivative ``sum_m alpha_m beta_m Y``.
+
+        ``(slice, [(alpha, beta)], Y, form)``: ``alpha`` ``"g"`` or ``"n"`` (the channel's
+        fitted gain or noise), ``beta`` broadcastable to ``(P, T, F)``, ``Y`` ``(P, T, F,
+        k)`` (``form`` ``"tsky"``), a time basis ``(T, k)`` (``"time"``) or the
+        per-integration basis (``"integration"``, parameter ``k`` = integration ``k + 1``).
+        """
+        out = []
+        gcol, ncol = st.gfac[:, None], st.nfac[:, None]
+        for eff, sl in self.blocks:
+            if sl.stop == sl.start:
+                continue
+            if eff.kind == "tsky":
+                terms = [("g", gcol)]
+                ymat, form = eff.jacobian(pv[sl], self.tpl), "tsky"
+            else:
+                terms = [("g", st.tt), ("n", ncol)] if eff.kind == "gain" else [("n", gcol)]
+                ymat = self.bases[eff.basis, eff.order].T
+                form = "integration" if eff.basis == "integration" else "time"
+            out.append((sl, terms, ymat, form))
+        return out
+
+    def normal_equations(
+        self, pv: np.ndarray, st: _State, groups: list[int] | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return ``h``, ``grad``, ``raw`` (:func:`projected_normal_equations`) at ``st``.
+
+        ``groups``: one per free block; the ``J^T W J`` block of two blocks of different
+        nonzero groups is not computed (left 0; see :func:`screen_candidates`).
+        """
+        specs = self._terms(pv, st)
+        nfree = self.nfree
+        a1, a2 = st.a1, st.a2
+        a2col = a2[:, None]
+        products = {
+            tuple(sorted(a + b))
+            for _, t1, _, _ in specs
+            for _, t2, _, _ in specs
+            for a, _ in t1
+            for b, _ in t2
+        }
+        wsum = {key: np.zeros(a1.shape) for key in products}  # sum_a w alpha alpha'
+        proj = np.zeros((nfree, nfree))
+        grad = np.zeros(nfree)
+        for sl in self.chunks:
+            w, y = self.chunk_arrays(sl)
+            alpha = {"g": st.g[sl], "n": st.nn[sl]}
+            wr = w * self.residual(y, alpha["g"], alpha["n"], a1, a2)
+            rp, wp, t0 = st.rp[sl], self.wp[sl], self.t0[sl]
+            # A^T W r per channel (data and prior rows): ~0 at the channel solution
+            q1 = _contract(wr, a1) - wp * t0 * rp
+            q2 = _contract(wr, a2col) + wp * rp
+            for key in wsum:
+                wsum[key] += np.einsum("aptf,apf->ptf", w, alpha[key[0]] * alpha[key[1]])
+            c1 = np.zeros((*alpha["g"].shape, nfree))
+            c2 = np.zeros_like(c1)
+            for bsl, terms, ymat, form in specs:
+                for name, beta in terms:
+                    al = alpha[name]
+                    if form == "integration":
+                        # one parameter per integration: the sums over time are the samples
+                        for col, dst in ((a1 * beta, c1), (a2col * beta, c2)):
+                            dst[..., bsl] += al[..., None] * np.moveaxis(
+                                (w * col)[:, :, 1:, :], 2, -1
+                            )
+                        grad[bsl] += np.einsum("apf,aptf->t", al, wr * beta)[1:]
+                        continue
+                    for k in range(ymat.shape[-1]):
+                        z = beta * (ymat[..., k] if form == "tsky" else ymat[:, k, None])
+                        i = bsl.start + k
+                        c1[..., i] += al * _contract(w, a1 * z)
+                        c2[..., i] += al * _contract(w, a2col * z)
+                        grad[i] += float(np.sum(al * _contract(wr, z)))
+            inv = st.inv[:, sl]
+            k1 = inv[0][..., None] * c1 + inv[1][..., None] * c2
+            k2 = inv[1][..., None] * c1 + inv[2][..., None] * c2
+            c1, c2, k1, k2 = (x.reshape(-1, nfree) for x in (c1, c2, k1, k2))
+            proj += c1.T @ k1 + c2.T @ k2
+            grad -= k1.T @ q1.reshape(-1) + k2.T @ q2.reshape(-1)
+        # J^T W J from the antenna sums: sum_{p,t,f} (sum_a w alpha alpha') beta beta' Y Y'
+        jwj = np.zeros((nfree, nfree))
+        grp = [0] * len(specs) if groups is None else groups
+        for i, (sl1, t1, y1, f1) in enumerate(specs):
+            for j in range(i, len(specs)):
+                sl2, t2, y2, f2 = specs[j]
+                if grp[i] and grp[j] and grp[i] != grp[j]:
+                    continue
+                v = sum(wsum[tuple(sorted(n1 + n2))] * b1 * b2 for n1, b1 in t1 for n2, b2 in t2)
+                block = _pair_sum(np.broadcast_to(v, a1.shape), y1, f1, y2, f2)
+                jwj[sl1, sl2] = block
+                jwj[sl2, sl1] = block.T
+        h = jwj - proj
+        return 0.5 * (h + h.T), grad, np.diag(jwj).copy()
+
+
+def _pair_sum(v: np.ndarray, y1: np.ndarray, f1: str, y2: np.ndarray, f2: str) -> np.ndarray:
+    """``sum_{p,t,f} v Y1[..., k] Y2[..., l]`` for Tsky ``(P, T, F, k)`` or time ``(T, k)`` Y."""
+    if f1 != "tsky" and f2 != "tsky":
+        return (y1.T * v.sum(axis=(0, 2))) @ y2
+    if f1 == "tsky" and f2 == "tsky":
+        return np.einsum("ptf,ptfk,ptfl->kl", v, y1, y2)
+    if f1 == "tsky":
+        return np.einsum("ptf,ptfk->tk", v, y1).T @ y2
+    return y1.T @ np.einsum("ptf,ptfl->tl", v, y2)
 
 
 @_blas_single_thread
@@ -215,8 +663,14 @@ def fit_extended(
     max_iter: int = 30,
     tol: float = 1e-4,
     start: dict[str, np.ndarray] | None = None,
+    chunk_antennas: int | None = None,
 ) -> ExtendedFit:
     """Fit per-channel ``(G, n)`` and the global parameters of ``effects``.
+
+    Antennas are streamed through the fit in chunks (:func:`antenna_chunks`): each
+    channel's ``(G, n)`` is solved within its chunk and the global normal equations and
+    chi^2 are summed over chunks, so memory holds the observation, the weights and a
+    chunk's working arrays; the result does not depend on the chunking (up to rounding).
 
     Parameters
     ----------
@@ -227,7 +681,8 @@ def fit_extended(
     effects
         Effects added to the model (``bandpass`` effects are ignored here).
     weights
-        ``(Nant, Npol, Ntime, Nfreq)`` inverse variances (hold them fixed to compare fits).
+        ``(Nant, Npol, Ntime, Nfreq)`` inverse variances (hold them fixed to compare fits);
+        float32 or float64, referenced by the fit's :attr:`ExtendedFit.source`.
     trxr_prior, trxr_prior_sigma
         Receiver prior in kelvin and its 1-sigma, each a scalar or an array broadcastable
         to ``(Nant, Npol, Nfreq)`` (:meth:`autocal.priors.TrxrPrior.at`); ``None`` for no
@@ -240,6 +695,8 @@ def fit_extended(
     start
         ``{effect name: values}`` to start Gauss-Newton from (default zero: no effect);
         entries whose length does not match the effect's free parameters are ignored.
+    chunk_antennas
+        Antennas per chunk (default :data:`CHUNK_SAMPLES`).
 
     Returns
     -------
@@ -247,96 +704,17 @@ def fit_extended(
         The fit.
     """
     effects = tuple(e for e in effects if e.kind not in ("bandpass", "feed_gain"))
-    if tpl.total.shape[0] != len(obs.pols) or tpl.total.shape[1:] != (obs.ntime, obs.nfreq):
-        raise DiagnoseError("templates do not match the observation's grid")
-    w = np.swapaxes(np.where(np.isfinite(weights) & (weights > 0), weights, 0.0), 2, 3)
-    # channels with fewer than 3 usable samples cannot constrain (G, n): leave them out
-    chan_ok = (w > 0).sum(-1) >= 3
-    w = np.where(chan_ok[..., None], w, 0.0)
-    y = np.where(w > 0, np.swapaxes(obs.data, 2, 3), 0.0)  # (A, P, F, T)
-    if not chan_ok.any():
-        raise DiagnoseError("no channel has 3 or more unflagged samples to fit")
-    blocks = _split(effects)
-    nfree = sum(b.stop - b.start for _, b in blocks)
+    prob = _Problem(
+        obs, tpl, effects, weights, trxr_prior, trxr_prior_sigma, gain_ref, chunk_antennas
+    )
+    blocks, nfree = prob.blocks, prob.nfree
     p = np.zeros(nfree)
     for eff, sl in blocks:
         init = None if start is None else start.get(eff.name)
-        if init is not None and np.shape(init) == (sl.stop - sl.start,):
+        if init is not None and sl.stop > sl.start and np.size(init) == sl.stop - sl.start:
             p[sl] = np.where(np.isfinite(init), init, 0.0)
-    fixed = {e.name: np.asarray(e.fixed, float) for e in effects if e.fixed is not None}
-    bases = {(e.basis, e.order): e.time_basis(obs.lsts) for e in effects if e.kind != "tsky"}
-    prior = trxr_prior is not None
-    t0 = np.broadcast_to(np.asarray(trxr_prior if prior else 0.0, float), y.shape[:3])
-    sig0 = np.broadcast_to(np.asarray(trxr_prior_sigma, float), y.shape[:3])
-    has_prior = np.isfinite(t0) & np.isfinite(sig0) & (sig0 > 0)
-    t0 = np.where(has_prior, t0, 0.0)
-
-    def values(eff: Effect, sl: slice, pv: np.ndarray) -> np.ndarray:
-        return fixed[eff.name] if eff.fixed is not None else pv[sl]
-
-    def columns(pv: np.ndarray) -> tuple[np.ndarray, ...]:
-        tsky = tpl.total.copy()
-        gfac = np.ones(obs.ntime)
-        nfac = np.ones(obs.ntime)
-        for eff, sl in blocks:
-            v = values(eff, sl, pv)
-            if eff.kind == "tsky":
-                tsky = tsky + eff.delta(v, tpl)
-            elif eff.kind == "gain":
-                gfac = gfac + v @ bases[eff.basis, eff.order]
-            else:
-                nfac = nfac + v @ bases[eff.basis, eff.order]
-        tt = np.swapaxes(tsky, 1, 2)[None]  # (1, P, F, T)
-        return tt, gfac, nfac
-
-    def solve_channels(a1: np.ndarray, a2: np.ndarray, wp: np.ndarray) -> tuple[np.ndarray, ...]:
-        n11 = (w * a1 * a1).sum(-1) + wp * t0**2
-        n12 = (w * a1 * a2).sum(-1) - wp * t0
-        n22 = (w * a2 * a2).sum(-1) + wp
-        b1 = (w * a1 * y).sum(-1)
-        b2 = (w * a2 * y).sum(-1)
-        det = n11 * n22 - n12**2
-        good = chan_ok & np.isfinite(det) & (det > 1e-12 * np.abs(n11 * n22))
-        det = np.where(good, det, 1.0)
-        inv = np.where(good, np.stack([n22 / det, -n12 / det, n11 / det]), 0.0)
-        g = inv[0] * b1 + inv[1] * b2
-        nn = inv[1] * b1 + inv[2] * b2
-        return g, nn, inv, good
-
-    @dataclass
-    class _State:
-        tt: np.ndarray
-        gfac: np.ndarray
-        nfac: np.ndarray
-        a1: np.ndarray
-        a2: np.ndarray
-        g: np.ndarray
-        nn: np.ndarray
-        inv: np.ndarray
-        good: np.ndarray
-        r: np.ndarray
-        rp: np.ndarray
-        chi2: float
-
-    def evaluate(pv: np.ndarray, wp: np.ndarray) -> _State:
-        tt, gfac, nfac = columns(pv)
-        a1 = np.broadcast_to(tt * gfac, y.shape)
-        a2 = np.broadcast_to(nfac * gfac, y.shape)
-        g, nn, inv, good = solve_channels(a1, a2, wp)
-        r = np.where(w > 0, y - (g[..., None] * a1 + nn[..., None] * a2), 0.0)
-        rp = np.where(good, -(nn - t0 * g), 0.0)
-        chi2 = float((w * r**2).sum() + (wp * rp**2).sum())
-        return _State(tt, gfac, nfac, a1, a2, g, nn, inv, good, r, rp, chi2)
-
-    # prior weights from a reference gain
-    wp = np.zeros(y.shape[:3])
     with np.errstate(over="ignore", invalid="ignore", under="ignore"):
-        if prior:
-            if gain_ref is None:
-                gain_ref = evaluate(np.zeros(nfree), wp).g  # the model without effects
-            gain_ref = np.where(np.abs(gain_ref) > 0, np.abs(gain_ref), np.inf)
-            wp = np.where(chan_ok & has_prior, 1.0 / (gain_ref * sig0) ** 2, 0.0)
-        st = evaluate(p, wp)
+        st = prob.evaluate(p)
         if not np.isfinite(st.chi2):
             raise DiagnoseError(
                 "the baseline fit is not finite: check the data for unflagged zeros, "
@@ -348,39 +726,21 @@ def fit_extended(
         for it in range(1, max_iter + 1):
             if nfree == 0:
                 break
-            factors = _jacobian_factors(blocks, p, tpl, bases, st.g, st.nn, st.tt, st.gfac, st.nfac)
-            # A^T W r per channel (data and prior rows): ~0 at the channel solution
-            q1 = (w * st.a1 * st.r).sum(-1) - wp * t0 * st.rp
-            q2 = (w * st.a2 * st.r).sum(-1) + wp * st.rp
-            h, grad, raw = projected_normal_equations(
-                factors, w, w * st.a1, w * st.a2, st.inv, st.r, q1, q2, nfree
-            )
+            h, grad, raw = prob.normal_equations(p, st)
             if not (np.all(np.isfinite(h)) and np.all(np.isfinite(grad))):
                 raise DiagnoseError("non-finite normal equations for the global parameters")
             if it == 1:
-                for eff, sl in blocks:
-                    if sl.stop > sl.start:
-                        frac = float(
-                            np.min(np.diag(h)[sl] / np.where(raw[sl] > 0, raw[sl], np.inf))
-                        )
-                        ident[eff.name] = frac if frac >= IDENTIFIABLE_RESOLUTION else 0.0
+                ident = _identifiable(blocks, h, raw)
                 if any(ident.get(e.name, 1.0) < MIN_IDENTIFIABLE for e, _ in blocks):
                     cov = np.full((nfree, nfree), np.inf)
                     break
-            # scale to unit diagonal before the pseudo-inverse (parameters differ by 1e6);
-            # h is J^T W J less the (G, n) part, so its rounding error is ~eps * raw / diag(h)
-            # of the scaled matrix: directions below that are left out, not inverted
-            hdiag = np.diag(h)
-            dscale = 1.0 / np.sqrt(np.where(hdiag > 0, hdiag, 1.0))
-            lost = np.max(np.where(hdiag > 0, raw * dscale**2, 1.0))  # raw / projected
-            rtol = max(PINV_RTOL, ROUNDING_MARGIN * np.finfo(float).eps * lost)
-            cov = dscale[:, None] * np.linalg.pinv(dscale[:, None] * h * dscale, rtol=rtol) * dscale
+            cov = _scaled_pinv(h, raw)
             step = cov @ grad
             sig = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
             # damped Gauss-Newton: halve the step until chi^2 does not increase
             lam, trial = 1.0, None
             for _ in range(12):
-                cand = evaluate(p + lam * step, wp)
+                cand = prob.evaluate(p + lam * step)
                 if np.isfinite(cand.chi2) and cand.chi2 <= st.chi2 * (1 + 1e-12) + 1e-9:
                     trial = cand
                     break
@@ -393,19 +753,26 @@ def fit_extended(
                 break
     chi2 = st.chi2
     g, nn = np.where(st.good, st.g, np.nan), np.where(st.good, st.nn, np.nan)
-    used = int((w > 0).sum())
     nchan = int(st.good.sum())
-    ndata = used + (nchan if prior else 0)
+    ndata = prob.used + (nchan if prob.prior else 0)
     params: dict[str, np.ndarray] = {}
     sigmas: dict[str, np.ndarray] = {}
     sig_all = np.sqrt(np.abs(np.diag(cov))) if nfree else np.zeros(0)
     for eff, sl in blocks:
-        params[eff.name] = values(eff, sl, p).copy()
+        params[eff.name] = prob.values(eff, sl, p).copy()
         sigmas[eff.name] = (
             np.zeros(len(eff.params)) if eff.fixed is not None else sig_all[sl].copy()
         )
-    model = st.g[..., None] * st.a1 + st.nn[..., None] * st.a2
-    resid = np.swapaxes(np.where(w > 0, st.r * np.sqrt(w), np.nan), 2, 3)
+    source = _ModelSource(
+        obs=obs,
+        weights=prob.weights,
+        chan_ok=prob.chan_ok,
+        a1=st.a1,
+        a2=st.a2,
+        g=st.g,
+        nn=st.nn,
+        chunks=prob.chunks,
+    )
     return ExtendedFit(
         effects=effects,
         params=params,
@@ -416,13 +783,127 @@ def fit_extended(
         chi2=chi2,
         ndata=ndata,
         nparam=2 * nchan + nfree,
-        model=np.swapaxes(model, 2, 3),
-        residuals=resid,
         identifiable=ident,
         iterations=it,
         gain_factor=np.asarray(st.gfac, float).copy(),
         noise_factor=np.asarray(st.nfac, float).copy(),
+        source=source,
     )
+
+
+def _identifiable(
+    blocks: list[tuple[Effect, slice]], h: np.ndarray, raw: np.ndarray
+) -> dict[str, float]:
+    """Return each free block's Fisher fraction left after the ``(G, n)`` projection."""
+    ident: dict[str, float] = {}
+    for eff, sl in blocks:
+        if sl.stop > sl.start:
+            frac = float(np.min(np.diag(h)[sl] / np.where(raw[sl] > 0, raw[sl], np.inf)))
+            ident[eff.name] = frac if frac >= IDENTIFIABLE_RESOLUTION else 0.0
+    return ident
+
+
+@dataclass(frozen=True)
+class Screening:
+    """A candidate's score from the current model (:func:`screen_candidates`).
+
+    Attributes
+    ----------
+    delta_chi2
+        ``Delta chi^2`` one Gauss-Newton step from the current model predicts for the
+        model with the candidate (its parameters from zero, the accepted effects' from
+        their fitted values): the score (Lagrange-multiplier) statistic.
+    identifiable
+        Fraction of the candidate's Fisher information left after the ``(G, n)``
+        projection (as :attr:`ExtendedFit.identifiable`, at the current model).
+    """
+
+    delta_chi2: float
+    identifiable: float
+
+
+@_blas_single_thread
+def screen_candidates(
+    obs: Observation,
+    tpl: SkyTemplates,
+    active: list[Effect],
+    current: ExtendedFit,
+    candidates: list[Effect],
+    *,
+    weights: np.ndarray,
+    trxr_prior: np.ndarray | float | None = None,
+    trxr_prior_sigma: np.ndarray | float = 1.0,
+) -> list[Screening]:
+    """Score every candidate against the current model in one pass over the data.
+
+    The projected normal equations of the accepted effects and of all candidates together
+    are summed in one stream of the antennas at the current model (the accepted effects
+    at their fitted values, the candidates at zero); for each candidate the accepted
+    effects' and its own rows give the ``Delta chi^2`` of one Gauss-Newton step,
+    ``grad^T H^-1 grad``: the score statistic, exact for an effect linear in its
+    parameters when ``(G, n)`` are held, and the first step of the candidate's own fit.
+    The ``J^T W J`` blocks between two candidates are not computed (never used).
+
+    Parameters
+    ----------
+    obs, tpl, weights, trxr_prior, trxr_prior_sigma
+        As for :func:`fit_extended` (the weights of ``current``).
+    active
+        The accepted effects.
+    current
+        The fit of ``active`` with these weights.
+    candidates
+        Time-domain candidates (not among ``active``).
+
+    Returns
+    -------
+    list[Screening]
+        One per candidate, in order.
+    """
+    effects = tuple(e for e in [*active, *candidates] if e.kind != "bandpass")
+    prob = _Problem(obs, tpl, effects, weights, trxr_prior, trxr_prior_sigma, None, None)
+    nact = len(active)
+    groups = [0 if i < nact else i for i, (_, sl) in enumerate(prob.blocks) if sl.stop > sl.start]
+    p = np.zeros(prob.nfree)
+    for eff, sl in prob.blocks[:nact]:
+        if sl.stop > sl.start:
+            p[sl] = current.params[eff.name]
+    with np.errstate(over="ignore", invalid="ignore", under="ignore"):
+        st = prob.evaluate(p)
+        h, grad, raw = prob.normal_equations(p, st, groups=groups)
+    act_idx = np.concatenate(
+        [np.arange(sl.start, sl.stop) for _, sl in prob.blocks[:nact]] + [np.zeros(0, int)]
+    ).astype(int)
+    out = []
+    for eff, sl in prob.blocks[nact:]:
+        idx = np.concatenate([act_idx, np.arange(sl.start, sl.stop)])
+        frac = _identifiable([(eff, sl)], h, raw).get(eff.name, 0.0)
+        if (
+            sl.stop == sl.start
+            or frac < MIN_IDENTIFIABLE
+            or not np.all(np.isfinite(h[idx][:, idx]))
+        ):
+            out.append(Screening(0.0, frac))
+            continue
+        hs = h[np.ix_(idx, idx)]
+        gs = grad[idx]
+        dchi = float(gs @ _scaled_pinv(hs, raw[idx]) @ gs)
+        out.append(Screening(max(dchi, 0.0), frac))
+    return out
+
+
+def _scaled_pinv(h: np.ndarray, raw: np.ndarray) -> np.ndarray:
+    """Pseudo-inverse of the projected normal matrix ``h`` (``raw``: its unprojected diagonal).
+
+    ``h`` is scaled to unit diagonal first (parameters differ by 1e6); it is ``J^T W J``
+    less the ``(G, n)`` part, so its rounding error is ~eps * raw / diag(h) of the scaled
+    matrix: directions below that are left out, not inverted.
+    """
+    hdiag = np.diag(h)
+    dscale = 1.0 / np.sqrt(np.where(hdiag > 0, hdiag, 1.0))
+    lost = np.max(np.where(hdiag > 0, raw * dscale**2, 1.0))  # raw / projected
+    rtol = max(PINV_RTOL, ROUNDING_MARGIN * np.finfo(float).eps * lost)
+    return dscale[:, None] * np.linalg.pinv(dscale[:, None] * h * dscale, rtol=rtol) * dscale
 
 
 # normal equations of the global parameters ------------------------------------------------
@@ -436,41 +917,8 @@ def fit_extended(
 #     c_i = sum_t w a_i J,  (k1, k2) = N^-1 (c1, c2),  N the channel's 2 x 2 normal matrix,
 # so only J^T W J (antennas summed first, then the small bases), the c_i (one matrix product
 # per effect over time) and K x K products are needed: never the (samples x K) Jacobian,
-# which took most of a diagnosis's time and ~8 bytes x samples x K of memory.
-
-
-def _jacobian_factors(
-    blocks: list[tuple[Effect, slice]],
-    p: np.ndarray,
-    tpl: SkyTemplates,
-    bases: dict[tuple[str, int], np.ndarray],
-    g: np.ndarray,
-    nn: np.ndarray,
-    tt: np.ndarray,
-    gfac: np.ndarray,
-    nfac: np.ndarray,
-) -> list[tuple[slice, np.ndarray, np.ndarray]]:
-    """Return ``(slice, X, Y)`` for each block of free parameters (see above).
-
-    ``X`` broadcasts to ``(A, P, F, T)``; ``Y`` is ``(P, F, T, k)`` for Tsky effects and
-    ``(1, 1, T, k)`` for gain and noise drifts. ``g``, ``nn``: ``(A, P, F)``; ``tt``: Tsky
-    ``(1, P, F, T)``; ``gfac``, ``nfac``: the drift factors ``(T,)``.
-    """
-    out = []
-    for eff, sl in blocks:
-        if sl.stop == sl.start:
-            continue
-        if eff.kind == "tsky":
-            x = g[..., None] * gfac
-            ymat = np.swapaxes(eff.jacobian(p[sl], tpl), 1, 2)
-        elif eff.kind == "gain":
-            x = g[..., None] * tt + nn[..., None] * nfac
-            ymat = bases[eff.basis, eff.order].T[None, None]
-        else:
-            x = nn[..., None] * gfac
-            ymat = bases[eff.basis, eff.order].T[None, None]
-        out.append((sl, x, ymat))
-    return out
+# which took most of a diagnosis's time and ~8 bytes x samples x K of memory. Every term is
+# a sum over antennas, so the fit adds them up a chunk of antennas at a time.
 
 
 def _sum_time(v: np.ndarray, ymat: np.ndarray) -> np.ndarray:
@@ -506,13 +954,15 @@ def projected_normal_equations(
     q1: np.ndarray,
     q2: np.ndarray,
     nfree: int,
+    groups: list[int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Gauss-Newton normal equations of the global parameters, ``(G, n)`` projected out.
 
     Parameters
     ----------
     factors
-        :func:`_jacobian_factors` of the free parameters.
+        ``(slice, X, Y)`` of the free parameters: ``X`` broadcastable to ``w``, ``Y``
+        ``(P, F, T, k)`` or, for a time basis, ``(1, 1, T, k)``.
     w, wa1, wa2
         ``(A, P, F, T)`` weights and the weighted ``(G, n)`` columns ``w a1``, ``w a2``.
     inv
@@ -524,6 +974,9 @@ def projected_normal_equations(
         ``(A, P, F)`` ``A^T W r`` of each channel (data and prior rows).
     nfree
         Number of free global parameters.
+    groups
+        One per factor: the ``J^T W J`` block of two factors whose groups differ and are
+        both nonzero is left 0 (its projection part is still subtracted); default all 0.
 
     Returns
     -------
@@ -536,12 +989,15 @@ def projected_normal_equations(
     grad = np.zeros(nfree)
     c1 = np.zeros((*w.shape[:3], nfree))
     c2 = np.zeros_like(c1)
+    grp = [0] * len(factors) if groups is None else groups
     for i, (sl, x, ymat) in enumerate(factors):
         wx = w * x
         c1[..., sl] = _sum_time(wa1 * x, ymat)
         c2[..., sl] = _sum_time(wa2 * x, ymat)
         grad[sl] = _sum_all((wx * r).sum(axis=0), ymat)
-        for sl2, x2, y2 in factors[i:]:
+        for j, (sl2, x2, y2) in enumerate(factors[i:], i):
+            if grp[i] and grp[j] and grp[i] != grp[j]:
+                continue
             block = _sum_pair(np.broadcast_to(wx * x2, w.shape).sum(axis=0), ymat, y2)
             jwj[sl, sl2] = block
             jwj[sl2, sl] = block.T
@@ -551,6 +1007,71 @@ def projected_normal_equations(
     h = jwj - c1.T @ k1 - c2.T @ k2
     grad -= k1.T @ q1.reshape(-1) + k2.T @ q2.reshape(-1)
     return 0.5 * (h + h.T), grad, np.diag(jwj).copy()
+
+
+#: Compare-exchange pairs of a median-of-9 sorting network (19 exchanges; Paeth, Devillard):
+#: afterwards element 4 holds the median.
+_MEDIAN9 = (
+    (1, 2),
+    (4, 5),
+    (7, 8),
+    (0, 1),
+    (3, 4),
+    (6, 7),
+    (1, 2),
+    (4, 5),
+    (7, 8),
+    (0, 3),
+    (5, 8),
+    (4, 7),
+    (3, 6),
+    (1, 4),
+    (2, 5),
+    (4, 7),
+    (4, 2),
+    (6, 4),
+    (4, 2),
+)
+
+
+def _running_median(x: np.ndarray, window: int, axis: int) -> np.ndarray:
+    """Return the running median of ``x`` over ``window`` samples along ``axis``.
+
+    That of ``scipy.ndimage.median_filter`` (mode ``"mirror"``, a footprint along ``axis``
+    only). A window of 9 over an axis longer than 9 uses a sorting network on whole arrays (the
+    same values as ``median_filter``, ~4x faster on a HERA antenna); other windows call
+    ``median_filter``.
+    """
+    n = x.shape[axis]
+    if window != 9 or n <= window:
+        from scipy.ndimage import median_filter
+
+        size = [1] * x.ndim
+        size[axis] = window
+        return median_filter(x, size=tuple(size), mode="mirror")
+    half = window // 2
+    pad = [(0, 0)] * x.ndim
+    pad[axis] = (half, half)
+    xp = np.pad(x, pad, mode="reflect")  # scipy's "mirror"
+    lead = (slice(None),) * (axis % x.ndim)
+    p = [np.array(xp[(*lead, slice(i, i + n))]) for i in range(window)]
+    for a, b in _MEDIAN9:
+        low = np.minimum(p[a], p[b])
+        np.maximum(p[a], p[b], out=p[b])
+        p[a] = low
+    return p[4]
+
+
+def _residual_pieces(fit: Any) -> Iterator[tuple[slice, np.ndarray]]:
+    """Yield ``(antenna slice, residuals)`` of a fit chunk by chunk.
+
+    Anything else with a ``residuals`` array gives it whole.
+    """
+    if hasattr(fit, "residual_chunks"):
+        yield from fit.residual_chunks()
+    else:
+        res = np.asarray(fit.residuals)
+        yield slice(0, res.shape[0]), res
 
 
 def flag_outliers(
@@ -569,7 +1090,9 @@ def flag_outliers(
     a channel's fit by an outlier) is left alone and only features a few samples wide
     are flagged: samples deviating by more than ``threshold`` robust sigma
     (1.4826 x the median absolute deviation over all samples). A channel (integration)
-    that loses more than ``max_fraction`` of its samples is flagged entirely.
+    that loses more than ``max_fraction`` of its samples is flagged entirely. The
+    residuals are filtered a chunk of antennas at a time; the high-passed values of a
+    large observation (:func:`is_large`) are kept in float32 for the median over all.
 
     Parameters
     ----------
@@ -589,28 +1112,35 @@ def flag_outliers(
     numpy.ndarray
         ``(Nant, Npol, Ntime, Nfreq)`` flags (the observation's own included).
     """
-    from scipy.ndimage import median_filter
-
-    res = fit.residuals
-    ok = np.isfinite(res)
-    if not ok.any():
+    dev = np.empty(obs.shape, weights_dtype(obs.shape))
+    usable = np.zeros(obs.shape, bool)
+    for sl, res in _residual_pieces(fit):
+        ok = np.isfinite(res)
+        usable[sl] = ok
+        # high-pass in time, then in frequency: what a fit bent by an outlier spreads over
+        # its channel is smooth in time and goes; the outlier itself stays
+        filled = np.where(ok, res, 0.0)
+        hp = filled - _running_median(filled, window, axis=2)
+        hp = hp - _running_median(hp, window, axis=3)
+        dev[sl] = np.where(ok, hp, np.nan)
+    if not usable.any():
         return obs.flags.copy()
-    # high-pass in time, then in frequency: what a fit bent by an outlier spreads over
-    # its channel is smooth in time and goes; the outlier itself stays
-    filled = np.where(ok, res, 0.0)
-    hp = filled - median_filter(filled, size=(1, 1, window, 1), mode="mirror")
-    hp = hp - median_filter(hp, size=(1, 1, 1, window), mode="mirror")
-    dev = np.where(ok, hp, np.nan)
     centre = np.nanmedian(dev)
-    sigma = 1.4826 * np.nanmedian(np.abs(dev - centre))
+    np.subtract(dev, centre, out=dev)
+    np.abs(dev, out=dev)  # in place: |deviation from the centre|
+    sigma = 1.4826 * np.nanmedian(dev)
     if not np.isfinite(sigma) or sigma <= 0:
         return obs.flags.copy()
-    new = ok & (np.abs(dev - centre) > threshold * sigma)
-    count = np.maximum(ok.sum(axis=2, keepdims=True), 1)
-    new |= (new.sum(axis=2, keepdims=True) / count > max_fraction) & ok
-    count = np.maximum(ok.sum(axis=3, keepdims=True), 1)
-    new |= (new.sum(axis=3, keepdims=True) / count > max_fraction) & ok
-    return obs.flags | new
+    flags = obs.flags.copy()
+    for sl in antenna_chunks(obs.shape):
+        ok = usable[sl]
+        new = ok & (dev[sl] > threshold * sigma)
+        count = np.maximum(ok.sum(axis=2, keepdims=True), 1)
+        new |= (new.sum(axis=2, keepdims=True) / count > max_fraction) & ok
+        count = np.maximum(ok.sum(axis=3, keepdims=True), 1)
+        new |= (new.sum(axis=3, keepdims=True) / count > max_fraction) & ok
+        flags[sl] |= new
+    return flags
 
 
 # the bandpass domain --------------------------------------------------------------------
@@ -677,6 +1207,59 @@ def _bandpass_chi2(
     chi2 = float(np.sum((a @ coef - np.where(ok, g, 0) * wsq) ** 2))
     cov = np.linalg.pinv(a.T @ a)
     return chi2, coef, cov
+
+
+class _RippleScan:
+    """Total chi^2 of :func:`_bandpass_chi2` with a ripple, summed over rows, for many delays.
+
+    The same least-squares fits, all rows at once: each row's weighted smooth basis is
+    factorised once (QR), and for every delay only the two ripple columns are projected
+    off it, so a scan costs a few batched matrix products per delay instead of a
+    least-squares solve per row and delay (a whole HERA file has 700 rows and ~370
+    delays). Rows whose smooth basis is (nearly) rank-deficient over their usable channels
+    are fitted one by one as before.
+    """
+
+    def __init__(self, freqs: np.ndarray, g2: np.ndarray, s2: np.ndarray, order: int) -> None:
+        x = 2 * (freqs - freqs[0]) / (freqs[-1] - freqs[0]) - 1
+        basis = legendre.legvander(x, order)  # (F, O+1)
+        ok = np.isfinite(g2) & np.isfinite(s2) & (s2 > 0)
+        wsq = np.where(ok, 1 / np.where(ok, s2, 1.0), 0.0)  # (R, F)
+        b = np.where(ok, g2, 0.0) * wsq
+        a = basis[None] * wsq[..., None]  # (R, F, O+1)
+        q, r = np.linalg.qr(a)
+        diag = np.abs(np.diagonal(r, axis1=1, axis2=2))
+        full = (ok.sum(axis=1) > order + 3) & (diag.min(axis=1) > 1e-10 * diag.max(axis=1))
+        self.freqs, self.order = freqs, order
+        self.rows = [(g2[i], s2[i]) for i in np.flatnonzero(~full)]
+        q, r, b, wsq = q[full], r[full], b[full], wsq[full]
+        qtb = np.einsum("rfk,rf->rk", q, b)
+        self.resid = b - np.einsum("rfk,rk->rf", q, qtb)  # off the smooth basis
+        self.null = (self.resid**2).sum(axis=1)
+        coef = np.linalg.solve(r, qtb[..., None])[..., 0]  # smooth fit of each row
+        smooth_w = (coef @ basis.T) * wsq  # weighted smooth bandpass (R, F)
+        # the ripple columns are smooth_w cos / sin: with c = s cos(2 pi nu tau) etc.,
+        # Q^T c = (Q s)^T cos and |c - Q Q^T c|^2 = |c|^2 - |Q^T c|^2 (Q orthonormal), and
+        # the residual is orthogonal to Q: every delay needs three small matrix products
+        self.qs = np.ascontiguousarray(np.swapaxes(q * smooth_w[..., None], 1, 2))  # (R, K, F)
+        self.s2 = smooth_w**2
+        self.sr = smooth_w * self.resid
+
+    def __call__(self, tau_s: float) -> float:
+        """Return the total chi^2 with a ripple of delay ``tau_s`` (seconds)."""
+        ph = 2 * np.pi * self.freqs * tau_s
+        cs = np.stack([np.cos(ph), np.sin(ph)], axis=-1)  # (F, 2)
+        qtc = (self.qs.reshape(-1, cs.shape[0]) @ cs).reshape(*self.qs.shape[:2], 2)
+        trig = np.stack([cs[:, 0] ** 2, cs[:, 0] * cs[:, 1], cs[:, 1] ** 2], axis=-1)
+        cc = self.s2 @ trig  # (R, 3): c^T c
+        m = np.stack([cc[:, 0], cc[:, 1], cc[:, 1], cc[:, 2]], axis=-1).reshape(-1, 2, 2)
+        m = m - np.swapaxes(qtc, 1, 2) @ qtc
+        v = self.sr @ cs  # (R, 2)
+        gain = np.einsum("rk,rkl,rl->r", v, np.linalg.pinv(m, hermitian=True), v)
+        total = float(np.sum(self.null - gain))
+        for g, s in self.rows:
+            total += _bandpass_chi2(self.freqs, g, s, self.order, tau_s)[0]
+        return total
 
 
 def auto_smooth_order(freqs: np.ndarray, min_delay_ns: float = 100.0) -> int:
@@ -771,10 +1354,11 @@ def fit_cable_reflection(
     )
     if grid.size < 3:
         return null, null
-    chis = np.array([total_chi2(t * 1e-9) for t in grid])
+    scan = _RippleScan(freqs, g2, s2, order)
+    chis = np.array([scan(t * 1e-9) for t in grid])
     i = int(np.argmin(chis))
     fine = np.linspace(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)], 41)
-    fchis = np.array([total_chi2(t * 1e-9) for t in fine])
+    fchis = np.array([scan(t * 1e-9) for t in fine])
     j = int(np.argmin(fchis))
     tau = float(fine[j])
     inside = fine[fchis <= fchis[j] + 1.0]
@@ -831,6 +1415,9 @@ def gap_metrics(
 ) -> dict[str, Any]:
     """Measure the disagreement between a fit and the data.
 
+    One pass over the residuals, a chunk of antennas at a time (:meth:`ExtendedFit.
+    residual_chunks`): every metric is a sum over antennas.
+
     Returns
     -------
     dict
@@ -846,17 +1433,43 @@ def gap_metrics(
         ``template_correlation`` (Pearson r of the residuals with Tsky, its Galactic part
         and the ground fraction), ``bandpass_reduced_chi2``.
     """
-    res = fit.residuals
-    ok = np.isfinite(res)
-    r0 = np.where(ok, res, 0.0)
     basis = time_basis(obs.lsts, n_time_modes - 1)
     basis = np.vstack([np.ones(obs.ntime), basis]) if basis.size else np.ones((1, obs.ntime))
     norm = basis / np.sqrt((basis**2).sum(axis=1, keepdims=True))
-    proj = np.einsum("kt,aptf->apfk", norm, r0)
-    ps = np.abs(np.fft.rfft(r0, axis=-1)) ** 2 / obs.nfreq
-    ps_mean = ps.reshape(-1, ps.shape[-1]).mean(axis=0)
+    fb = np.broadcast_to(tpl.f_below[:, None, :], tpl.total.shape)
+    templates = {"tsky": tpl.total, "galactic": tpl.galactic, "ground_fraction": fb}
+    mode_power = np.zeros(norm.shape[0])
+    nchan = 0
+    ps_sum = np.zeros(obs.nfreq // 2 + 1)
+    nspectra = 0
+    nused_total, sum_r, sum_r2 = 0, 0.0, 0.0
+    jitter_sum, nint = 0.0, 0
+    count = np.zeros(tpl.total.shape)  # antennas with a usable sample, (P, T, F)
+    sum_tr = dict.fromkeys(templates, 0.0)
+    for _, res in _residual_pieces(fit):
+        ok = np.isfinite(res)
+        r0 = np.where(ok, res, 0.0)
+        proj = np.einsum("kt,aptf->apfk", norm, r0)
+        mode_power += (proj**2).reshape(-1, proj.shape[-1]).sum(axis=0)
+        nchan += proj.size // proj.shape[-1]
+        ps = np.abs(np.fft.rfft(r0, axis=-1)) ** 2 / obs.nfreq
+        ps_sum += ps.reshape(-1, ps.shape[-1]).sum(axis=0)
+        nspectra += ps.size // ps.shape[-1]
+        nused_total += int(ok.sum())
+        sum_r += float(r0.sum())
+        sum_r2 += float((r0**2).sum())
+        nused = ok.sum(axis=-1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            per_int = r0.sum(axis=-1) / np.sqrt(nused)
+        jitter_sum += float((per_int[nused > 0] ** 2).sum())
+        nint += int((nused > 0).sum())
+        count += ok.sum(axis=0)
+        for name, t in templates.items():
+            sum_tr[name] += float(np.einsum("aptf,ptf->", r0, t))
+    ps_mean = ps_sum / max(nspectra, 1)
     delays = np.fft.rfftfreq(obs.nfreq, d=obs.freqs[1] - obs.freqs[0]) * 1e9
     k = int(np.argmax(ps_mean[1:]) + 1)
+    n = max(nused_total, 1)
 
     def peak(values: np.ndarray) -> dict[str, float]:
         try:
@@ -868,32 +1481,31 @@ def gap_metrics(
         i = int(np.nanargmax(amp))
         return {"amplitude": float(amp[i]), "delay_ns": float(ds.delays_ns[sel][i])}
 
-    def corr(template: np.ndarray) -> float:
-        t = np.broadcast_to(template[None], res.shape)[ok]
-        if np.std(t) == 0:
+    def corr(name: str) -> float:
+        # Pearson r over the usable samples; the template is shared by all antennas, so its
+        # moments are weighted by the number of antennas with a usable sample
+        t = np.asarray(templates[name], float)
+        seen = count > 0
+        if not seen.any() or np.ptp(t[seen]) == 0:
             return 0.0
-        return float(np.corrcoef(t, res[ok])[0, 1])
+        t_mean = float((count * t).sum()) / n
+        var_t = float((count * (t - t_mean) ** 2).sum())
+        r_mean = sum_r / n
+        var_r = sum_r2 - n * r_mean**2
+        cov = sum_tr[name] - t_mean * sum_r
+        return float(cov / math.sqrt(var_t * var_r)) if var_t > 0 and var_r > 0 else 0.0
 
-    fb = np.broadcast_to(tpl.f_below[:, None, :], tpl.total.shape)
-    nused = ok.sum(axis=-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        per_int = r0.sum(axis=-1) / np.sqrt(nused)
-    jitter = float(np.sqrt(np.mean(per_int[nused > 0] ** 2))) if (nused > 0).any() else 0.0
     return {
         "chi2": fit.chi2,
         "dof": fit.dof,
         "reduced_chi2": fit.reduced_chi2,
-        "rms_normalised_residual": float(np.sqrt(np.mean(res[ok] ** 2))),
-        "integration_jitter": jitter,
-        "time_mode_power": [float(v) for v in np.mean(proj**2, axis=(0, 1, 2))],
+        "rms_normalised_residual": float(np.sqrt(sum_r2 / n)),
+        "integration_jitter": float(np.sqrt(jitter_sum / nint)) if nint else 0.0,
+        "time_mode_power": [float(v) for v in mode_power / max(nchan, 1)],
         "residual_delay_power": {"max": float(ps_mean[k]), "delay_ns": float(delays[k])},
         "delay_peak_G": peak(fit.G),
         "delay_peak_Trxr": peak(fit.Trxr),
-        "template_correlation": {
-            "tsky": corr(tpl.total),
-            "galactic": corr(tpl.galactic),
-            "ground_fraction": corr(fb),
-        },
+        "template_correlation": {name: corr(name) for name in templates},
         "bandpass_reduced_chi2": None if bandpass is None else bandpass.reduced_chi2,
     }
 
@@ -1091,11 +1703,27 @@ def robust_overdispersion(fit: ExtendedFit) -> float:
     the first search) do not inflate as they inflate ``chi^2 / dof``. Used by the
     ``gain_jitter`` test, whose verdict would otherwise rest on the RFI.
     """
-    res = np.asarray(fit.residuals)
-    ok = np.isfinite(res)
-    if not ok.any():
+    squares = []
+    for _, res in _residual_pieces(fit):
+        flat = np.asarray(res).ravel()
+        # a whole HERA file has 2e8 residuals: a regular subsample of ~4e6 is plenty
+        stride = max(1, flat.size * max(1, fit_nchunks(fit)) // ROBUST_SAMPLES)
+        sub = flat[::stride]
+        squares.append(sub[np.isfinite(sub)] ** 2)
+    values = np.concatenate(squares) if squares else np.zeros(0)
+    if not values.size:
         return fit.reduced_chi2
-    return float(np.median(res[ok] ** 2) / _CHI2_1_MEDIAN)
+    return float(np.median(values) / _CHI2_1_MEDIAN)
+
+
+#: Residuals :func:`robust_overdispersion` takes the median of, at most (about).
+ROBUST_SAMPLES = 1 << 22
+
+
+def fit_nchunks(fit: Any) -> int:
+    """Return the number of antenna chunks a fit streams its residuals in (1 for arrays)."""
+    source = getattr(fit, "source", None)
+    return len(source.chunks) if source is not None else 1
 
 
 def sky_time_shapes(tpl: SkyTemplates) -> np.ndarray:
@@ -1159,10 +1787,12 @@ def describe_unexplained(
         if delay["max"] > 4.0
         else "white in frequency"
     )
-    res = np.where(np.isfinite(fit.residuals), fit.residuals, 0.0)
-    per_feed = (res**2).sum(axis=(2, 3)) / np.maximum(
-        np.isfinite(fit.residuals).sum(axis=(2, 3)), 1
-    )
+    per_feed = np.zeros((len(obs.antennas), len(obs.pols)))
+    for sl, res in _residual_pieces(fit):
+        ok = np.isfinite(res)
+        per_feed[sl] = (np.where(ok, res, 0.0) ** 2).sum(axis=(2, 3)) / np.maximum(
+            ok.sum(axis=(2, 3)), 1
+        )
     feeds = sorted(
         (
             (float(per_feed[ia, ip]), int(a), str(p))
@@ -1255,12 +1885,29 @@ def product_sigmas(
     The constant-model fit of :func:`autocal.fit.fit` against the model Tsky, with
     radiometer weights, errors inflated by ``max(1, chi^2/dof)``, the total uncertainty
     (:mod:`autocal.uncertainty`) and the diagnosis's receiver prior ``(trxr, sigma)`` if
-    any: the yardstick of :func:`product_impact`.
+    any: the yardstick of :func:`product_impact`. Every channel is fitted on its own, so a
+    large observation is fitted :data:`PRODUCT_SIGMA_SAMPLES` at a time (the fit holds a
+    few float64 copies of what it is given).
     """
     from autocal.fit import fit
 
-    sol = fit(obs, tpl.total, scale_covariance="inflate", trxr_prior=prior)
-    return sol.sigma_G, sol.sigma_Trxr
+    per_antenna = math.prod(obs.shape[1:])
+    chunks = antenna_chunks(obs.shape, max(1, PRODUCT_SIGMA_SAMPLES // per_antenna))
+    if len(chunks) == 1:
+        sol = fit(obs, tpl.total, scale_covariance="inflate", trxr_prior=prior)
+        return sol.sigma_G, sol.sigma_Trxr
+    shape3 = (obs.nant, len(obs.pols), obs.nfreq)
+    sigma_g, sigma_t = np.empty(shape3), np.empty(shape3)
+    for sl in chunks:
+        part = obs.select(antennas=[int(a) for a in obs.antennas[sl]])
+        part_prior = (
+            None
+            if prior is None
+            else tuple(np.broadcast_to(np.asarray(v, float), shape3)[sl] for v in prior)
+        )
+        sol = fit(part, tpl.total, scale_covariance="inflate", trxr_prior=part_prior)
+        sigma_g[sl], sigma_t[sl] = sol.sigma_G, sol.sigma_Trxr
+    return sigma_g, sigma_t
 
 
 def product_impact(
@@ -1986,6 +2633,104 @@ def _escape_local_minimum(
     return refit if gain > bic_threshold else None
 
 
+#: A step of a large search fits in full at least this many time-domain candidates (those
+#: with the best scores, :class:`_StepScreen`) ...
+SCREEN_FITS = 2
+#: ... and then every one whose score-based Delta BIC comes within this much of the best
+#: fitted candidate's Delta BIC, or within :data:`SCREEN_FRACTION` of it if that is more.
+SCREEN_MARGIN = BIC_THRESHOLD
+#: See :data:`SCREEN_MARGIN`. The score misses the full fit's Delta chi^2 by < 1 % for the
+#: candidates near the data's effect and overestimates it by up to 25 % for strong ones far
+#: from it (``beam_width`` against a gain drift; the test of :func:`screen_candidates`).
+SCREEN_FRACTION = 0.25
+
+
+class _StepScreen:
+    """Which candidates one step of a large search fits in full.
+
+    All time-domain candidates are scored at once from the current model
+    (:func:`screen_candidates`); they are tried best score first, each fitted in full,
+    until :data:`SCREEN_FITS` have passed the checks and the next one's score-based Delta
+    BIC is out of reach of the best fitted one (:data:`SCREEN_MARGIN`,
+    :data:`SCREEN_FRACTION`). Candidates the projection leaves unidentifiable are not
+    fitted (a full fit would be refused for the same reason). The bandpass candidate
+    (``cable_reflection``) is always tried.
+    """
+
+    def __init__(
+        self,
+        obs: Observation,
+        tpl: SkyTemplates,
+        active: list[Effect],
+        current: ExtendedFit,
+        cands: list[Effect],
+        weights: np.ndarray,
+        prior_kw: dict[str, Any],
+        diag: Diagnosis,
+    ) -> None:
+        names = {a.name for a in active}
+        jitter = any(a.kind == "gain" and a.basis == "integration" for a in active)
+        scored = [
+            c
+            for c in cands
+            if c.kind not in ("bandpass", "feed_gain")
+            and c.name not in names
+            and not (c.kind == "gain" and jitter)
+        ]
+        self.diag, self.lnn = diag, math.log(max(current.ndata, 2))
+        self.scores: dict[int, Screening] = {}
+        try:
+            scores = screen_candidates(
+                obs, tpl, active, current, scored, weights=weights, **prior_kw
+            )
+        except (DiagnoseError, np.linalg.LinAlgError) as exc:
+            logger.warning("candidate screening failed (%s): every candidate is fitted", exc)
+            scores = []
+        self.scores = {id(c): s for c, s in zip(scored, scores, strict=False)}
+        self.approx = {id(c): self._approx(c) for c in scored if id(c) in self.scores}
+        ranked = sorted(
+            (c for c in scored if id(c) in self.scores),
+            key=lambda c: (
+                -self.approx[id(c)]
+                if self.scores[id(c)].identifiable >= MIN_IDENTIFIABLE
+                else math.inf
+            ),
+        )
+        rest = [c for c in cands if c.kind != "bandpass" and id(c) not in self.scores]
+        self.order = [c for c in cands if c.kind == "bandpass"] + ranked + rest
+        self.skipped: dict[str, float] = {}
+        self.fitted: list[str] = []
+
+    def _approx(self, eff: Effect, chat: float = 1.0) -> float:
+        """Return the candidate's Delta BIC from its score (overdispersion ``chat``)."""
+        return self.scores[id(eff)].delta_chi2 / chat - eff.nfree * self.lnn
+
+    def skip(self, eff: Effect, results: list[tuple]) -> bool:
+        """Return whether to skip the candidate given the step's results so far."""
+        score = self.scores.get(id(eff))
+        if score is None:
+            return False
+        label = f"{eff.name}/{eff.basis}{eff.order}"
+        if score.identifiable < MIN_IDENTIFIABLE:
+            self.diag.identifiability.setdefault(eff.name, score.identifiable)
+            return True
+        fitted = [r for r in results if r[3].kind != "bandpass"]
+        if len(fitted) >= SCREEN_FITS:
+            chat = max(1.0, min(r[5] for r in fitted))
+            best = max(r[1] / chat - r[2] * self.lnn for r in fitted)
+            approx = self._approx(eff, chat)
+            if approx < best - max(SCREEN_MARGIN, SCREEN_FRACTION * abs(best)):
+                self.skipped[label] = approx
+                self.diag.identifiability.setdefault(eff.name, score.identifiable)
+                return True
+        self.fitted.append(label)
+        return False
+
+    def report(self) -> dict[str, Any]:
+        """Return what the step fitted and the score-based Delta BIC of what it did not."""
+        return {"fitted": list(self.fitted), "screened_out": dict(self.skipped)}
+
+
 def _diagnose_once(
     obs: Observation,
     tpl: SkyTemplates,
@@ -2000,8 +2745,13 @@ def _diagnose_once(
     progress: Callable[[float, str], None] = lambda fraction, message: None,
 ) -> Diagnosis:
     """One search for effects (:func:`diagnose` without the outlier flagging)."""
-    if not np.all(obs.bandwidth_time()[~obs.flags] > 0):
-        raise DiagnoseError("diagnose needs radiometer weights: channel width, integration time")
+    width = obs.channel_width[None, None, None, :]
+    tint = obs.integration_time[None, None, :, None]
+    for sl in antenna_chunks(obs.shape):
+        if not np.all((width * (tint * obs.nsamples[sl]))[~obs.flags[sl]] > 0):
+            raise DiagnoseError(
+                "diagnose needs radiometer weights: channel width, integration time"
+            )
     cands = (
         list(candidates)
         if candidates is not None
@@ -2040,9 +2790,9 @@ def _diagnose_once(
     progress(0.0, "fitting the starting model")
     w = radiometer_weights(obs, obs.data)
     current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
-    w = radiometer_weights(obs, current.model)
+    w = radiometer_weights(obs, current)
     current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
-    base_fit = current
+    base_fit = current.detached()  # its G and Trxr only: no reference to these weights
     sigma_g, sigma_t = product_sigmas(
         obs, tpl, None if trxr_prior is None else (trxr_prior, trxr_prior_sigma)
     )
@@ -2051,7 +2801,11 @@ def _diagnose_once(
         obs.freqs, current.G, current.sigma_G, smooth_order=smooth_order
     )
     diag.initial_gap = gap_metrics(current, obs, tpl, bp_null)
-    diag.residual_snapshots.append(("initial model", current.residuals[0, 0]))
+    diag.residual_snapshots.append(("initial model", current.residuals_of(0, 0)))
+    # a large observation: each step fits in full only the candidates whose score says
+    # they could win (_StepScreen)
+    large = is_large(obs.shape)
+    plan: _StepScreen | None = None
 
     def try_candidates(step: int) -> tuple[list[tuple[Any, ...]], ExtendedFit | None]:
         """Fit every candidate not yet in the model.
@@ -2060,9 +2814,9 @@ def _diagnose_once(
         lowest-chi2 model fitted (rejected candidates included: see
         :func:`_escape_local_minimum`).
         """
-        results = []
+        results: list[tuple[Any, ...]] = []
         lowest: ExtendedFit | None = None
-        for icand, eff in enumerate(cands):
+        for icand, eff in enumerate(cands if plan is None else plan.order):
             progress(
                 (step + icand / len(cands)) / max_steps,
                 f"step {step + 1}: trying {eff.name} ({eff.basis}, order {eff.order})",
@@ -2070,6 +2824,8 @@ def _diagnose_once(
             if any(a.name == eff.name for a in active) or (
                 eff.kind == "bandpass" and cable is not None
             ):
+                continue
+            if plan is not None and plan.skip(eff, results):
                 continue
             if eff.kind == "bandpass":
                 null, rip = fit_cable_reflection(
@@ -2234,6 +2990,9 @@ def _diagnose_once(
     feed_accepted: set[str] = set()
     for step in range(max_steps):
         while True:
+            plan = (
+                _StepScreen(obs, tpl, active, current, cands, w, prior_kw, diag) if large else None
+            )
             results, lowest = try_candidates(step)
             escaped = (
                 _escape_local_minimum(obs, tpl, active, current, lowest, w, prior_kw, bic_threshold)
@@ -2258,8 +3017,10 @@ def _diagnose_once(
                 "+".join(e.name for e in lowest.effects),
                 current.chi2 - escaped.chi2,
             )
-            w = radiometer_weights(obs, escaped.model)
+            w = radiometer_weights(obs, escaped)
             current = fit_extended(obs, tpl, active, weights=w, start=escaped.params, **prior_kw)
+        if plan is not None:
+            diag.config.setdefault("screening", []).append({"step": step + 1, **plan.report()})
         if results:
             # one overdispersion for every time-domain candidate of a step (as in QAIC,
             # from the best-fitting model), so that tiny differences of chi2/dof between
@@ -2359,7 +3120,7 @@ def _diagnose_once(
             gap_after = dict(gap_before)
             gap_after["bandpass_reduced_chi2"] = rip.reduced_chi2
             bp_null = rip
-            diag.residual_snapshots.append((f"after {eff.name}", current.residuals[0, 0]))
+            diag.residual_snapshots.append((f"after {eff.name}", current.residuals_of(0, 0)))
         elif eff.kind == "feed_gain":
             feed: FeedJitterFit = payload
             feed_accepted.add(eff.name)
@@ -2385,9 +3146,9 @@ def _diagnose_once(
             step_extra["product_impact"] = impact
             step_extra["negligible"] = is_negligible(impact)
             gap_after = gap_metrics(new, obs, tpl, bp_null)
-            w = radiometer_weights(obs, new.model)
+            w = radiometer_weights(obs, new)
             current = fit_extended(obs, tpl, active, weights=w, start=new.params, **prior_kw)
-            diag.residual_snapshots.append((f"after {eff.name}", current.residuals[0, 0]))
+            diag.residual_snapshots.append((f"after {eff.name}", current.residuals_of(0, 0)))
             rms = np.std(feed.factors, axis=-1)
             swing = np.ptp(feed.factors, axis=-1)
             params = {
@@ -2428,7 +3189,7 @@ def _diagnose_once(
             # and reported as negligible, not named among the effects
             step_extra["negligible"] = is_negligible(impact)
             # re-weight with the improved model for the next step
-            w = radiometer_weights(obs, new.model)
+            w = radiometer_weights(obs, new)
             current = fit_extended(obs, tpl, active, weights=w, start=new.params, **prior_kw)
             # the effects accepted before are re-tested against the refit: one that the
             # new effect explains away is dropped now, before the search goes on
@@ -2444,7 +3205,7 @@ def _diagnose_once(
                 f"step {step + 1}",
                 keep=active[-1],
             )
-            diag.residual_snapshots.append((f"after {eff.name}", current.residuals[0, 0]))
+            diag.residual_snapshots.append((f"after {eff.name}", current.residuals_of(0, 0)))
             if not isinstance(payload, tuple):
                 params = _params_dict(eff, current)
             if eff.basis == "integration":

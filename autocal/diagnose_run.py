@@ -4,11 +4,12 @@
 
 The shared entry point of ``autocal diagnose`` and the service's ``diagnose`` jobs
 (:mod:`autocal.service.worker`). :func:`run_diagnosis` reads the autos
-(:func:`autocal.io.uvh5.read_uvh5`), computes the model Tsky and the templates of the
-candidate effects (:func:`autocal.effects.sky_templates`), runs the discrepancy workflow
-(:func:`autocal.diagnose.diagnose`, DESIGN.md section 5) and writes its products:
-``diagnosis.json``, ``summary.txt``, the residual plots (:func:`autocal.diagnose.
-write_diagnosis`) and ``summary.json`` (accepted effects, final gap, provenance, timings).
+(:func:`read_observation`, a block of integrations at a time), computes the model Tsky and
+the templates of the candidate effects (:func:`autocal.effects.sky_templates`), runs the
+discrepancy workflow (:func:`autocal.diagnose.diagnose`, DESIGN.md section 5) and writes
+its products: ``diagnosis.json``, ``summary.txt``, the residual plots
+(:func:`autocal.diagnose.write_diagnosis`) and ``summary.json`` (accepted effects, final
+gap, provenance, timings).
 
 As in :mod:`autocal.pipeline`, products are written to a staging folder inside ``out``
 and moved into place only when all of them succeeded (``summary.json`` last), so a failed
@@ -171,12 +172,15 @@ def _beam_pols(pols: tuple[str, ...]) -> tuple[str, ...]:
 
 
 #: Peak memory of a diagnosis: this much plus :data:`BYTES_PER_SAMPLE` per sample (antenna x
-#: pol x channel x integration), measured with ``autocal diagnose`` on a file of the HERA-size
-#: night (192 integrations; README, "Diagnosing", **Size.**): 1.22 GB for 10 antennas x 2
-#: pols x 307 channels (1.2 M samples), 4.73 GB for 30 antennas x 2 pols x 1536 channels.
-BASE_BYTES = 1.0e9
-#: See :data:`BASE_BYTES` (the slope between those two runs, 212 bytes, rounded up).
-BYTES_PER_SAMPLE = 220.0
+#: pol x channel x integration), measured with ``benchmarks/diagnose_scale.py`` (``autocal
+#: diagnose`` on the first file of the HERA-size night, 192 integrations x 1536 channels x 2
+#: pols; README, "Diagnosing", **Size.**): 1.83 GB for 30 antennas (17.7 M samples), 6.33 GB
+#: for all 350 (206 M). The fit streams antennas in chunks (:func:`autocal.diagnose.
+#: fit_extended`), so what grows with the samples is the observation (float64 data, flags),
+#: the float32 weights and, while outliers are flagged, their high-passed residuals.
+BASE_BYTES = 1.5e9
+#: See :data:`BASE_BYTES` (the slope between those two runs, 23.8 bytes, rounded up).
+BYTES_PER_SAMPLE = 26.0
 
 
 def available_memory() -> float | None:
@@ -230,6 +234,117 @@ def check_memory(shape: tuple[int, ...]) -> None:
     logger.debug("diagnosis of %d samples: about %.1f GB", nsamples, need / 1e9)
 
 
+def read_observation(
+    paths: list[Path],
+    *,
+    antennas: list[int] | None = None,
+    pols: list[str] | None = None,
+    freq_range: tuple[float, float] | None = None,
+    lst_range: tuple[float, float] | None = None,
+    check: Callable[[tuple[int, int, int, int]], None] | None = None,
+) -> Any:
+    """Read the autos of UVH5 files into one observation, a block of integrations at a time.
+
+    The values are those :func:`autocal.io.uvh5.read_uvh5` returns for the same selections,
+    but the blocks (:func:`autocal.io.uvh5.iter_uvh5`) are copied straight into the
+    observation's arrays: :func:`~autocal.io.uvh5.read_uvh5` holds several copies of the
+    data while it joins them (a peak of 8.0 GB for a whole HERA file, whose observation is
+    1.9 GB). ``nsamples`` uniform over the observation are kept as one number.
+
+    Parameters
+    ----------
+    paths
+        The UVH5 files.
+    antennas, pols, freq_range, lst_range
+        As for :func:`~autocal.io.uvh5.read_uvh5` (``freq_range`` in Hz).
+    check
+        Called with ``(Nant, Npol, Ntime, Nfreq)`` (``Ntime``: every integration of the
+        files, before the LST selection) once the first block is read, before the
+        observation's arrays are allocated (:func:`check_memory`).
+
+    Returns
+    -------
+    autocal.observation.Observation
+        The observation.
+    """
+    from autocal.io.uvh5 import iter_uvh5, scan_uvh5
+    from autocal.observation import Observation
+
+    files = scan_uvh5(paths)
+    ntime_max = sum(f.jds.size for f in files)
+    data = flags = nsamples = None
+    uniform: float | None = None
+    first: Any = None
+    lsts, jds, tint, sha, used = [], [], [], {}, []
+    t = 0
+    for block in iter_uvh5(
+        paths,
+        antennas=antennas,
+        pols=pols,
+        freq_range=freq_range,
+        lst_range=lst_range,
+        block_size=0,
+    ):
+        nant, npol, nt, nfreq = block.data.shape
+        if first is None:
+            first = block
+            if check is not None:
+                check((nant, npol, ntime_max, nfreq))
+            data = np.empty((nant, npol, ntime_max, nfreq))
+            flags = np.empty(data.shape, bool)
+            uniform = float(block.nsamples.flat[0])
+        assert data is not None and flags is not None
+        data[:, :, t : t + nt] = block.data
+        flags[:, :, t : t + nt] = block.flags
+        if nsamples is None and not np.all(block.nsamples == uniform):
+            nsamples = np.empty(data.shape)
+            nsamples[:, :, :t] = uniform
+        if nsamples is not None:
+            nsamples[:, :, t : t + nt] = block.nsamples
+        lsts.append(block.lsts)
+        jds.append(block.jds)
+        tint.append(block.integration_time)
+        sha.update(block.meta.get("sha256", {}))
+        used += [f for f in block.meta.get("files", []) if f not in used]
+        t += nt
+    if first is None or data is None or flags is None:
+        raise DiagnoseError(f"no integrations in LST range {lst_range} h in {paths}")
+    if t < ntime_max:  # an LST selection: keep only what was read
+        data = np.ascontiguousarray(data[:, :, :t])
+        flags = np.ascontiguousarray(flags[:, :, :t])
+        nsamples = None if nsamples is None else np.ascontiguousarray(nsamples[:, :, :t])
+    obs = Observation(
+        data=data,
+        freqs=first.freqs,
+        lsts=np.concatenate(lsts),
+        jds=np.concatenate(jds),
+        antennas=first.antennas,
+        pols=first.pols,
+        site=first.site,
+        flags=flags,
+        channel_width=first.channel_width,
+        integration_time=np.concatenate(tint),
+        nsamples=uniform if nsamples is None else nsamples,
+        antenna_names=first.antenna_names,
+        telescope_name=first.telescope_name,
+        meta={
+            "source": "uvh5",
+            "files": used,
+            "sha256": sha,
+            **{k: first.meta[k] for k in ("x_orientation", "vis_units") if k in first.meta},
+        },
+    )
+    logger.info(
+        "read %d file(s): %d antennas, pols %s, %d times, %d channels",
+        len(used),
+        obs.nant,
+        ",".join(obs.pols),
+        obs.ntime,
+        obs.nfreq,
+    )
+    return obs
+
+
 def run_diagnosis(
     config: DiagnoseConfig,
     out: str | Path,
@@ -271,7 +386,6 @@ def run_diagnosis(
     from autocal import __version__
     from autocal.diagnose import diagnose, write_diagnosis
     from autocal.effects import sky_templates
-    from autocal.io.uvh5 import read_uvh5
 
     def check_stop() -> None:
         if should_stop is not None and should_stop():
@@ -295,15 +409,15 @@ def run_diagnosis(
         prior = parse_trxr_prior(config.trxr_prior, sigma_k=config.trxr_prior_sigma_k)
     report(0.0, f"reading {len(paths)} UVH5 file(s)")
     mhz = config.freq_range_mhz
-    obs = read_uvh5(
+    obs = read_observation(
         paths,
         antennas=config.antennas,
         pols=config.pols,
         freq_range=None if mhz is None else (mhz[0] * 1e6, mhz[1] * 1e6),
         lst_range=config.lst_range_h,
+        check=check_memory,
     )
     timings["read_s"] = time.perf_counter() - t0
-    check_memory(obs.data.shape)
     prior_mean = prior_sigma = None
     if prior is not None:
         prior_mean, prior_sigma = prior.at(obs.freqs, antennas=obs.antennas, pols=obs.pols)

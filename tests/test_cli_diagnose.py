@@ -41,8 +41,12 @@ def test_cli_diagnose_refuses_what_the_memory_cannot_hold(tmp_path, capsys, monk
     monkeypatch.setattr(diagnose_run, "available_memory", lambda: None)
     diagnose_run.check_memory((350, 2, 8640, 1536))
     monkeypatch.setattr(diagnose_run, "available_memory", lambda: 24e9)
-    diagnose_run.check_memory((30, 2, 192, 1536))  # 17.7 M samples: the measured 4.7 GB run
+    diagnose_run.check_memory((30, 2, 192, 1536))  # 17.7 M samples: the measured 1.8 GB run
+    diagnose_run.check_memory((350, 2, 192, 1536))  # a whole HERA file: the measured 6.3 GB
     with pytest.raises(diagnose_run.DiagnoseError, match="350 antennas x 2 pols x 1536 channels"):
+        diagnose_run.check_memory((350, 2, 8640, 1536))  # a whole 8 h night: ~240 GB
+    monkeypatch.setattr(diagnose_run, "available_memory", lambda: 4e9)
+    with pytest.raises(diagnose_run.DiagnoseError, match="select fewer antennas"):
         diagnose_run.check_memory((350, 2, 192, 1536))
 
 
