@@ -1968,7 +1968,13 @@ def product_impact(
             "rms_relative_change": float(np.sqrt(np.mean(dshape**2))),
             "max_abs_relative_change": float(np.max(np.abs(dshape))),
         }
-        dtrx = np.abs(t_a[..., None] * (ns_a - 1.0) - t_b[..., None] * (ns_b - 1.0)).max(axis=-1)
+        # the largest change over time, one integration at a time (a whole HERA file's
+        # (A, P, F, T) temporaries would be 1.6 GB each)
+        ua, vb = np.broadcast_arrays(ns_a - 1.0, ns_b - 1.0)
+        dtrx = np.zeros(np.shape(t_a))
+        for u, v in zip(np.atleast_1d(ua), np.atleast_1d(vb), strict=True):
+            np.fmax(dtrx, np.abs(t_a * u - t_b * v), out=dtrx)
+        dtrx = np.where(np.isfinite(t_a) & np.isfinite(t_b), dtrx, np.nan)
         ok = np.isfinite(dtrx)
         out["Trxr_time"] = (
             {
