@@ -2405,7 +2405,7 @@ FEED_JITTER_MAX_FEEDS = 64
 
 
 @dataclass(frozen=True)
-class FeedJitterFit:
+class FeedGainFit:
     """Every antenna-pol's own gain series (:func:`fit_feed_gains`).
 
     Attributes
@@ -2448,7 +2448,7 @@ def fit_feed_gains(
     w: np.ndarray,
     prior_kw: dict[str, Any],
     eff: Effect,
-) -> FeedJitterFit | None:
+) -> FeedGainFit | None:
     """Fit each antenna-pol's own gain series, the other effects held at their values.
 
     ``antenna_gain_jitter`` (``eff.basis == "feed_integration"``): the model with one
@@ -2520,7 +2520,7 @@ def fit_feed_gains(
             ndata += fit.ndata
             nparam += fit.nparam
     nfeeds = obs.nant * len(obs.pols)
-    return FeedJitterFit(
+    return FeedGainFit(
         factors=factors,
         sigmas=sigmas,
         chi2=chi2,
@@ -2533,7 +2533,7 @@ def fit_feed_gains(
 
 
 def feed_departures_rough(
-    feed: FeedJitterFit, current: ExtendedFit, obs: Observation, tpl: SkyTemplates
+    feed: FeedGainFit, current: ExtendedFit, obs: Observation, tpl: SkyTemplates
 ) -> float:
     """Delta BIC of the rough part of each antenna-pol's departure from the common series.
 
@@ -3128,7 +3128,7 @@ def _diagnose_once(
             bp_null = rip
             diag.residual_snapshots.append((f"after {eff.name}", current.residuals_of(0, 0)))
         elif eff.kind == "feed_gain":
-            feed: FeedJitterFit = payload
+            feed: FeedGainFit = payload
             feed_accepted.add(eff.name)
             # every antenna-pol's own series: its departure from what the antenna-pols
             # share (the common jitter series, or their mean drift) is divided out of the

@@ -360,7 +360,8 @@ def run_diagnosis(
     out
         Output folder (created when the products are written). Products:
         ``diagnosis.json``, ``summary.txt``, ``residuals_step<i>.png`` (before/after each
-        accepted step; ``residuals.png`` when nothing was accepted) and ``summary.json``
+        accepted step; ``residuals.png`` when nothing was accepted), ``gain_series.png``
+        (when a per-integration gain series was accepted) and ``summary.json``
         (``effects``, ``final_gap``, ``config``, ``provenance``, ``products``,
         ``timings_s``).
     progress

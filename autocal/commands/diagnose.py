@@ -23,11 +23,14 @@ def add(sub: argparse._SubParsersAction) -> None:
         help="name the physical effects missing from the model (gain drift, reflections, ...)",
         description="Fit the current model (sky x beam + CMB + ground, constant gain per "
         "channel) to the autos of one observation, measure the gap, fit each candidate "
-        "effect of the catalogue (gain_drift, gain_jitter, noise_drift, sky_scale, sky_offset, "
-        "sky_spectral_index, ground_temperature, beam_width, missing_cmb, "
-        "cable_reflection), accept the best by BIC while significant, and repeat. Writes "
-        "diagnosis.json, summary.txt, summary.json and residual plots to --out (all or "
-        "nothing). The service runs the same as a job of kind 'diagnose'.",
+        "effect of the catalogue (gain_drift, gain_jitter, antenna_gain_jitter, "
+        "antenna_gain_drift, noise_drift, sky_scale, sky_offset, sky_spectral_index, "
+        "ground_temperature, beam_width, missing_cmb, timing_offset, cable_reflection), "
+        "accept the best by BIC while significant and consistent across the band, and "
+        "repeat; report what barely moves the products as negligible and what nothing "
+        "explains as unexplained. Writes diagnosis.json, summary.txt, summary.json, "
+        "residual plots and gain_series.png to --out (all or nothing). The service runs "
+        "the same as a job of kind 'diagnose'.",
     )
     p.add_argument("inputs", nargs="+", type=Path, help="UVH5 files of one observation")
     p.add_argument("--sky", default="gsm2008", help="model sky (default gsm2008)")
