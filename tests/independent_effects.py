@@ -18,6 +18,8 @@ catalogue's definitions, without autocal's simulation or hidden-effect code:
                         feed), rms 0.2-1 %
 ``antenna_gain_drift``  every antenna-pol its own linear gain drift, 1-5 % from first to
                         last integration, each of random sign
+``timing_offset``       the sky simulated ``dt_s`` after the times in the file (a clock
+                        behind), ``|dt_s|`` 30-90 s
 ``noise_drift``         ``Trxr(t) = Trxr (1 + e_1 s)``, ``s`` the time (linear in LST)
                         mapped onto ``[-1, 1]`` over the span, ``|e_1|`` 1-5 %
 ``cable_reflection``    ``G(nu) (1 + a cos(2 pi nu tau + phi))``: ``a`` 1e-3-1e-2,
@@ -89,6 +91,7 @@ HIDDEN_NAMES = (
     "sky_offset",
     "antenna_gain_jitter",
     "antenna_gain_drift",
+    "timing_offset",
 )
 #: Ground temperature the diagnosis's model assumes, kelvin.
 MODEL_TGND_K = 300.0
@@ -337,6 +340,8 @@ def draw_effect(name: str, span: Span, rng: np.random.Generator) -> Hidden:
         return Hidden(
             base, {"rms": rng.uniform(1e-3, 1e-2), "seed": int(rng.integers(0, 2**31 - 1))}
         )
+    if base == "timing_offset":
+        return Hidden(base, {"dt_s": sign * rng.uniform(30.0, 90.0)})
     if base == "antenna_gain_drift":
         return Hidden(base, {"seed": int(rng.integers(0, 2**31 - 1))})
     if base == "antenna_gain_jitter":
@@ -441,6 +446,8 @@ def simulation_kwargs(case: Case) -> dict[str, Any]:
             factors = factors * (1.0 + drift)
         elif eff.name == "gain_jitter":
             factors = factors * jitter_factors(p["rms"], p["seed"], ntime)
+        elif eff.name == "timing_offset":
+            kwargs["clock_offset_s"] = p["dt_s"]
         elif eff.name == "antenna_gain_drift":
             kwargs["feed_gain"] = feed_drift_factors(
                 p["seed"], len(case.antennas), len(case.pols), ntime
@@ -613,7 +620,7 @@ def effect_strength(
         clean = sim.independent_tsky(freqs, jds, pol, case.beam, MODEL_TGND_K, **common)
         true = sim.independent_tsky(
             freqs,
-            jds,
+            jds + kw.get("clock_offset_s", 0.0) / 86400.0,
             pol,
             case.beam,
             kw.get("tgnd_k", MODEL_TGND_K),
@@ -856,7 +863,7 @@ def case_seed(name: str, seed: int = SUITE_SEED) -> int:
 
 
 def suite_plan(seed: int = SUITE_SEED) -> list[Case]:
-    """Return the fixed-seed suite (51 cases).
+    """Return the fixed-seed suite (52 cases).
 
     * 8 clean controls: the dipole over a day (1 antenna ee, twice with different noise;
       2 antennas ee + nn), over a short span at LST 3.23 h (1 antenna ee; 2 antennas
@@ -871,7 +878,7 @@ def suite_plan(seed: int = SUITE_SEED) -> list[Case]:
     * nn, two antennas or the HERA beam (7 cases);
     * every antenna-pol its own gain jitter: 2 antennas x ee + nn over a short span, 3
       antennas (ee) over a day; its own gain drift, 2 antennas x ee + nn over a short span
-      (3 cases);
+      (3 cases); a clock 30-90 s behind over a day (1 case);
     * pairs: the 6 of autocal's own suite over a day, 2 over a short span, 1 with the
       HERA beam over a day (9 cases).
 
@@ -946,6 +953,7 @@ def suite_plan(seed: int = SUITE_SEED) -> list[Case]:
     add("antenna_gain_jitter_short_2ant_eenn", ("antenna_gain_jitter",), "short", **two)
     add("antenna_gain_jitter_day_3ant", ("antenna_gain_jitter",), "day", antennas=(0, 1, 2))
     add("antenna_gain_drift_short_2ant_eenn", ("antenna_gain_drift",), "short", **two)
+    add("timing_offset_day", ("timing_offset",), "day")
     # pairs
     for a, b in _PAIRS:
         add(f"{a.split(':')[0]}+{b}_day", (a, b), "day")

@@ -817,6 +817,7 @@ def simulate_autos(
     beam_width: float = 0.0,
     beam_width_mode: str = "fwhm",
     feed_gain: np.ndarray | None = None,
+    clock_offset_s: float = 0.0,
 ) -> Truth:
     """Simulate HERA auto-correlations and write them as a UVH5 file.
 
@@ -872,6 +873,9 @@ def simulate_autos(
     feed_gain
         ``(Nant, Npol, Ntime)`` achromatic gain factors of each antenna-pol (its own
         jitter), on top of the common gain; ``None`` for none.
+    clock_offset_s
+        The sky is simulated ``clock_offset_s`` seconds after the times written in the
+        file (a clock running behind: the data's sky is that of ``t + dt``).
 
     Returns
     -------
@@ -917,7 +921,7 @@ def simulate_autos(
         [
             independent_tsky(
                 freqs,
-                jds,
+                jds + clock_offset_s / 86400.0,
                 pol,
                 beam,
                 tgnd_k,
@@ -977,6 +981,7 @@ def simulate_autos(
         "noise_drift": float(noise_drift),
         "beam_width": float(beam_width),
         "beam_width_mode": beam_width_mode,
+        "clock_offset_s": float(clock_offset_s),
         "sky": None if change is None else dataclasses.asdict(change),
     }
     return Truth(

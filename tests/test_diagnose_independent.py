@@ -1,6 +1,6 @@
 """The diagnosis on data from the independent forward model (a small, fast subset).
 
-The whole suite is ``scripts/diagnose_independent_suite.py`` (51 cases,
+The whole suite is ``scripts/diagnose_independent_suite.py`` (52 cases,
 ``docs/results/diagnose_independent/``). Here: the injection of the hidden effects into
 the independent model (cheap checks on a few integrations), the suite's plan and scoring,
 and a handful of cases diagnosed end to end by :func:`autocal.diagnose_run.run_diagnosis`.
@@ -389,7 +389,7 @@ def test_each_antenna_its_own_drift(rows: dict[str, dict]) -> None:
         half_change = 0.5 * (truth[-1] - truth[0])  # d_1 of 1 + d_1 s, s from -1 to 1
         assert abs(feed["d_1"] - half_change) < 0.1 * abs(half_change), (feed, half_change)
     shared = [s for s in row["steps"] if s["name"] == "gain_drift"]
-    assert all(s["superseded_by"] == "antenna_gain_drift" for s in shared)
+    assert shared and all(s["superseded_by"] == "antenna_gain_drift" for s in shared)
 
 
 @pytest.mark.data
