@@ -833,6 +833,7 @@ def screen_candidates(
     weights: np.ndarray,
     trxr_prior: np.ndarray | float | None = None,
     trxr_prior_sigma: np.ndarray | float = 1.0,
+    gain_ref: np.ndarray | None = None,
 ) -> list[Screening]:
     """Score every candidate against the current model in one pass over the data.
 
@@ -861,7 +862,7 @@ def screen_candidates(
         One per candidate, in order.
     """
     effects = tuple(e for e in [*active, *candidates] if e.kind != "bandpass")
-    prob = _Problem(obs, tpl, effects, weights, trxr_prior, trxr_prior_sigma, None, None)
+    prob = _Problem(obs, tpl, effects, weights, trxr_prior, trxr_prior_sigma, gain_ref, None)
     nact = len(active)
     groups = [0 if i < nact else i for i, (_, sl) in enumerate(prob.blocks) if sl.stop > sl.start]
     p = np.zeros(prob.nfree)
@@ -2835,6 +2836,10 @@ def _diagnose_once(
     w = radiometer_weights(obs, current)
     current = fit_extended(obs, tpl, active, weights=w, **prior_kw)
     base_fit = current.detached()  # its G and Trxr only: no reference to these weights
+    if trxr_prior is not None:
+        # one set of prior weights for every fit of the search (from the model without
+        # effects), whatever effects a fit holds fixed: their chi2 compare
+        prior_kw["gain_ref"] = base_fit.G
     sigma_g, sigma_t = product_sigmas(
         obs, tpl, None if trxr_prior is None else (trxr_prior, trxr_prior_sigma)
     )
