@@ -3364,8 +3364,13 @@ def summary_text(diag: Diagnosis) -> str:
         pars = ", ".join(
             f"{k} = {v['value']:.5g} +- {v['sigma']:.2g}" for k, v in st["parameters"].items()
         )
+        marks = " [negligible]" if st.get("negligible") else ""
+        if st.get("superseded_by"):
+            marks += f" [superseded by {st['superseded_by']}]"
+        if st.get("dropped_in_backward_pass"):
+            marks += f" [dropped at {st['dropped_in_backward_pass'].get('at', 'a re-test')}]"
         lines.append(
-            f"step {i}: {st['name']}{' [negligible]' if st.get('negligible') else ''} ({pars}); "
+            f"step {i}: {st['name']}{marks} ({pars}); "
             f"Delta BIC = {st['statistic']:.1f}, "
             f"Delta chi2 = {st['delta']:.1f}; chi2/dof {st['gap_before']['reduced_chi2']:.4f} "
             f"-> {st['gap_after']['reduced_chi2']:.4f}"

@@ -540,3 +540,25 @@ def test_feed_gains_with_a_dead_antenna(setup):
     own = next(e for e in catalogue(ntime=obs.ntime, nfeeds=2) if e.name == "antenna_gain_jitter")
     with pytest.raises(DiagnoseError, match="no data"):
         fit_feed_gains(gap, tpl, [jitter], with_jitter, wg, {}, own)
+
+
+def test_summary_marks_superseded_and_dropped_steps() -> None:
+    """summary.txt says which steps a later one superseded or the re-test dropped."""
+    from autocal.diagnose import Diagnosis
+
+    gap = {"reduced_chi2": 2.0, "rms_normalised_residual": 1.4}
+    step = {
+        "parameters": {"rms": {"value": 0.004, "sigma": 1e-4}},
+        "statistic": 50.0,
+        "delta": 80.0,
+        "gap_before": gap,
+        "gap_after": gap,
+    }
+    diag = Diagnosis(config={}, initial_gap=gap, final_gap=gap)
+    diag.steps = [
+        {**step, "name": "gain_jitter", "superseded_by": "antenna_gain_jitter"},
+        {**step, "name": "beam_width", "dropped_in_backward_pass": {"at": "step 3"}},
+    ]
+    text = summary_text(diag)
+    assert "gain_jitter [superseded by antenna_gain_jitter]" in text
+    assert "beam_width [dropped at step 3]" in text
