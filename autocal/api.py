@@ -1,9 +1,10 @@
 """The functions ``import autocal`` offers: one path for every caller.
 
-``autocal.read`` -> :class:`~autocal.observation.Observation`, ``autocal.compute_tsky`` ->
-:class:`~autocal.tsky.TskyResult`, ``autocal.calibrate`` -> :class:`~autocal.fit.Solution`
+``autocal.read`` -> :class:`~autocal.core.observation.Observation`, ``autocal.compute_tsky`` ->
+:class:`~autocal.tsky.engine.TskyResult`, ``autocal.calibrate`` ->
+:class:`~autocal.fit.lsq.Solution`
 (the function ``autocal calibrate``, the job service and nightly runs call, with the
-defaults of :class:`~autocal.pipeline.CalibrationConfig`), ``autocal.diagnose`` (the
+defaults of :class:`~autocal.pipeline.calibrate.CalibrationConfig`), ``autocal.diagnose`` (the
 diagnosis stage, :func:`diagnose` here). The package imports them lazily
 (``autocal.__getattr__``), so ``import autocal`` stays fast.
 """
@@ -15,10 +16,10 @@ from os import PathLike
 from pathlib import Path
 from typing import Any
 
-from autocal.fit import Solution
-from autocal.observation import Observation
-from autocal.pipeline import CalibrationConfig, calibrate, read, read_summary
-from autocal.tsky import TskyResult, compute_tsky
+from autocal.core.observation import Observation
+from autocal.fit.lsq import Solution
+from autocal.pipeline.calibrate import CalibrationConfig, calibrate, read, read_summary
+from autocal.tsky.engine import TskyResult, compute_tsky
 
 __all__ = [
     "CalibrationConfig",
@@ -43,20 +44,20 @@ def diagnose(
 ) -> dict[str, Any]:
     """Name the effects the model misses in one observation (``autocal.diagnose``).
 
-    A thin wrapper of :func:`autocal.diagnose_run.run_diagnosis`, the function behind
+    A thin wrapper of :func:`autocal.diagnosis.run.run_diagnosis`, the function behind
     ``autocal diagnose`` and the service's diagnose jobs.
 
     Parameters
     ----------
     inputs
         UVH5 file(s) of one observation, or a whole
-        :class:`autocal.diagnose_run.DiagnoseConfig`.
+        :class:`autocal.diagnosis.run.DiagnoseConfig`.
     out
         Output folder of the products.
     progress, should_stop
         Progress callback and cancellation poll, as for :func:`autocal.calibrate`.
     **options
-        :class:`~autocal.diagnose_run.DiagnoseConfig` fields (``antennas``, ``sky``,
+        :class:`~autocal.diagnosis.run.DiagnoseConfig` fields (``antennas``, ``sky``,
         ``freq_range_mhz``, ``trxr_prior``, ``max_steps``...); their defaults otherwise.
 
     Returns
@@ -64,8 +65,8 @@ def diagnose(
     dict
         The diagnosis summary (``effects``, ``steps``, gaps, ``products``...).
     """
-    from autocal.diagnose_run import DiagnoseConfig, run_diagnosis
-    from autocal.diagnose_run import read_summary as read_diagnosis
+    from autocal.diagnosis.run import DiagnoseConfig, run_diagnosis
+    from autocal.diagnosis.run import read_summary as read_diagnosis
 
     if isinstance(inputs, DiagnoseConfig):
         config = DiagnoseConfig(**{**inputs.model_dump(), **options})

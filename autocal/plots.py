@@ -45,7 +45,7 @@ def plot_tsky(result: Any, path: str | Path, title: str | None = None) -> Path:
     Parameters
     ----------
     result
-        A :class:`autocal.tsky.TskyResult`.
+        A :class:`autocal.tsky.engine.TskyResult`.
     path
         Output image.
     title
@@ -176,7 +176,7 @@ def plot_solution(solution: Any, path: str | Path, title: str | None = None) -> 
     Parameters
     ----------
     solution
-        A :class:`autocal.fit.Solution`.
+        A :class:`autocal.fit.lsq.Solution`.
     path
         Output image.
     title

@@ -100,7 +100,7 @@ def run_one(file: Path, nants: int, data: Path, pythonpath: str | None) -> dict:
         AUTOCAL_CACHE_DIR=str(data / "tsky-cache"),
         PYTHONPATH=os.pathsep.join(p for p in paths if p),
     )
-    cmd = [sys.executable, "-m", "autocal.cli", "diagnose", str(file), "--out", str(out)]
+    cmd = [sys.executable, "-m", "autocal", "diagnose", str(file), "--out", str(out)]
     if nants < 350:
         cmd += ["--antennas", ",".join(str(a) for a in range(nants))]
     print(f"diagnosing {nants} antennas: {' '.join(cmd[2:4])} ... --out {out}", flush=True)

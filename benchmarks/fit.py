@@ -1,13 +1,13 @@
 """Benchmark: normal-equation accumulation vs numpy's own streaming reductions, side by side.
 
 One chunk as the pipeline sees it per HERA file (default 350 antennas x 2 pols x 96
-integrations x 1536 channels, float64 data as :class:`autocal.observation.Observation`
+integrations x 1536 channels, float64 data as :class:`autocal.core.observation.Observation`
 holds it, boolean flags, ``dnu dt N``) is reduced, in the same process and interleaved
 round-robin over the repeats, by
 
 - ``data.sum()`` (numpy's flat pairwise sum, single-threaded) and
   ``np.add.reduce(data, axis=2)`` (the same time-axis reduction shape as the fit);
-- :func:`autocal.fit.accumulate` for the constant and Legendre order-1/2 models with
+- :func:`autocal.fit.lsq.accumulate` for the constant and Legendre order-1/2 models with
   radiometer weights (``dnu dt N`` as the pipeline passes it for uniform ``nsamples``: one
   ``(Ntime, Nfreq)`` array, which the kernel reads as one ``(Nfreq,)`` row since the
   integration time is uniform too; and ``radiometer-nsamples``: a full per-sample array, as
@@ -18,7 +18,7 @@ round-robin over the repeats, by
 - a floor (:func:`floor_kernel`): a compiled loop computing only the data moments, the
   per-sample work left even if every weight moment were shared between antennas;
 
-and :func:`autocal.fit.solve_sums` is timed separately. Rates are samples (data elements)
+and :func:`autocal.fit.lsq.solve_sums` is timed separately. Rates are samples (data elements)
 per second from the best-of-N wall time; the ratios to the plain sum and to the time-axis
 reduction are the targets (>= 0.5). Usage (one command; writes JSON and markdown)::
 
@@ -45,7 +45,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402
 
 import autocal  # noqa: E402
-from autocal.fit import (  # noqa: E402
+from autocal.fit.lsq import (  # noqa: E402
     FitModel,
     NormalSums,
     _check_tsky,
@@ -203,7 +203,7 @@ def floor_case(
     """Time-able call of :func:`floor_kernel` over antenna blocks, like ``accumulate``."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from autocal.fit import _antenna_blocks, _offset_copy, _time_functions
+    from autocal.fit.lsq import _antenna_blocks, _offset_copy, _time_functions
 
     kernel = floor_kernel(order, flagged=flags is not None)
     flag_bytes = (

@@ -118,8 +118,8 @@ def _truth(night: Night) -> dict[str, np.ndarray]:
 
 def _write_file(args: tuple) -> dict:
     """Write one file of the night in parts (runs in a pool process)."""
+    from autocal.core.sites import get_site
     from autocal.io.uvh5 import UVH5AutosWriter
-    from autocal.sites import get_site
 
     night, index, path, jds, lsts, tsky, gain, trxr = args
     bt = night.channel_width * night.integration_time
@@ -159,9 +159,9 @@ def generate(night: Night, folder: Path, jobs: int) -> dict:
     """Write the night's UVH5 files, ``truth.h5`` and ``night.json`` into ``folder``."""
     import h5py
 
-    from autocal.simulate import lsts_to_jds
-    from autocal.sites import get_site
-    from autocal.tsky import compute_tsky
+    from autocal.core.sites import get_site
+    from autocal.simulate.mock import lsts_to_jds
+    from autocal.tsky.engine import compute_tsky
 
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "night.json").unlink(missing_ok=True)
@@ -266,7 +266,7 @@ class _TreeSampler(threading.Thread):
 
 def calibrate_child(spec: dict) -> None:
     """Run one calibration and write its measurements (the subprocess side)."""
-    from autocal.pipeline import CalibrationConfig, run_calibration
+    from autocal.pipeline.calibrate import CalibrationConfig, run_calibration
 
     os.environ["AUTOCAL_CACHE_DIR"] = spec["cache"]
     files = [Path(f) for f in spec["files"]]
@@ -276,7 +276,7 @@ def calibrate_child(spec: dict) -> None:
             os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
         finally:
             os.close(fd)
-    from autocal.scaleout import peak_rss_bytes
+    from autocal.pipeline.scaleout import peak_rss_bytes
 
     sampler = _TreeSampler()
     sampler.start()
@@ -412,9 +412,9 @@ def profile_file(path: str) -> dict:
     from pyinstrument import Profiler
 
     import autocal.io.uvh5_blocks as uvh5_blocks
-    from autocal.fit import FitModel
+    from autocal.fit.lsq import FitModel
     from autocal.io.uvh5 import scan_uvh5
-    from autocal.pipeline import FileTask, PartialSpec, compute_partial
+    from autocal.pipeline.calibrate import FileTask, PartialSpec, compute_partial
 
     file = scan_uvh5([path])[0]
     tsky = np.full((len(file.pols), file.lsts.size, file.freqs.size), 300.0)  # any values
@@ -436,7 +436,7 @@ def profile_file(path: str) -> dict:
         "_read_rows": "HDF5 reads + decompression",
         "iter_uvh5_blocks": "block reader total (incl. HDF5)",
         "file_checksum": "SHA-256 of the file",
-        "accumulate": "autocal.fit.accumulate (normal sums)",
+        "accumulate": "autocal.fit.lsq.accumulate (normal sums)",
         "bandwidth_time": "dnu dt N per sample",
         "_add_waterfall": "waterfall sums (2 antennas)",
         "_add_into": "adding block sums",
@@ -687,7 +687,7 @@ def markdown(report: dict) -> str:
         "From Python (e.g. the service worker with `AUTOCAL_DASK_SCHEDULER`): "
         "`run_calibration(config, out, progress=..., should_stop=..., "
         "dask_scheduler=settings.dask_scheduler or None)`. Each file is one task "
-        "(`autocal.pipeline.compute_partial`: the file read block by block); at most two "
+        "(`autocal.pipeline.calibrate.compute_partial`: the file read block by block); at most two "
         "files per worker are in flight and the partial sums come back and are added in "
         "file order, so the result is the same as the in-process run, bit for bit. An "
         "unreachable scheduler fails after 10 s with a message, a scheduler without "

@@ -4,7 +4,7 @@
 other in one process. Every observation has new LSTs, so while the Tsky cache held tables
 (keyed by the LST grid) and the sky frame was each file's own time, every job computed its
 Tsky afresh. Now the cache holds the LST-free harmonics and the frame is the night's
-(:func:`autocal.coords.night_epoch`), so only a night's first job computes them.
+(:func:`autocal.core.coords.night_epoch`), so only a night's first job computes them.
 
 This calibrates ``--files`` consecutive files of the night written by
 ``benchmarks/night.py`` in one process (as a worker does), each file twice, interleaved:
@@ -43,7 +43,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from night import compare_solutions, machine
 
-from autocal.pipeline import CalibrationConfig, run_calibration
+from autocal.pipeline.calibrate import CalibrationConfig, run_calibration
 
 ROOT = Path(__file__).resolve().parent
 MODES = ("computed", "cached")
@@ -61,7 +61,7 @@ def calibrate(path: Path, out: Path, cache: str) -> dict:
 
 def frame_check() -> dict:
     """Tsky in frames 6 h and 12 h from the data's time against the data's own frame."""
-    from autocal.tsky import compute_tsky
+    from autocal.tsky.engine import compute_tsky
 
     freqs = np.linspace(100e6, 200e6, 64, endpoint=False)
     lsts = np.arange(8640) * 24 / 8640

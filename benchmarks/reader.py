@@ -1,6 +1,6 @@
 """Benchmark: one night file through the pipeline's per-file work, reader features on and off.
 
-:func:`autocal.pipeline.compute_partial` (read block by block, normal sums of every block)
+:func:`autocal.pipeline.calibrate.compute_partial` (read block by block, normal sums of every block)
 on one file of the night written by ``benchmarks/night.py`` (in the page cache, so the
 decoding is timed, not the disk), with the block reader's speed-ups switched on one after
 the other, interleaved over the repeats (best and median of N):
@@ -25,10 +25,10 @@ from pathlib import Path
 import numpy as np
 
 import autocal.io.uvh5_blocks as uvh5_blocks
-from autocal.beams import _file_sha256
-from autocal.fit import FitModel
+from autocal.fit.lsq import FitModel
 from autocal.io.uvh5 import scan_uvh5
-from autocal.pipeline import FileTask, PartialSpec, compute_partial
+from autocal.pipeline.calibrate import FileTask, PartialSpec, compute_partial
+from autocal.sky.beams import _file_sha256
 
 CONFIGS = {
     "plain": {"prefetch": False, "reuse_buffers": False, "decode_repeats_once": False},

@@ -40,7 +40,7 @@ to be Jy-referenced (HERA abscal: ``raw / |g|^2`` is in Jy).
 Writing
 -------
 :func:`write_calh5` / :func:`write_calfits` write an autocal
-:class:`~autocal.fit.Solution` as a genuine ``UVCal`` (``cal_type="gain"``,
+:class:`~autocal.fit.lsq.Solution` as a genuine ``UVCal`` (``cal_type="gain"``,
 ``cal_style="sky"``) through pyuvdata:
 
 * autocal fits ``R = G (Tsky + Trxr)`` with ``G = |g|^2`` in raw units per kelvin. The
@@ -60,8 +60,8 @@ Writing
 * ``flag_array`` is the solution's channel flags (failed fits, non-positive ``G``);
   flagged gains are written as 1 (never NaN);
 * ``quality_array`` holds the total 1-sigma uncertainty of the written gain amplitude
-  ``|g|`` (:attr:`autocal.fit.Solution.sigma_abs_g`: statistical, jackknife and drift
-  terms, :mod:`autocal.uncertainty`; with ``per_time=True`` the statistical error of
+  ``|g|`` (:attr:`autocal.fit.lsq.Solution.sigma_abs_g`: statistical, jackknife and drift
+  terms, :mod:`autocal.fit.uncertainty`; with ``per_time=True`` the statistical error of
   ``|g(t)|`` scaled by the channel's total-to-statistical ratio of the time-averaged
   ``|g|``), 0 where undefined; ``total_quality_array`` the pooled ``sum chi^2 / sum dof``
   over antennas (``chi^2 / dof`` per antenna is in the HDF5 product);
@@ -91,14 +91,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from autocal.beams import file_checksum
 from autocal.errors import AutocalError
 from autocal.io.pyuvdata_helpers import warnings_to_log
 from autocal.io.pyuvdata_helpers import x_orientation as feed_orientation
 from autocal.io.tskyfile import atomic_path
+from autocal.sky.beams import file_checksum
 
 if TYPE_CHECKING:
-    from autocal.fit import Solution
+    from autocal.fit.lsq import Solution
 
 logger = logging.getLogger(__name__)
 
@@ -271,8 +271,8 @@ class ReferenceGains:
     meta: dict[str, Any] = field(default_factory=dict)
 
     def __repr__(self) -> str:
-        """Return one line; arrays as their type and shape (:func:`~autocal.reprs.compact_repr`)."""
-        from autocal.reprs import compact_repr
+        """Return one line; arrays as type and shape (:func:`~autocal.core.reprs.compact_repr`)."""
+        from autocal.core.reprs import compact_repr
 
         return compact_repr(self)
 
@@ -683,7 +683,7 @@ def _config_value(config: dict[str, Any], *keys: str) -> Any:
 
 
 def _resolve_site(site: Any, config: dict[str, Any]) -> Any:
-    from autocal.sites import HERA, Site, get_site
+    from autocal.core.sites import HERA, Site, get_site
 
     spec = site if site is not None else _config_value(config, "site")
     if spec is None:
@@ -710,7 +710,7 @@ def _telescope_for(solution: Solution, telescope: str | None, site: Any) -> tupl
     """Return ``(pyuvdata Telescope, is_known_hera)`` for a solution."""
     from pyuvdata import Telescope
 
-    from autocal.sites import HERA
+    from autocal.core.sites import HERA
 
     config = solution.config or {}
     name = telescope or _config_value(config, "telescope", "telescope_name")
@@ -819,7 +819,7 @@ def solution_to_uvcal(
     Parameters
     ----------
     solution
-        An :class:`autocal.fit.Solution`.
+        An :class:`autocal.fit.lsq.Solution`.
     time_range
         ``(start, stop)`` JD of the single solution interval (default: the fitted
         integrations, padded by half the median integration spacing at each end).
@@ -831,7 +831,7 @@ def solution_to_uvcal(
         ``provenance``/``calibration`` sections; else HERA when the site is HERA or unknown
         and every antenna exists in HERA; else the site's name).
     site
-        Site of a non-HERA telescope: a :class:`~autocal.sites.Site`, a name or a
+        Site of a non-HERA telescope: a :class:`~autocal.core.sites.Site`, a name or a
         ``describe()`` dict (default: ``"site"`` in ``solution.config`` or its sections).
     history
         Text appended to the history.
@@ -1003,7 +1003,7 @@ def write_calh5(
     Parameters
     ----------
     solution
-        An :class:`autocal.fit.Solution`.
+        An :class:`autocal.fit.lsq.Solution`.
     path
         Output file.
     overwrite

@@ -12,8 +12,8 @@ import logging
 import os
 from pathlib import Path
 
+from autocal.core.offline import downloads_allowed
 from autocal.errors import AutocalError
-from autocal.offline import downloads_allowed
 
 logger = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ position: ``p0`` the antenna, ``p1`` the internal ambient load, ``p2`` the load 
 noise source. The spectrometer (FASTSPEC) writes them to *ACQ* files, read here through
 the ``read_acq`` package (``read_acq.decode_file``) and written with ``read_acq.encode``.
 :func:`read_edges` turns one or more files into an
-:class:`autocal.observation.Observation` whose auto-correlation ``R`` is
+:class:`autocal.core.observation.Observation` whose auto-correlation ``R`` is
 
 - ``"q"``: the partially calibrated ratio ``Q = (p0 - p1) / (p2 - p1)`` (default), or
 - ``"p0"``: the raw antenna power.
@@ -68,11 +68,11 @@ from typing import Any, Literal
 
 import numpy as np
 
-from autocal.beams import file_checksum
+from autocal.core.observation import Observation
+from autocal.core.sites import EDGES, Site
 from autocal.errors import AutocalError
 from autocal.io.tskyfile import atomic_path
-from autocal.observation import Observation
-from autocal.sites import EDGES, Site
+from autocal.sky.beams import file_checksum
 
 logger = logging.getLogger(__name__)
 
@@ -240,8 +240,8 @@ class EdgesSpectra:
     meta: dict[str, Any] = field(default_factory=dict)
 
     def __repr__(self) -> str:
-        """Return one line; arrays as their type and shape (:func:`~autocal.reprs.compact_repr`)."""
-        from autocal.reprs import compact_repr
+        """Return one line; arrays as type and shape (:func:`~autocal.core.reprs.compact_repr`)."""
+        from autocal.core.reprs import compact_repr
 
         return compact_repr(self)
 

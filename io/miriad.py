@@ -3,7 +3,7 @@
 pyuvdata reads the autos of one or several consecutive Miriad directories into a UVData
 object, which is converted to UVH5 in a private temporary folder and read with
 :func:`autocal.io.uvh5.read_uvh5`, so both formats share one reader, one set of checks
-and one :class:`~autocal.observation.Observation` layout. ``meta["files"]`` and
+and one :class:`~autocal.core.observation.Observation` layout. ``meta["files"]`` and
 ``meta["sha256"]`` name the original Miriad directories (digest of their ``visdata``).
 """
 
@@ -14,11 +14,11 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
-from autocal.beams import file_checksum
+from autocal.core.observation import Observation
 from autocal.errors import AutocalError
 from autocal.io.pyuvdata_helpers import uvdata_class, warnings_to_log
 from autocal.io.uvh5 import UVH5FormatError, read_uvh5
-from autocal.observation import Observation
+from autocal.sky.beams import file_checksum
 
 logger = logging.getLogger(__name__)
 

@@ -11,7 +11,7 @@ Root attributes
 Group ``model`` (attributes)
     ``kind``, ``order``, ``lst_start_h``, ``lst_span_h``, ``parameters`` (names of the
     coefficients), ``description`` (text).
-Datasets (exactly what :class:`autocal.fit.Solution` holds; read back bit for bit)
+Datasets (exactly what :class:`autocal.fit.lsq.Solution` holds; read back bit for bit)
     ``antennas`` (Nant,), ``antenna_names`` (Nant,), ``pols`` (Npol,), ``freqs`` (Nfreq,;
     Hz), ``lsts`` (Ntime,; hours), ``jds`` (Ntime,), ``coeffs`` (Nant, Npol, Nfreq,
     nparam), ``cov`` (Nant, Npol, Nfreq, nparam, nparam), ``chi2``, ``dof``, ``count``,
@@ -23,7 +23,7 @@ Group ``derived`` (for readers that do not use autocal; recomputed on reading)
     ``uncertainty``), ``sigma_G_stat``, ``sigma_abs_g_stat``, ``sigma_n_stat``,
     ``sigma_Trxr_stat`` (the statistical part alone), ``reduced_chi2``, ``flags`` -- all
     (Nant, Npol, Nfreq); ``G`` and ``n`` are time averages over the fitted integrations.
-Group ``uncertainty`` (when the solution has a total uncertainty; :mod:`autocal.uncertainty`)
+Group ``uncertainty`` (when the solution has a total uncertainty; :mod:`autocal.fit.uncertainty`)
     ``cov`` (Nant, Npol, Nfreq, 2, 2) total covariance of the time-averaged ``(G, n)``;
     ``jackknife_factor``, ``drift_weight``, ``G_drift``, ``n_drift``, ``sigma_G_drift``,
     ``sky_contrast``, ``corr_G_n``, ``drift_sensitivity`` (Nant, Npol, Nfreq), ``G_halves``
@@ -55,7 +55,7 @@ from autocal.errors import AutocalError
 from autocal.io.tskyfile import atomic_path
 
 if TYPE_CHECKING:
-    from autocal.fit import Solution
+    from autocal.fit.lsq import Solution
 
 logger = logging.getLogger(__name__)
 
@@ -63,7 +63,7 @@ logger = logging.getLogger(__name__)
 FORMAT = "autocal-solution-1"
 
 _CORE = ("coeffs", "cov", "chi2", "dof", "count", "nflagged", "flag_reason")
-#: Arrays of :class:`autocal.uncertainty.TotalUncertainty` in the ``uncertainty`` group.
+#: Arrays of :class:`autocal.fit.uncertainty.TotalUncertainty` in the ``uncertainty`` group.
 _UNCERTAINTY = {
     "cov": "total covariance of the time-averaged (G, n)",
     "jackknife_factor": "delete-a-block jackknife variance over the statistical variance",
@@ -158,7 +158,7 @@ def _input_files(config: dict[str, Any]) -> list[dict[str, Any]]:
     are searched (in the order provenance, top level, calibration) for ``inputs``,
     ``files``, ``input_files`` or ``observation_files``; the first non-empty one wins.
     """
-    from autocal.beams import file_checksum
+    from autocal.sky.beams import file_checksum
 
     config = config or {}
     sections = [config.get("provenance"), config, config.get("calibration")]
@@ -198,7 +198,7 @@ def build_provenance(solution: Solution, extra: dict[str, Any] | None = None) ->
     Parameters
     ----------
     solution
-        The :class:`autocal.fit.Solution`.
+        The :class:`autocal.fit.lsq.Solution`.
     extra
         Entries added on top (they win over derived ones).
 
@@ -259,7 +259,7 @@ def write_solution(
     Parameters
     ----------
     solution
-        An :class:`autocal.fit.Solution`.
+        An :class:`autocal.fit.lsq.Solution`.
     path
         Output file (``.h5``).
     provenance
@@ -278,7 +278,7 @@ def write_solution(
         If ``path`` exists and ``overwrite`` is false.
     """
     from autocal import __version__
-    from autocal.fit import FLAG_REASONS
+    from autocal.fit.lsq import FLAG_REASONS
 
     path = Path(path)
     if path.exists() and not overwrite:
@@ -361,7 +361,7 @@ def read_solution(path: str | Path) -> Solution:
 
     Returns
     -------
-    autocal.fit.Solution
+    autocal.fit.lsq.Solution
         The solution, identical to the written one (configuration via JSON).
 
     Raises
@@ -370,7 +370,7 @@ def read_solution(path: str | Path) -> Solution:
         If the file is missing, not HDF5, truncated, or not an ``autocal-solution-1``
         product.
     """
-    from autocal.fit import FitModel, Solution
+    from autocal.fit.lsq import FitModel, Solution
 
     path = Path(path)
     _open_check(path)
@@ -394,7 +394,7 @@ def read_solution(path: str | Path) -> Solution:
             residuals = h5["residuals"][()] if "residuals" in h5 else None
             total = None
             if "uncertainty" in h5:
-                from autocal.uncertainty import TotalUncertainty
+                from autocal.fit.uncertainty import TotalUncertainty
 
                 unc = h5["uncertainty"]
                 total = TotalUncertainty(

@@ -26,7 +26,7 @@ class SimTruthError(AutocalError):
 
 
 def write_truth(path: str | Path, truth: Any, obs: Any) -> Path:
-    """Write a :class:`autocal.simulate.Truth` with the observation's axes."""
+    """Write a :class:`autocal.simulate.mock.Truth` with the observation's axes."""
     from autocal import __version__
 
     path = Path(path)

@@ -78,7 +78,7 @@ def _attr(value: Any) -> Any:
 
 
 def write_tsky(path: str | Path, result: Any) -> Path:
-    """Write a :class:`autocal.tsky.TskyResult` to HDF5 atomically.
+    """Write a :class:`autocal.tsky.engine.TskyResult` to HDF5 atomically.
 
     Parameters
     ----------
@@ -147,7 +147,7 @@ def read_tsky(path: str | Path) -> Any:
     TskyFileError
         If the file is not an autocal Tsky table.
     """
-    from autocal.tsky import TskyResult
+    from autocal.tsky.engine import TskyResult
 
     path = Path(path)
     try:
@@ -165,7 +165,7 @@ _HARMONICS_ARRAYS = ("coef", "freqs", "sum_all", "sum_below")
 
 
 def write_harmonics(path: str | Path, harmonics: Any) -> Path:
-    """Write :class:`autocal.tsky.TskyHarmonics` to HDF5 atomically.
+    """Write :class:`autocal.tsky.engine.TskyHarmonics` to HDF5 atomically.
 
     Parameters
     ----------
@@ -192,7 +192,7 @@ def read_harmonics(path: str | Path) -> Any:
     TskyFileError
         If the file is not autocal Tsky harmonics or its arrays are inconsistent.
     """
-    from autocal.tsky import TskyError, TskyHarmonics
+    from autocal.tsky.engine import TskyError, TskyHarmonics
 
     path = Path(path)
     try:

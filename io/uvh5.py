@@ -2,7 +2,7 @@
 
 :func:`read_uvh5` loads only the auto-correlations ``(a, a)`` of one UVH5 file, or of
 several consecutive files forming one observation, into an
-:class:`autocal.observation.Observation`. :func:`write_uvh5` writes an observation's
+:class:`autocal.core.observation.Observation`. :func:`write_uvh5` writes an observation's
 autos as a genuine UVH5 file (HERA telescope metadata when the telescope is HERA) that
 pyuvdata, hera_cal and friends can read.
 
@@ -34,13 +34,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from autocal.beams import file_checksum
+from autocal.core.observation import Observation, ObservationError
+from autocal.core.sites import Site
 from autocal.errors import AutocalError
 from autocal.io.pyuvdata_helpers import uvdata_class, warnings_to_log
 from autocal.io.pyuvdata_helpers import x_orientation as feed_orientation
 from autocal.io.tskyfile import atomic_path
-from autocal.observation import Observation, ObservationError
-from autocal.sites import Site
+from autocal.sky.beams import file_checksum
 
 if TYPE_CHECKING:
     from autocal.io.uvh5_blocks import ReadStats
@@ -338,7 +338,7 @@ def write_uvh5(
     -----
     The file is written to a temporary file in the same folder and renamed onto
     ``path``, so a failed write leaves no partial file. Non-finite data (which
-    :class:`~autocal.observation.Observation` always flags) are stored as 0.
+    :class:`~autocal.core.observation.Observation` always flags) are stored as 0.
     """
     path = Path(path)
     if path.exists() and not overwrite:

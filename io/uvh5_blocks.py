@@ -1,7 +1,7 @@
 """Auto-correlations of one UVH5 file read block by block, in bounded memory.
 
 :func:`iter_uvh5_blocks` slices the file's data sets with h5py along the baseline-time
-axis and yields :class:`autocal.observation.Observation` blocks of consecutive
+axis and yields :class:`autocal.core.observation.Observation` blocks of consecutive
 integrations, so a HERA file of 350 antennas x 1536 channels x 192 integrations (1.65 GB as
 complex64) never sits in memory whole. Reading is a two-stage pipeline in background
 threads (HDF5 reads and decompression; conversion to the ``(Nant, Npol, Ntime, Nfreq)``
@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from autocal.beams import file_checksum
+from autocal.core.observation import Observation
 from autocal.errors import AutocalError
 from autocal.io.uvh5 import (
     UVH5File,
@@ -38,7 +38,7 @@ from autocal.io.uvh5 import (
     _select_pols,
     _site,
 )
-from autocal.observation import Observation
+from autocal.sky.beams import file_checksum
 
 logger = logging.getLogger(__name__)
 

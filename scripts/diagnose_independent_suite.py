@@ -4,7 +4,7 @@ Every case of :func:`tests.independent_effects.suite_plan` is simulated by
 ``tests/independent_sim.py`` (its own GSM2008 handling, AltAz per pixel at nside 32, its
 own dipole / HERA beam, a hard horizon, its own UVH5 writer) with zero, one or two hidden
 effects, diagnosed by autocal's stage function
-:func:`autocal.diagnose_run.run_diagnosis` with the true ``Trxr(nu)`` as a per-channel
+:func:`autocal.diagnosis.run.run_diagnosis` with the true ``Trxr(nu)`` as a per-channel
 CSV prior, and scored by exact names: the effects named must be the hidden set, no
 extras. Usage::
 
@@ -180,7 +180,7 @@ def markdown(result: dict[str, Any]) -> str:
         "",
         "Simulated by `tests/independent_sim.py` (GSM2008 via pygdsm at nside 32, AltAz per "
         "pixel with astropy, its own beams, hard horizon), hidden effects injected by "
-        "`tests/independent_effects.py`, diagnosed by `autocal.diagnose_run.run_diagnosis` "
+        "`tests/independent_effects.py`, diagnosed by `autocal.diagnosis.run.run_diagnosis` "
         f"(model sky {st['sky']}, beam = the true beam's family, model ground "
         f"{st['model_tgnd_k']:g} K, template nside {st['nside']}, true `Trxr(nu)` as a "
         f"per-channel CSV prior of sigma {st['prior_sigma_k']:g} K for every case, "

@@ -1,7 +1,7 @@
 """Identification rate of ``autocal diagnose`` on fixed-seed hidden-effect suites.
 
 Every case is simulated with one or two hidden effects (or none), written as UVH5,
-read back and diagnosed (:mod:`autocal.hidden`); a case counts as identified when the
+read back and diagnosed (:mod:`autocal.diagnosis.hidden`); a case counts as identified when the
 diagnosis names exactly the hidden effects, recovers each parameter within 3 sigma of
 the truth (final joint fit) and shrinks the gap at every accepted step. Usage::
 
@@ -19,8 +19,8 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from autocal.hidden import HiddenGenerator, run_case, suite_cases
-from autocal.simulate import SimulationConfig
+from autocal.diagnosis.hidden import HiddenGenerator, run_case, suite_cases
+from autocal.simulate.mock import SimulationConfig
 
 SKY = "powerlaw:gsm2008@408:-2.55"
 SUITES = {

@@ -23,9 +23,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import autocal  # noqa: F401  (offline configuration)
-from autocal.coords import night_epoch
-from autocal.sites import get_site
-from autocal.tsky import compute_tsky
+from autocal.core.coords import night_epoch
+from autocal.core.sites import get_site
+from autocal.tsky.engine import compute_tsky
 from tests.independent_sim import _apparent_lst_hours, independent_tsky, jd_at_lst
 
 

@@ -26,7 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import autocal  # noqa: F401  (offline configuration)
-from autocal.pipeline import CalibrationConfig, run_calibration
+from autocal.pipeline.calibrate import CalibrationConfig, run_calibration
 from tests.independent_sim import simulate_autos
 
 CASES = {

@@ -1,7 +1,7 @@
 """Submitting calibrations: one observation (``POST /jobs``) or a whole night (``POST /nightly``).
 
 Both go through :func:`submit_calibration`, which validates the options as a
-:class:`~autocal.pipeline.CalibrationConfig`, resolves every path under the allowed roots
+:class:`~autocal.pipeline.calibrate.CalibrationConfig`, resolves every path under the allowed roots
 (:mod:`autocal.service.paths`) and queues the job idempotently: the deduplication key is
 the SHA-256 of the job kind, the sorted resolved inputs and the rest of the configuration,
 so the same observation with the same settings is not calibrated twice unless forced.
@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from autocal.errors import AutocalError
-from autocal.pipeline import CalibrationConfig
+from autocal.pipeline.calibrate import CalibrationConfig
 from autocal.service.paths import InputPathError, check_under_roots, resolve_input
 from autocal.service.settings import Settings
 from autocal.service.store import JobStore
@@ -79,7 +79,7 @@ def checked_options(
     Field errors come first, before any file I/O; then the sky model is looked up and a
     beam file resolved inside the allowed roots. The inputs are left to the caller.
     """
-    from autocal.sky import get_sky
+    from autocal.sky.models import get_sky
 
     opts = dict(options or {})
     if "inputs" in opts:
@@ -92,8 +92,8 @@ def checked_options(
         opts["beam"] = str(resolve_input(str(beam), settings, what="beam"))
     prior = opts.get("trxr_prior")
     if isinstance(prior, str):  # a table or solution under the roots, read and checked now
-        from autocal.commands.options import prior_value
-        from autocal.priors import parse_trxr_prior
+        from autocal.cli.options import prior_value
+        from autocal.fit.priors import parse_trxr_prior
 
         value = prior_value(prior)
         if isinstance(value, str):
@@ -133,7 +133,7 @@ def build_config(
         For invalid or unknown options.
     InputPathError
         For paths outside the allowed roots or missing.
-    autocal.sky.SkyModelError
+    autocal.sky.models.SkyModelError
         For an unknown sky model.
     """
     opts = checked_options(CalibrationConfig, settings, inputs, options)

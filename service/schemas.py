@@ -5,8 +5,8 @@ rather than a silently ignored setting. Responses carry JSON-safe values only: N
 infinities from the solutions become ``null`` (:func:`json_safe`).
 
 Two job kinds share ``POST /jobs`` (:class:`JobCreate`): ``calibrate`` (the default;
-options of :class:`~autocal.pipeline.CalibrationConfig`) and ``diagnose`` (options of
-:class:`~autocal.diagnose_run.DiagnoseConfig`). The body is one flat object; the options
+options of :class:`~autocal.pipeline.calibrate.CalibrationConfig`) and ``diagnose`` (options of
+:class:`~autocal.diagnosis.run.DiagnoseConfig`). The body is one flat object; the options
 that only one kind accepts (:data:`CALIBRATE_ONLY`, :data:`DIAGNOSE_ONLY`) are refused
 with a 422 naming them when sent with the other kind. ``GET /jobs/{id}/results`` answers
 :class:`JobResults` for a calibration and :class:`DiagnosisResults` for a diagnosis.
@@ -227,7 +227,7 @@ class DiagnoseOptions(BaseModel):
 
 
 #: Options of the request body that only ``kind: "calibrate"`` accepts (every calibration
-#: option that :class:`autocal.diagnose_run.DiagnoseConfig` does not have; a test checks).
+#: option that :class:`autocal.diagnosis.run.DiagnoseConfig` does not have; a test checks).
 CALIBRATE_ONLY = frozenset(
     {
         "model",

@@ -10,8 +10,8 @@ or many, sharing a PostgreSQL store) for parallelism. A job's life in the worker
    job was re-queued because this worker was presumed dead) the job's ``should_stop``
    flag is raised and the pipeline stops at its next checkpoint.
 3. The job's kind (:data:`KNOWN_KINDS`) picks what runs: ``calibrate`` ->
-   :func:`autocal.calibrate` (:func:`autocal.pipeline.calibrate`), ``diagnose`` ->
-   :func:`autocal.diagnose_run.run_diagnosis`. It writes the products into
+   :func:`autocal.calibrate` (:func:`autocal.pipeline.calibrate.calibrate`), ``diagnose`` ->
+   :func:`autocal.diagnosis.run.run_diagnosis`. It writes the products into
    ``settings.products_dir / job_id / "attempt-N"`` (all or nothing); progress lines and
    warnings go to the job's log.
 4. The job is closed by :meth:`JobStore.finish` (accepted only from its owner): succeeded
@@ -371,14 +371,14 @@ class Worker:
     ) -> tuple[dict[str, Any], dict[str, str]]:
         """Run a job of ``kind`` into ``out``; return its summary and product paths."""
         if kind == "diagnose":
-            from autocal.diagnose_run import DiagnoseConfig, read_summary, run_diagnosis
+            from autocal.diagnosis.run import DiagnoseConfig, read_summary, run_diagnosis
 
             folder = run_diagnosis(
                 DiagnoseConfig(**config), out, progress=run.progress, should_stop=run.should_stop
             )
             summary = read_summary(folder)
             return summary, dict(summary.get("products") or {})
-        from autocal.pipeline import CalibrationConfig, calibrate, read_summary
+        from autocal.pipeline.calibrate import CalibrationConfig, calibrate, read_summary
 
         calibrate(  # autocal.calibrate: the same function as the CLI's and a notebook's
             CalibrationConfig(**config),
@@ -416,7 +416,7 @@ class Worker:
             "products_dir": str(out),
         }
         if self.settings.dask_scheduler and job["kind"] == "calibrate":
-            # the per-file normal sums ran on the Dask cluster (autocal.scaleout)
+            # the per-file normal sums ran on the Dask cluster (autocal.pipeline.scaleout)
             provenance["dask_scheduler"] = self.settings.dask_scheduler
         summary = dict(run_summary)
         summary["provenance"] = provenance

@@ -3,7 +3,7 @@
 A :class:`Case` is an observation simulated by ``tests/independent_sim.py`` (GSM2008 via
 pygdsm, astropy AltAz per pixel at nside 32, its own dipole / HERA beam evaluation, a hard
 horizon, its own UVH5 writer) with zero, one or two effects of autocal's catalogue
-(:mod:`autocal.effects`) hidden in it. The injection is written here, from the
+(:mod:`autocal.diagnosis.effects`) hidden in it. The injection is written here, from the
 catalogue's definitions, without autocal's simulation or hidden-effect code:
 
 ======================  ================================================================
@@ -27,7 +27,7 @@ catalogue's definitions, without autocal's simulation or hidden-effect code:
 ``sky_spectral_index``  true sky ``S (nu / nu0)^dbeta + CMB``, ``|dbeta|`` 0.05-0.2,
                         ``nu0`` the band centre (150 MHz for 110-190 MHz): the
                         catalogue's reference for a sky without its own ``nu0``
-                        (:func:`autocal.effects.sky_templates`)
+                        (:func:`autocal.diagnosis.effects.sky_templates`)
 ``ground_temperature``  true ground 200-270 K or 320-350 K (at least 20 K from the 300 K
                         the model assumes, so that the effect exists at the prior's level)
 ``beam_width``          the true beam's width times ``1 + w``, ``|w|`` 5-15 %: the
@@ -49,7 +49,7 @@ and the sky scalings are identifiable only with it, and giving it to some cases 
 would tell the diagnosis which cases hide them.
 
 :func:`run_case` simulates a case, diagnoses it with autocal's ordinary stage function
-:func:`autocal.diagnose_run.run_diagnosis` and scores it by exact names: the effects the
+:func:`autocal.diagnosis.run.run_diagnosis` and scores it by exact names: the effects the
 diagnosis names must be the hidden set, no extras. :func:`suite_plan` is the fixed-seed
 suite of ``scripts/diagnose_independent_suite.py``.
 
@@ -101,7 +101,7 @@ PRIOR_SIGMA_K = 1.0
 DNU_DT = 1e6
 #: Seed of the suite (:func:`case_seed`).
 SUITE_SEED = 20260
-#: Delta BIC the diagnosis requires by default (:data:`autocal.diagnose.BIC_THRESHOLD`).
+#: Delta BIC the diagnosis requires by default (:data:`autocal.diagnosis.search.BIC_THRESHOLD`).
 BIC_THRESHOLD = 10.0
 
 
@@ -741,7 +741,7 @@ def run_case(
     nside: int = 64,
     max_steps: int = 5,
 ) -> dict[str, Any]:
-    """Simulate a case, diagnose it with :func:`autocal.diagnose_run.run_diagnosis`, score it.
+    """Simulate a case, diagnose it with :func:`autocal.diagnosis.run.run_diagnosis`, score it.
 
     Parameters
     ----------
@@ -763,7 +763,7 @@ def run_case(
         final gaps, every step with its statistics, ``last_rejected``, the final
         parameters, and ``timings_s``.
     """
-    from autocal.diagnose_run import DiagnoseConfig, run_diagnosis
+    from autocal.diagnosis.run import DiagnoseConfig, run_diagnosis
 
     folder = Path(folder)
     t0 = time.perf_counter()

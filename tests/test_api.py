@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 import autocal
-from autocal.cli import main
-from autocal.fit import DEFAULT_INFLATE_ERRORS, DEFAULT_PASSES, fit
+from autocal.cli.main import main
+from autocal.fit.lsq import DEFAULT_INFLATE_ERRORS, DEFAULT_PASSES, fit
 from autocal.io.products import read_solution
-from autocal.pipeline import CalibrationConfig
+from autocal.pipeline.calibrate import CalibrationConfig
 
 pytestmark = pytest.mark.data
 
@@ -119,7 +119,7 @@ def test_calibrate_takes_an_observation_a_config_and_options(notebook, hera_file
 
 
 def test_low_level_fit_agrees_with_calibrate(notebook, hera_file: Path) -> None:
-    """``autocal.fit.fit`` has CalibrationConfig's defaults and the same pass loop."""
+    """``autocal.fit.lsq.fit`` has CalibrationConfig's defaults and the same pass loop."""
     defaults = CalibrationConfig.model_fields
     assert defaults["passes"].default == DEFAULT_PASSES == "auto"
     assert defaults["inflate_errors"].default is DEFAULT_INFLATE_ERRORS is True
@@ -173,19 +173,19 @@ def test_reprs_are_short(notebook, hera_file: Path) -> None:
 def test_import_is_lazy_and_diagnose_is_callable() -> None:
     code = (
         "import sys, autocal\n"
-        "assert 'autocal.pipeline' not in sys.modules, 'pipeline imported eagerly'\n"
-        "assert callable(autocal.calibrate) and 'autocal.pipeline' in sys.modules\n"
-        "import autocal.diagnose\n"
-        "assert callable(autocal.diagnose) and autocal.diagnose.DiagnoseError\n"
-        "from autocal.diagnose import DiagnoseError\n"
+        "assert 'autocal.pipeline.calibrate' not in sys.modules, 'pipeline imported eagerly'\n"
+        "assert callable(autocal.calibrate) and 'autocal.pipeline.calibrate' in sys.modules\n"
+        "assert 'autocal.diagnosis.run' not in sys.modules, 'diagnosis imported eagerly'\n"
+        "import autocal.diagnosis.search\n"
+        "assert autocal.diagnose is autocal.api.diagnose, 'a submodule shadows autocal.diagnose'\n"
         "assert issubclass(autocal.AutocalError, ValueError)\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
 
 
 def test_other_records_print_shapes_not_arrays() -> None:
-    from autocal.fit import FitModel, NormalSums
-    from autocal.priors import TrxrPrior
+    from autocal.fit.lsq import FitModel, NormalSums
+    from autocal.fit.priors import TrxrPrior
 
     sums = NormalSums.zeros(FitModel.for_lsts(np.linspace(1, 2, 5)), 2, 1, 300)
     text = repr(sums)

@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 import pytest
 
-from autocal.beams import (
+from autocal.sky.beams import (
     AiryBeam,
     BeamError,
     GaussianDipoleBeam,
@@ -95,8 +95,8 @@ def test_hera_file_beam_uses_pyuvdata_azimuth_convention(data_root):
 @pytest.mark.data
 def test_hera_beam_is_upsampled_only_when_evaluated(data_root, tmp_cache, monkeypatch):
     """A Tsky cache hit names and checks the beam but never upsamples its maps."""
-    from autocal import beams
-    from autocal.tsky import compute_tsky
+    from autocal.sky import beams
+    from autocal.tsky.engine import compute_tsky
 
     monkeypatch.setattr(beams, "_UPSAMPLED", {})
     beam = get_beam("hera", "nn")

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from autocal.cli import main
+from autocal.cli.main import main
 
 
 def test_cli_diagnose_names_a_hidden_gain_drift(tmp_path, capsys) -> None:
@@ -25,7 +25,7 @@ def test_cli_diagnose_names_a_hidden_gain_drift(tmp_path, capsys) -> None:
 
 
 def test_cli_diagnose_refuses_what_the_memory_cannot_hold(tmp_path, capsys, monkeypatch) -> None:
-    from autocal import diagnose_run
+    from autocal.diagnosis import run as diagnose_run
 
     mock = tmp_path / "small.uvh5"
     sim = ["simulate", "--beam", "dipole", "--cadence", "1800", "--channel-width", "4000"]

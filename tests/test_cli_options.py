@@ -6,10 +6,10 @@ import argparse
 
 import pytest
 
-from autocal.cli import build_parser
-from autocal.commands import CliError
-from autocal.commands.options import calibration_dests, calibration_settings
-from autocal.pipeline import CalibrationConfig
+from autocal.cli.args import CliError
+from autocal.cli.main import build_parser
+from autocal.cli.options import calibration_dests, calibration_settings
+from autocal.pipeline.calibrate import CalibrationConfig
 
 SETTINGS = set(CalibrationConfig.model_fields) - {"inputs"}
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from autocal.cli import main
-from autocal.fit import fit
+from autocal.cli.main import main
+from autocal.fit.lsq import fit
 from autocal.io.simtruth import read_truth
 from autocal.io.uvh5 import read_uvh5
 

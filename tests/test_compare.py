@@ -10,10 +10,9 @@ import numpy as np
 import pytest
 
 import autocal  # noqa: F401
-from autocal.beams import FunctionBeam
-from autocal.commands import CliError
-from autocal.commands import compare as compare_cmd
-from autocal.compare import (
+from autocal.cli import compare as compare_cmd
+from autocal.cli.args import CliError
+from autocal.compare.gains import (
     C_LIGHT,
     HERA_SIM_BEAM_INTEGRALS,
     K_B,
@@ -39,6 +38,7 @@ from autocal.io.calsol import (
     write_calh5,
 )
 from autocal.io.products import write_solution
+from autocal.sky.beams import FunctionBeam
 from tests.test_calsol import H1C_ABS, REF, make_solution
 
 BEAM_FILE = "hera/beams/HERA_NF_dipole_power.beamfits"
@@ -117,7 +117,7 @@ def test_solid_angle_of_analytic_beams(s):
 
 
 def test_gaussian_dipole_solid_angle_is_close_to_small_angle_formula():
-    from autocal.beams import GaussianDipoleBeam
+    from autocal.sky.beams import GaussianDipoleBeam
 
     # Narrow FWHM 10 deg: the azimuth factor is ~1 and Omega ~ pi theta0^2 (Gaussian in za).
     beam = GaussianDipoleBeam(fwhm_ref_deg=10.0, nu_ref=150e6)
@@ -436,7 +436,7 @@ def test_write_comparison_refuses_overwrite(tmp_path):
 
 
 def test_beam_defaults_to_the_one_recorded_in_the_solution():
-    from autocal.compare import beam_from_config
+    from autocal.compare.gains import beam_from_config
 
     assert beam_from_config({"beam": "dipole"}) == "dipole"
     assert beam_from_config({"provenance": {"beam": {"beam": "airy", "diameter_m": 14}}}) == "airy"

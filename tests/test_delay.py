@@ -1,11 +1,11 @@
-"""Delay spectra (autocal.delay)."""
+"""Delay spectra (autocal.compare.delay)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from autocal.delay import DelayError, delay_spectrum
+from autocal.compare.delay import DelayError, delay_spectrum
 
 FREQS = np.linspace(110e6, 190e6, 321)
 

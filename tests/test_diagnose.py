@@ -10,12 +10,19 @@ import numpy as np
 import pytest
 
 import autocal  # noqa: F401
-from autocal.coords import night_epoch
-from autocal.diagnose import Diagnosis, diagnose, summary_text, write_diagnosis
-from autocal.effects import SkyTemplates, sky_templates
-from autocal.hidden import HiddenGenerator, draw_case, draw_effect, run_case, score, suite_cases
-from autocal.observation import Observation
-from autocal.simulate import SimulationConfig, gain_profile, mock_autos, simulate
+from autocal.core.coords import night_epoch
+from autocal.core.observation import Observation
+from autocal.diagnosis.effects import SkyTemplates, sky_templates
+from autocal.diagnosis.hidden import (
+    HiddenGenerator,
+    draw_case,
+    draw_effect,
+    run_case,
+    score,
+    suite_cases,
+)
+from autocal.diagnosis.search import Diagnosis, diagnose, summary_text, write_diagnosis
+from autocal.simulate.mock import SimulationConfig, gain_profile, mock_autos, simulate
 
 SKY = "powerlaw:gsm2008@408:-2.55"
 BT = 1e6  # dnu dt of the simulated noise (the file's nsamples record it)
@@ -217,7 +224,7 @@ def test_hidden_suite(tmp_path: Path):
 @pytest.mark.parametrize("with_prior", [False, True])
 def test_projected_normal_equations_equal_the_dense_projected_jacobian(with_prior):
     """The factorised sums give what the projected (samples x K) Jacobian gives."""
-    from autocal.diagnose import projected_normal_equations
+    from autocal.diagnosis.search import projected_normal_equations
 
     rng = np.random.default_rng(7)
     na, npol, nf, nt = 3, 2, 5, 7
@@ -268,22 +275,22 @@ def test_projected_normal_equations_equal_the_dense_projected_jacobian(with_prio
 def test_beam_width_templates_come_from_the_tsky_cache(tmp_cache, monkeypatch) -> None:
     """The four widened beams of the beam_width template are cached Tsky harmonics: a
     second diagnosis of the night computes none of them again (same templates)."""
-    import autocal.tsky
-    from autocal.effects import sky_templates
-    from autocal.sites import HERA
+    import autocal.tsky.engine
+    from autocal.core.sites import HERA
+    from autocal.diagnosis.effects import sky_templates
 
     freqs = np.linspace(120e6, 180e6, 4)
     lsts = np.linspace(0.0, 23.0, 24)
     kw = {"pols": ("ee",), "nside": 16, "epoch": 2458116.0}
     first = sky_templates("uniform:300", "dipole", HERA, freqs, lsts, **kw)
     assert len(list(tmp_cache.rglob("*.h5"))) >= 4
-    real = autocal.tsky.tsky_harmonics
+    real = autocal.tsky.engine.tsky_harmonics
 
     def no_widened_beams(sky, beam, *args, **kwargs):
         assert "scaled" not in str(beam.describe()), "a widened beam was computed again"
         return real(sky, beam, *args, **kwargs)
 
-    monkeypatch.setattr(autocal.tsky, "tsky_harmonics", no_widened_beams)
+    monkeypatch.setattr(autocal.tsky.engine, "tsky_harmonics", no_widened_beams)
     second = sky_templates("uniform:300", "dipole", HERA, freqs, lsts, **kw)
     np.testing.assert_allclose(second.beam_width_poly, first.beam_width_poly, rtol=1e-12)
 
@@ -291,7 +298,7 @@ def test_beam_width_templates_come_from_the_tsky_cache(tmp_cache, monkeypatch) -
 def test_timing_offset(setup):
     """Data whose clock runs 90 s ahead (the sky seen at LST + 90 s): named timing_offset,
     its dt recovered; computed from Tsky at shifted LSTs, not from the template."""
-    from autocal.tsky import compute_tsky
+    from autocal.tsky.engine import compute_tsky
 
     obs, tpl = setup
     dt = 90.0
@@ -322,7 +329,7 @@ def test_unexplained_remainder_is_described_not_named(setup):
     is not."""
     from types import SimpleNamespace
 
-    from autocal.diagnose import describe_unexplained
+    from autocal.diagnosis.search import describe_unexplained
 
     obs, _ = setup
     rng = np.random.default_rng(3)
@@ -355,7 +362,7 @@ def test_unexplained_remainder_is_described_not_named(setup):
 
 
 def test_negligible_needs_a_verdict_on_most_channels() -> None:
-    from autocal.diagnose import is_negligible
+    from autocal.diagnosis.search import is_negligible
 
     tiny = {
         "channels": 161,
@@ -407,8 +414,8 @@ def test_negligible_needs_a_verdict_on_most_channels() -> None:
 def test_fits_from_another_start_compare(setup):
     """A fit started elsewhere reaches the same minimum with the same chi2: its receiver
     prior's weights come from the model without effects, not from the start."""
-    from autocal.diagnose import fit_extended, radiometer_weights
-    from autocal.effects import catalogue
+    from autocal.diagnosis.effects import catalogue
+    from autocal.diagnosis.search import fit_extended, radiometer_weights
 
     obs, tpl = setup
     g = 1 + 0.02 * s_of(obs.lsts)
@@ -432,8 +439,8 @@ def test_band_consistency_tells_a_real_effect_from_an_absorbing_template(setup):
     """A sky spectral index error is the same in both halves of the band; the same
     template made to absorb a beam-shape error (a narrower beam at low frequencies only)
     is not."""
-    from autocal.diagnose import band_consistency, fit_extended, radiometer_weights
-    from autocal.effects import catalogue
+    from autocal.diagnosis.effects import catalogue
+    from autocal.diagnosis.search import band_consistency, fit_extended, radiometer_weights
 
     obs, tpl = setup
     index = next(e for e in catalogue() if e.name == "sky_spectral_index")
@@ -464,8 +471,8 @@ def test_band_consistency_tells_a_real_effect_from_an_absorbing_template(setup):
 def test_band_consistency_with_a_partner(setup):
     """A noise drift next to a spectral-index error: fitted alone its half-band values are
     pulled apart by the other chromatic error; fitted with it alongside, both agree."""
-    from autocal.diagnose import band_consistency, fit_extended, radiometer_weights
-    from autocal.effects import catalogue
+    from autocal.diagnosis.effects import catalogue
+    from autocal.diagnosis.search import band_consistency, fit_extended, radiometer_weights
 
     obs, tpl = setup
     cat = catalogue()
@@ -492,7 +499,7 @@ def test_robust_overdispersion_ignores_a_few_outliers() -> None:
     multiply chi2/dof by ~100."""
     from types import SimpleNamespace
 
-    from autocal.diagnose import robust_overdispersion
+    from autocal.diagnosis.search import robust_overdispersion
 
     rng = np.random.default_rng(5)
     res = rng.standard_normal((1, 2, 200, 100))
@@ -507,8 +514,13 @@ def test_feed_gains_with_a_dead_antenna(setup):
     """Every antenna-pol its own drift: an antenna-pol without data follows the shared
     series and adds no parameter; one whose own parameters have no data is an error the
     search records, not a silent None."""
-    from autocal.diagnose import DiagnoseError, fit_extended, fit_feed_gains, radiometer_weights
-    from autocal.effects import catalogue
+    from autocal.diagnosis.effects import catalogue
+    from autocal.diagnosis.search import (
+        DiagnoseError,
+        fit_extended,
+        fit_feed_gains,
+        radiometer_weights,
+    )
 
     obs, tpl = setup
     drift = next(e for e in catalogue(nfeeds=2) if e.name == "antenna_gain_drift" and e.order == 1)
@@ -544,7 +556,7 @@ def test_feed_gains_with_a_dead_antenna(setup):
 
 def test_summary_marks_superseded_and_dropped_steps() -> None:
     """summary.txt says which steps a later one superseded or the re-test dropped."""
-    from autocal.diagnose import Diagnosis
+    from autocal.diagnosis.search import Diagnosis
 
     gap = {"reduced_chi2": 2.0, "rms_normalised_residual": 1.4}
     step = {

@@ -3,7 +3,7 @@
 The whole suite is ``scripts/diagnose_independent_suite.py`` (52 cases,
 ``docs/results/diagnose_independent/``). Here: the injection of the hidden effects into
 the independent model (cheap checks on a few integrations), the suite's plan and scoring,
-and a handful of cases diagnosed end to end by :func:`autocal.diagnose_run.run_diagnosis`.
+and a handful of cases diagnosed end to end by :func:`autocal.diagnosis.run.run_diagnosis`.
 The end-to-end assertions: clean 31-minute and 24-hour dipole controls name nothing (over
 a day a ~1.7e-4 diurnal gain drift and a ~2 s timing offset, the difference between the
 independent model's nside-32 Tsky and autocal's nside-64 templates, are detected and
@@ -157,7 +157,7 @@ def test_simulation_kwargs_inject_the_catalogue_effects() -> None:
 
 def test_trxr_prior_table_reads_back(tmp_path: Path) -> None:
     """The per-channel CSV prior is what autocal's prior reader gives on the channels."""
-    from autocal.priors import parse_trxr_prior
+    from autocal.fit.priors import parse_trxr_prior
 
     freqs = sim.default_freqs()
     trxr = ie.receiver_temperature(freqs)

@@ -7,11 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-import autocal.diagnose as dg
-from autocal.coords import night_epoch
-from autocal.effects import SkyTemplates, catalogue, sky_templates
-from autocal.observation import Observation
-from autocal.simulate import SimulationConfig, gain_profile, mock_autos, simulate
+import autocal.diagnosis.search as dg
+from autocal.core.coords import night_epoch
+from autocal.core.observation import Observation
+from autocal.diagnosis.effects import SkyTemplates, catalogue, sky_templates
+from autocal.simulate.mock import SimulationConfig, gain_profile, mock_autos, simulate
 
 SKY = "powerlaw:gsm2008@408:-2.55"
 BT = 1e6

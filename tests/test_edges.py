@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import read_acq
 
-from autocal import edges_receiver as er
-from autocal.beams import file_checksum
+from autocal.core.sites import EDGES
+from autocal.edges import receiver as er
 from autocal.io.edges import (
     ACQ_FLOOR,
     NATIVE_DF_HZ,
@@ -29,7 +29,7 @@ from autocal.io.edges import (
     write_acq,
     write_edges_hdf5,
 )
-from autocal.sites import EDGES
+from autocal.sky.beams import file_checksum
 
 ACQ_DIR = "edges/acq"
 RECEIVER01 = "edges/acq/Receiver01_25C_2019_11_26_040_to_200MHz"

@@ -9,26 +9,26 @@ from pathlib import Path
 
 import pytest
 
-from autocal.cli import EXIT_USER_ERROR, main, user_error_message
+from autocal.cli.main import EXIT_USER_ERROR, main, user_error_message
 from autocal.errors import AutocalError
 
 #: Every error class a user can cause, by module.
 USER_ERRORS = {
-    "autocal.beams": "BeamError",
-    "autocal.commands": "CliError",
-    "autocal.compare": "CompareError",
-    "autocal.coords": "EpochError",
-    "autocal.delay": "DelayError",
-    "autocal.edges_receiver": "ReceiverCalError",
-    "autocal.fit": "FitError",
-    "autocal.hidden": "HiddenError",
-    "autocal.observation": "ObservationError",
-    "autocal.pipeline": "PipelineError",
-    "autocal.priors": "PriorError",
-    "autocal.simulate": "SimulationError",
-    "autocal.sites": "SiteError",
-    "autocal.sky": "SkyModelError",
-    "autocal.tsky": "TskyError",
+    "autocal.sky.beams": "BeamError",
+    "autocal.cli.args": "CliError",
+    "autocal.compare.gains": "CompareError",
+    "autocal.core.coords": "EpochError",
+    "autocal.compare.delay": "DelayError",
+    "autocal.edges.receiver": "ReceiverCalError",
+    "autocal.fit.lsq": "FitError",
+    "autocal.diagnosis.hidden": "HiddenError",
+    "autocal.core.observation": "ObservationError",
+    "autocal.pipeline.calibrate": "PipelineError",
+    "autocal.fit.priors": "PriorError",
+    "autocal.simulate.mock": "SimulationError",
+    "autocal.core.sites": "SiteError",
+    "autocal.sky.models": "SkyModelError",
+    "autocal.tsky.engine": "TskyError",
     "autocal.io.calsol": "CalsolFormatError",
     "autocal.io.datasets": "DataFileMissingError",
     "autocal.io.edges": "EdgesFormatError",
@@ -77,12 +77,12 @@ def test_user_errors_exit_2_with_the_message(tmp_path: Path, capsys) -> None:
 def test_an_internal_bug_is_not_reported_as_bad_input(
     bug: BaseException, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys
 ) -> None:
-    import autocal.pipeline
+    import autocal.pipeline.calibrate
 
     def broken(*args: object, **kwargs: object) -> None:
         raise bug
 
-    monkeypatch.setattr(autocal.pipeline, "run_calibration", broken)
+    monkeypatch.setattr(autocal.pipeline.calibrate, "run_calibration", broken)
     argv = ["calibrate", str(tmp_path / "a.uvh5"), "--out", str(tmp_path / "o")]
     with pytest.raises(type(bug) if isinstance(bug, BaseException) else bug):
         main(argv)
@@ -92,11 +92,11 @@ def test_an_internal_bug_is_not_reported_as_bad_input(
 
 def test_a_bug_exits_1_with_its_traceback(tmp_path: Path) -> None:
     code = (
-        "import sys, autocal.pipeline\n"
-        "from autocal.cli import main\n"
+        "import sys, autocal.pipeline.calibrate\n"
+        "from autocal.cli.main import main\n"
         "def broken(*a, **k):\n"
         "    raise ValueError('a bug deep inside')\n"
-        "autocal.pipeline.run_calibration = broken\n"
+        "autocal.pipeline.calibrate.run_calibration = broken\n"
         f"sys.exit(main(['calibrate', {str(tmp_path / 'a.uvh5')!r}, '--out', "
         f"{str(tmp_path / 'o')!r}]))\n"
     )

@@ -1,11 +1,13 @@
-"""The batched gain / receiver-noise fit (autocal.fit)."""
+"""The batched gain / receiver-noise fit (autocal.fit.lsq)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from autocal.fit import (
+from autocal.core.observation import Observation
+from autocal.core.sites import HERA
+from autocal.fit.lsq import (
     MAX_CONDITION,
     FitError,
     FitModel,
@@ -23,8 +25,6 @@ from autocal.fit import (
     fit,
     solve_sums,
 )
-from autocal.observation import Observation
-from autocal.sites import HERA
 
 NT, NF = 144, 40
 LSTS = np.arange(NT) * 24.0 / NT

@@ -52,9 +52,9 @@ def _autocal_tsky(
     truth: sim.Truth, pol: str, beam: str = "dipole", idx: np.ndarray | None = None
 ) -> np.ndarray:
     """autocal's Tsky (hard horizon) at the truth's LSTs (or those at ``idx``)."""
-    from autocal.coords import night_epoch
-    from autocal.sites import get_site
-    from autocal.tsky import compute_tsky
+    from autocal.core.coords import night_epoch
+    from autocal.core.sites import get_site
+    from autocal.tsky.engine import compute_tsky
 
     take = slice(None) if idx is None else idx
     return compute_tsky(

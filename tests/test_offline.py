@@ -1,4 +1,4 @@
-"""The parsed IERS table kept in the user's cache (:func:`autocal.offline.install_iers_table`)."""
+"""The parsed IERS table kept in the user's cache (autocal.core.offline.install_iers_table)."""
 
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ import pytest
 from astropy.time import Time
 from astropy.utils import iers
 
-from autocal import offline
-from autocal.offline import iers_cache_file, install_iers_table
-from autocal.user_cache import user_cache_dir
+from autocal.core import offline
+from autocal.core.offline import iers_cache_file, install_iers_table
+from autocal.core.user_cache import user_cache_dir
 
 # Times spanning the table: IERS-B (final) values, the HERA nights of the data folder,
 # IERS-A rapid values and predictions, and both ends of the bundled range.
@@ -87,7 +87,7 @@ def test_a_damaged_entry_is_replaced(iers_cache: Path, caplog: pytest.LogCapture
     assert path is not None
     size = path.stat().st_size
     path.write_bytes(path.read_bytes()[: size // 2])  # truncated
-    with caplog.at_level(logging.WARNING, logger="autocal.offline"):
+    with caplog.at_level(logging.WARNING, logger="autocal.core.offline"):
         install_iers_table()
     assert "replacing the unreadable IERS table cache" in caplog.text
     assert path.stat().st_size == size
@@ -161,7 +161,7 @@ def test_an_entry_others_could_have_written_is_not_loaded(
     for item in (iers_cache, path):
         mode = item.stat().st_mode
         item.chmod(mode | 0o002)  # writable by everyone
-        with caplog.at_level(logging.WARNING, logger="autocal.offline"):
+        with caplog.at_level(logging.WARNING, logger="autocal.core.offline"):
             install_iers_table()
         assert "writable by everyone; not loading it" in caplog.text
         assert iers.earth_orientation_table.get() is sentinel  # parsed, not unpickled

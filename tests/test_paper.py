@@ -1,4 +1,4 @@
-"""The paper's simulation scenarios (autocal.paper): scatter, drift biases, calibrated errors.
+"""The paper's scenarios (autocal.simulate.paper): scatter, drift biases, calibrated errors.
 
 Reference values from Gehlot et al. (2021) as quoted in DESIGN.md section 1.
 """
@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from autocal.paper import PAPER_VALUES, SCENARIOS, PaperRun, run_paper
+from autocal.simulate.paper import PAPER_VALUES, SCENARIOS, PaperRun, run_paper
 
 BY_NAME = {s.name: s for s in SCENARIOS}
 
@@ -114,7 +114,7 @@ def test_beam_model_incompleteness_biases_g_low_and_trxr_high(runs, beam: str) -
 
 
 def test_run_paper_writes_table_results_and_figures(tmp_path, data_root) -> None:
-    from autocal.simulate import SimulationConfig
+    from autocal.simulate.mock import SimulationConfig
 
     cfg = SimulationConfig(channel_width_khz=2000.0, cadence_s=900.0)
     out = run_paper(tmp_path / "paper", beams=("dipole",), config=cfg, cache=False)

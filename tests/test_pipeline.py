@@ -1,4 +1,4 @@
-"""End-to-end calibration of one observation (autocal.pipeline, ``autocal calibrate``)."""
+"""End-to-end calibration of one observation (autocal.pipeline.calibrate, ``autocal calibrate``)."""
 
 from __future__ import annotations
 
@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from autocal.cli import main
-from autocal.coords import night_epoch
-from autocal.fit import fit
+from autocal.cli.main import main
+from autocal.core.coords import night_epoch
+from autocal.fit.lsq import fit
 from autocal.io.uvh5 import read_uvh5, write_uvh5
-from autocal.pipeline import CalibrationConfig, PipelineError, run_calibration
-from autocal.simulate import SimulationConfig, simulate
-from autocal.tsky import compute_tsky
+from autocal.pipeline.calibrate import CalibrationConfig, PipelineError, run_calibration
+from autocal.simulate.mock import SimulationConfig, simulate
+from autocal.tsky.engine import compute_tsky
 
 SIM = SimulationConfig(
     beam="dipole",
@@ -195,7 +195,7 @@ def test_miriad_input(data_root, tmp_path) -> None:
 @pytest.mark.slow
 def test_edges_raw_files_calibrate_to_the_receiver_solution(data_root, tmp_path) -> None:
     """An EDGES-like day written as raw ACQ switch powers, calibrated by the pipeline."""
-    from autocal.edges_receiver import (
+    from autocal.edges.receiver import (
         expected_auto_model,
         load_receiver_solution,
         simulate_edges_day,
@@ -224,7 +224,7 @@ def test_edges_raw_files_calibrate_to_the_receiver_solution(data_root, tmp_path)
 
 def test_cli_calibrates_edges_p0_with_a_chosen_binning(data_root, tmp_path, capsys) -> None:
     """``--format edges --edges-r p0 --edges-bin N``: the raw power, N native channels a bin."""
-    from autocal.edges_receiver import simulate_edges_day
+    from autocal.edges.receiver import simulate_edges_day
     from autocal.io.products import read_solution
 
     day = simulate_edges_day(
@@ -250,7 +250,7 @@ def test_cli_calibrates_edges_p0_with_a_chosen_binning(data_root, tmp_path, caps
 def test_radiometer_bandwidth_time_is_shared_when_nsamples_are_uniform() -> None:
     import dataclasses
 
-    from autocal.pipeline import _bandwidth_time
+    from autocal.pipeline.calibrate import _bandwidth_time
 
     obs, _ = simulate(SIM)
     full = obs.bandwidth_time()
@@ -268,19 +268,19 @@ def test_edges_options_on_uvh5_input_are_reported(night, tmp_path, caplog) -> No
     config = CalibrationConfig(
         inputs=[str(night[0])], beam="dipole", nside=32, products=[], edges_bin=128
     )
-    with caplog.at_level("WARNING", logger="autocal.pipeline"):
+    with caplog.at_level("WARNING", logger="autocal.pipeline.calibrate"):
         run_calibration(config, tmp_path / "o")
     assert "edges_bin=128: options of EDGES spectra, ignored for uvh5 input" in caplog.text
     caplog.clear()
     dumped = CalibrationConfig(**config.model_dump(mode="json") | {"edges_bin": 64})
-    with caplog.at_level("WARNING", logger="autocal.pipeline"):
+    with caplog.at_level("WARNING", logger="autocal.pipeline.calibrate"):
         run_calibration(dumped, tmp_path / "o2")  # every field set, all at their defaults
     assert "EDGES" not in caplog.text
 
 
 def test_observations_of_one_night_share_the_tsky_cache(night, tmp_path, monkeypatch) -> None:
     """The night's second observation takes its Tsky from the first one's cache entries."""
-    import autocal.tsky as tsky_module
+    import autocal.tsky.engine as tsky_module
 
     monkeypatch.setenv("AUTOCAL_CACHE_DIR", str(tmp_path / "cache"))
     config = {"beam": "dipole", "products": ["hdf5"], "passes": 1}

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import autocal
-from autocal.fit import FLAG_REASONS, Solution
+from autocal.fit.lsq import FLAG_REASONS, Solution
 from autocal.io import products
 from autocal.io.products import (
     FORMAT,
@@ -116,7 +116,7 @@ def test_provenance_records_inputs_and_conventions(tmp_path):
     assert prov["autocal_version"] == autocal.__version__
     assert prov["job"] == "42"
     assert prov["software"]["pyuvdata"]
-    from autocal.beams import file_checksum
+    from autocal.sky.beams import file_checksum
 
     assert prov["inputs"][0] == {"path": str(data_file), "sha256": file_checksum(data_file)}
     assert prov["inputs"][1] == {"path": "/nonexistent/file.uvh5"}
@@ -181,8 +181,8 @@ def test_errors_name_the_problem(tmp_path):
 
 
 def test_pipeline_style_configuration_is_searched(tmp_path):
-    """autocal.pipeline stores {"calibration": settings, "provenance": conventions}."""
-    from autocal.sites import HERA
+    """autocal.pipeline.calibrate stores {"calibration": settings, "provenance": conventions}."""
+    from autocal.core.sites import HERA
 
     config = {
         "calibration": {"inputs": ["/data/a.uvh5"], "sky": "gsm2008", "beam": "hera"},

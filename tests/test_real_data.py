@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from autocal.pipeline import CalibrationConfig, run_calibration
+from autocal.pipeline.calibrate import CalibrationConfig, run_calibration
 
 pytestmark = [pytest.mark.slow, pytest.mark.data]
 

@@ -1,4 +1,4 @@
-"""Streaming within files, data read once, and the Dask scale-out (autocal.scaleout)."""
+"""Streaming within files, data read once, and the Dask scale-out (autocal.pipeline.scaleout)."""
 
 from __future__ import annotations
 
@@ -13,16 +13,16 @@ import h5py
 import numpy as np
 import pytest
 
-import autocal.pipeline
-import autocal.scaleout
-from autocal.cli import main
-from autocal.coords import night_epoch
-from autocal.fit import fit
+import autocal.pipeline.calibrate
+import autocal.pipeline.scaleout
+from autocal.cli.main import main
+from autocal.core.coords import night_epoch
+from autocal.fit.lsq import fit
 from autocal.io.uvh5 import UVH5AutosWriter, read_uvh5, scan_uvh5
 from autocal.io.uvh5_blocks import ReadStats, iter_uvh5_blocks
-from autocal.pipeline import CalibrationConfig, PipelineError, run_calibration
-from autocal.simulate import SimulationConfig, simulate
-from autocal.tsky import compute_tsky
+from autocal.pipeline.calibrate import CalibrationConfig, PipelineError, run_calibration
+from autocal.simulate.mock import SimulationConfig, simulate
+from autocal.tsky.engine import compute_tsky
 
 #: dnu dt of the noise = 1e6: data-derived weights bias G by 2e-6, so one pass.
 SIM = SimulationConfig(
@@ -141,7 +141,9 @@ def test_block_memory_is_bounded_by_the_block(night) -> None:
 def test_data_are_read_once_and_the_waterfall_needs_no_second_read(
     night, tmp_path, monkeypatch
 ) -> None:
-    monkeypatch.setattr(autocal.pipeline, "MAX_WATERFALL_ROWS", 10)  # 36 integrations -> bins
+    monkeypatch.setattr(
+        autocal.pipeline.calibrate, "MAX_WATERFALL_ROWS", 10
+    )  # 36 integrations -> bins
     config = _config(night, products=["hdf5", "png"])
     result = run_calibration(config, tmp_path / "out", block_size=4)
     execution = result.summary["execution"]
@@ -166,13 +168,17 @@ def test_data_are_read_once_and_the_waterfall_needs_no_second_read(
 
 def test_waterfall_rows_are_the_normalised_residuals(night, tmp_path) -> None:
     result = run_calibration(_config(night), tmp_path / "out", block_size=5)
-    run = autocal.pipeline._Run(
+    run = autocal.pipeline.calibrate._Run(
         result.solution, None, None, 1, 1, result.solution.antennas, (), {}, {}
     )  # only .waterfall and .bin_size are used below
-    spec = autocal.pipeline.PartialSpec(
-        result.solution.model, "radiometer", autocal.pipeline._selection(_config(night)), 2, 1
+    spec = autocal.pipeline.calibrate.PartialSpec(
+        result.solution.model,
+        "radiometer",
+        autocal.pipeline.calibrate._selection(_config(night)),
+        2,
+        1,
     )
-    source = autocal.pipeline._open_source(_config(night))
+    source = autocal.pipeline.calibrate._open_source(_config(night))
     whole = read_uvh5(night)
     tsky = np.stack(
         [
@@ -189,9 +195,9 @@ def test_waterfall_rows_are_the_normalised_residuals(night, tmp_path) -> None:
             for p in whole.pols
         ]
     )
-    partials = [autocal.pipeline.compute_partial(spec, t) for t in source.tasks(tsky)]
+    partials = [autocal.pipeline.calibrate.compute_partial(spec, t) for t in source.tasks(tsky)]
     run.waterfall = np.concatenate([p.waterfall for p in partials], axis=2)
-    labels, resid, lsts = autocal.pipeline._waterfall_residuals(
+    labels, resid, lsts = autocal.pipeline.calibrate._waterfall_residuals(
         result.solution, run, _config(night), source.lsts
     )
     pred = result.solution.predict(tsky)[:2]
@@ -202,7 +208,7 @@ def test_waterfall_rows_are_the_normalised_residuals(night, tmp_path) -> None:
 
 
 def test_dask_local_cluster_equals_serial_bit_for_bit(night, tmp_path, monkeypatch) -> None:
-    monkeypatch.setattr(autocal.scaleout, "LOCAL_PROCESSES", False)  # threads: quick
+    monkeypatch.setattr(autocal.pipeline.scaleout, "LOCAL_PROCESSES", False)  # threads: quick
     serial = run_calibration(_config(night), tmp_path / "serial", block_size=5)
     dask = run_calibration(
         _config(night), tmp_path / "dask", block_size=5, dask_scheduler="local", dask_workers=2
@@ -216,7 +222,7 @@ def test_dask_local_cluster_equals_serial_bit_for_bit(night, tmp_path, monkeypat
 
 
 def test_bad_scheduler_addresses_fail_clearly_without_hanging(night, tmp_path, monkeypatch):
-    monkeypatch.setattr(autocal.scaleout, "CONNECT_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(autocal.pipeline.scaleout, "CONNECT_TIMEOUT_S", 1.0)
     start = time.perf_counter()
     with pytest.raises(
         PipelineError, match=r"cannot reach the Dask scheduler at tcp://127\.0\.0\.1:9"
@@ -230,7 +236,7 @@ def test_bad_scheduler_addresses_fail_clearly_without_hanging(night, tmp_path, m
     ]:
         with pytest.raises(PipelineError, match=message):
             run_calibration(_config(night), tmp_path / "b", dask_scheduler=bad)
-    monkeypatch.setattr(autocal.scaleout, "WORKER_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(autocal.pipeline.scaleout, "WORKER_TIMEOUT_S", 1.0)
     from distributed import LocalCluster
 
     with (
@@ -246,7 +252,7 @@ def test_bad_scheduler_addresses_fail_clearly_without_hanging(night, tmp_path, m
 
 
 def test_cli_dask_options(night, tmp_path, capsys, monkeypatch) -> None:
-    monkeypatch.setattr(autocal.scaleout, "CONNECT_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(autocal.pipeline.scaleout, "CONNECT_TIMEOUT_S", 1.0)
     base = [
         "calibrate",
         *map(str, night),
@@ -274,7 +280,7 @@ def test_local_workers_start_without_the_nannys_malloc_trim_setting(monkeypatch,
     """MALLOC_TRIM_THRESHOLD_ (Dask nanny default) makes every large array fault in afresh."""
     from distributed import LocalCluster
 
-    from autocal.scaleout import MALLOC_TRIM_ENV, _worker_malloc_env, dask_client
+    from autocal.pipeline.scaleout import MALLOC_TRIM_ENV, _worker_malloc_env, dask_client
 
     # the nanny also sets it in the process that starts it: restore this one afterwards
     monkeypatch.setenv(MALLOC_TRIM_ENV, "0")
@@ -284,7 +290,7 @@ def test_local_workers_start_without_the_nannys_malloc_trim_setting(monkeypatch,
         assert "worker_malloc_trim_threshold" not in executor.describe()
     with (
         LocalCluster(n_workers=1, processes=True, host="127.0.0.1", dashboard_address=None) as c,
-        caplog.at_level(logging.WARNING, logger="autocal.scaleout"),
+        caplog.at_level(logging.WARNING, logger="autocal.pipeline.scaleout"),
         dask_client(c.scheduler_address) as executor,
     ):  # a cluster started with Dask's defaults, as `dask worker` does
         assert executor.describe()["worker_malloc_trim_threshold"] == ["65536"]

@@ -189,7 +189,7 @@ def test_a_wrong_method_is_405_listing_every_method_of_the_resource(client: Test
 
 def test_the_schema_states_which_options_each_kind_takes(client: TestClient) -> None:
     """The schema's if/then/else and the server refuse the same misplaced options."""
-    from autocal.diagnose_run import DiagnoseConfig
+    from autocal.diagnosis.run import DiagnoseConfig
 
     calibrate_only = set(CalibrationOptions.model_fields) - set(DiagnoseConfig.model_fields)
     assert calibrate_only == CALIBRATE_ONLY
@@ -498,8 +498,8 @@ def test_results_and_products_of_a_completed_job(
     client: TestClient, store: JobStore, settings: Settings, data: Path, data_root: Path
 ) -> None:
     from autocal.io.uvh5 import write_uvh5
-    from autocal.pipeline import CalibrationConfig, run_calibration
-    from autocal.simulate import SimulationConfig, simulate
+    from autocal.pipeline.calibrate import CalibrationConfig, run_calibration
+    from autocal.simulate.mock import SimulationConfig, simulate
 
     obs, _ = simulate(
         SimulationConfig(beam="dipole", channel_width_khz=4000, duration_h=4, cadence_s=900)

@@ -5,7 +5,7 @@ cadence over 24 h, low noise ``dnu dt = 1e6``) hides a linear gain drift; it is 
 through the API, run by an in-process worker and must come back named ``gain_drift``.
 Also: validation (422 naming the field, 403 outside the data roots), a failing input
 (failed with a one-line reason, no products), cancellation, and the all-or-nothing
-staging of :func:`autocal.diagnose_run.run_diagnosis`.
+staging of :func:`autocal.diagnosis.run.run_diagnosis`.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from autocal.diagnose_run import DiagnoseConfig, product_name, read_summary, run_diagnosis
+from autocal.diagnosis.run import DiagnoseConfig, product_name, read_summary, run_diagnosis
 from autocal.service.app import create_app
 from autocal.service.settings import Settings
 from autocal.service.store import JobStore
@@ -45,7 +45,7 @@ FAST = {"sky": SKY, "beam": "dipole", "nside": 32}
 def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A data root: the simulated observation with a gain drift, a junk file, a folder."""
     from autocal.io.uvh5 import write_uvh5
-    from autocal.simulate import SimulationConfig, simulate
+    from autocal.simulate.mock import SimulationConfig, simulate
 
     root = tmp_path_factory.mktemp("data")
     obs, _ = simulate(
@@ -124,9 +124,9 @@ def _files(folder: Path) -> list[Path]:
 def test_diagnose_job_end_to_end(
     client: TestClient, store: JobStore, worker: Worker, settings: Settings, data: Path
 ) -> None:
-    from autocal.effects import time_basis
+    from autocal.diagnosis.effects import time_basis
     from autocal.io.uvh5 import read_uvh5
-    from autocal.simulate import gain_profile
+    from autocal.simulate.mock import gain_profile
 
     response = _submit(client)
     assert response.status_code == 202, response.text
@@ -276,9 +276,9 @@ def test_failing_input_fails_the_job_with_a_reason_and_no_products(
 def test_cancelling_a_running_diagnosis(
     client: TestClient, worker: Worker, settings: Settings, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import autocal.effects
+    import autocal.diagnosis.effects
 
-    real = autocal.effects.sky_templates
+    real = autocal.diagnosis.effects.sky_templates
 
     def templates_then_cancel(*args: Any, **kwargs: Any) -> Any:
         # the job is running: cancel it through the API and wait for the heartbeat
@@ -290,7 +290,7 @@ def test_cancelling_a_running_diagnosis(
             time.sleep(0.02)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(autocal.effects, "sky_templates", templates_then_cancel)
+    monkeypatch.setattr(autocal.diagnosis.effects, "sky_templates", templates_then_cancel)
     job_id = _submit(client).json()["id"]
     assert worker.run_once() is True
     job = client.get(f"/jobs/{job_id}").json()
@@ -305,19 +305,19 @@ def test_cancelling_a_running_diagnosis(
 def test_run_diagnosis_publishes_all_or_nothing(
     data: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import autocal.diagnose
+    import autocal.diagnosis.search
 
     config = DiagnoseConfig(inputs=[str(data / SIM)], max_steps=0, **FAST)  # gap only: fast
     out = tmp_path / "out"
     out.mkdir()
     (out / "notes.txt").write_text("mine")
-    real = autocal.diagnose.write_diagnosis
+    real = autocal.diagnosis.search.write_diagnosis
 
     def half_then_fail(diag: Any, out_dir: Path, obs: Any = None) -> Path:
         (Path(out_dir) / "diagnosis.json").write_text('{"effects": [')
         raise OSError("disk full")
 
-    monkeypatch.setattr(autocal.diagnose, "write_diagnosis", half_then_fail)
+    monkeypatch.setattr(autocal.diagnosis.search, "write_diagnosis", half_then_fail)
     with pytest.raises(OSError, match="disk full"):
         run_diagnosis(config, out)
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]  # no products, no staging
@@ -329,15 +329,15 @@ def test_run_diagnosis_publishes_all_or_nothing(
         calls.append("write")
         return real(diag, out_dir, obs)
 
-    monkeypatch.setattr(autocal.diagnose, "write_diagnosis", write_then_cancel)
-    from autocal.pipeline import PipelineError
+    monkeypatch.setattr(autocal.diagnosis.search, "write_diagnosis", write_then_cancel)
+    from autocal.pipeline.calibrate import PipelineError
 
     with pytest.raises(PipelineError, match="cancelled"):
         run_diagnosis(config, out, should_stop=lambda: bool(calls))
     assert calls and sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
     # cancelled in the middle of the search (between two candidate fits)
-    monkeypatch.setattr(autocal.diagnose, "write_diagnosis", real)
+    monkeypatch.setattr(autocal.diagnosis.search, "write_diagnosis", real)
     messages: list[str] = []
     with pytest.raises(PipelineError, match="cancelled"):
         run_diagnosis(
@@ -364,7 +364,7 @@ def test_run_diagnosis_publishes_all_or_nothing(
 
 
 def test_diagnose_config_and_command(data: Path, tmp_path: Path, capsys) -> None:
-    from autocal.cli import main
+    from autocal.cli.main import main
 
     config = DiagnoseConfig(inputs=["a.uvh5"], pols=["EE", "yy"])
     assert config.pols == ["ee", "yy"] and config.max_steps >= 1

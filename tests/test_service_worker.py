@@ -23,8 +23,8 @@ from typing import Any
 
 import pytest
 
-from autocal.cli import main
-from autocal.pipeline import CalibrationConfig
+from autocal.cli.main import main
+from autocal.pipeline.calibrate import CalibrationConfig
 from autocal.service.settings import Settings
 from autocal.service.store import JobStore
 from autocal.service.worker import Worker, describe_error, jsonable
@@ -40,7 +40,7 @@ SLOW = {"nside": 256}
 def tiny_uvh5(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A 16-integration, 21-channel simulated observation (dipole beam)."""
     from autocal.io.uvh5 import write_uvh5
-    from autocal.simulate import SimulationConfig, simulate
+    from autocal.simulate.mock import SimulationConfig, simulate
 
     obs, _ = simulate(
         SimulationConfig(beam="dipole", channel_width_khz=4000, duration_h=4, cadence_s=900)
@@ -89,7 +89,17 @@ class Service:
         name = name or f"w{len(self.procs)}"
         log = open(self.log_dir / f"{name}.log", "wb")  # noqa: SIM115 (closed with proc)
         proc = subprocess.Popen(
-            [sys.executable, "-m", "autocal.cli", "worker", "--id", name, "--poll", "0.2", *args],
+            [
+                sys.executable,
+                "-m",
+                "autocal.cli.main",
+                "worker",
+                "--id",
+                name,
+                "--poll",
+                "0.2",
+                *args,
+            ],
             env=self.env,
             stdout=log,
             stderr=subprocess.STDOUT,
@@ -383,7 +393,7 @@ def fake_nightly(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> list[dict]:
 
 
 def test_nightly_command(fake_nightly, tmp_path: Path, capsys, monkeypatch) -> None:
-    from autocal.commands.nightly import find_nights
+    from autocal.cli.nightly import find_nights
 
     data = tmp_path / "data"
     (data / "2458116").mkdir(parents=True)

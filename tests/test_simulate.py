@@ -1,4 +1,4 @@
-"""Mock observations (autocal.simulate)."""
+"""Mock observations (autocal.simulate.mock)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,8 @@ import pytest
 from astropy.time import Time
 from pydantic import ValidationError
 
-from autocal.simulate import (
+from autocal.core.sites import HERA
+from autocal.simulate.mock import (
     SimulationConfig,
     SimulationError,
     gain_profile,
@@ -15,7 +16,6 @@ from autocal.simulate import (
     lsts_to_jds,
     simulate,
 )
-from autocal.sites import HERA
 
 FAST = {
     "beam": "dipole",

@@ -6,8 +6,8 @@ import healpy as hp
 import numpy as np
 import pytest
 
-from autocal.coords import galactic_to_equatorial_matrix, hadec_to_altaz
-from autocal.sky import T_CMB, PowerLawSky, PygdsmSky, SkyModelError, UniformSky, get_sky
+from autocal.core.coords import galactic_to_equatorial_matrix, hadec_to_altaz
+from autocal.sky.models import T_CMB, PowerLawSky, PygdsmSky, SkyModelError, UniformSky, get_sky
 
 
 @pytest.mark.data
@@ -102,8 +102,8 @@ def test_import_configures_astropy_offline():
 
 
 def test_sky_components_are_computed_once_per_sky_grid_and_epoch(monkeypatch):
-    from autocal import sky as sky_module
-    from autocal.sky import UniformSky
+    from autocal.sky.models import UniformSky
+    from autocal.sky import models as sky_module
 
     monkeypatch.setattr(sky_module, "_COMPONENTS", {})
     calls = []

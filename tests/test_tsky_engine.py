@@ -6,7 +6,8 @@ import healpy as hp
 import numpy as np
 import pytest
 
-from autocal.beams import (
+from autocal.core.sites import EDGES, HERA, Site
+from autocal.sky.beams import (
     AiryBeam,
     FunctionBeam,
     GaussianDipoleBeam,
@@ -14,9 +15,8 @@ from autocal.beams import (
     _GriddedFileBeam,
     get_beam,
 )
-from autocal.sites import EDGES, HERA, Site
-from autocal.sky import T_CMB, SkyComponents, UniformSky, get_sky
-from autocal.tsky import (
+from autocal.sky.models import T_CMB, SkyComponents, UniformSky, get_sky
+from autocal.tsky.engine import (
     BruteForceTsky,
     TskyError,
     _synthesise,

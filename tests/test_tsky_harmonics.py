@@ -10,13 +10,13 @@ import healpy as hp
 import numpy as np
 import pytest
 
-import autocal.tsky as tsky_module
-from autocal.beams import get_beam
-from autocal.coords import night_epoch
+import autocal.tsky.engine as tsky_module
+from autocal.core.coords import night_epoch
+from autocal.core.sites import EDGES, HERA
 from autocal.io.tskyfile import read_harmonics, write_harmonics
-from autocal.sites import EDGES, HERA
-from autocal.sky import SkyModel
-from autocal.tsky import TskyError, TskyHarmonics, compute_tsky, tsky_fft, tsky_harmonics
+from autocal.sky.beams import get_beam
+from autocal.sky.models import SkyModel
+from autocal.tsky.engine import TskyError, TskyHarmonics, compute_tsky, tsky_fft, tsky_harmonics
 
 FREQS = np.array([100e6, 150e6, 200e6])
 
@@ -157,7 +157,7 @@ def test_concurrent_jobs_of_a_night_compute_its_harmonics_once(tmp_cache, monkey
     under the entry's lock and read it (flock also excludes threads with their own file)."""
     import threading
 
-    from autocal import tsky_cache
+    from autocal.tsky import cache as tsky_cache
 
     calls = []
     engine = tsky_module.tsky_harmonics
@@ -178,7 +178,7 @@ def test_concurrent_jobs_of_a_night_compute_its_harmonics_once(tmp_cache, monkey
         except Exception as err:  # pragma: no cover - reported below
             errors.append(err)
 
-    caplog.set_level("INFO", logger="autocal.tsky_cache")
+    caplog.set_level("INFO", logger="autocal.tsky.cache")
     threads = [threading.Thread(target=job, args=(i,)) for i in range(3)]
     for t in threads:
         t.start()

@@ -1,4 +1,4 @@
-"""Total uncertainties (autocal.uncertainty): algebra, limits and behaviour on toy data.
+"""Total uncertainties (autocal.fit.uncertainty): algebra, limits and behaviour on toy data.
 
 Coverage on observations written by an independent simulator is in
 tests/test_uncertainty_coverage.py.
@@ -9,10 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from autocal.fit import FitModel, accumulate, fit, solve_sums
-from autocal.observation import Observation
-from autocal.sites import HERA
-from autocal.uncertainty import (
+from autocal.core.observation import Observation
+from autocal.core.sites import HERA
+from autocal.fit.lsq import FitModel, accumulate, fit, solve_sums
+from autocal.fit.uncertainty import (
     MIN_BLOCKS,
     accumulate_blocks,
     base_sums,

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from astropy.time import Time
 
+from autocal.core.observation import Observation, ObservationError
+from autocal.core.sites import EDGES, HERA
 from autocal.io.uvh5 import UVH5AutosWriter, UVH5FormatError, read_uvh5, write_uvh5
 from autocal.io.uvh5_blocks import ReadStats, iter_uvh5_blocks
-from autocal.observation import Observation, ObservationError
-from autocal.sites import EDGES, HERA
 
 AUTOS = "hera/autos"
 H1C_2458116 = [f"zen.2458116.{t}.HH.uvh5" for t in (30448, 31193, 31939)]
@@ -635,7 +635,7 @@ def test_block_reader_decodes_repeated_flag_and_nsample_chunks_once(tmp_path):
 
 @pytest.mark.parametrize("dataset", ["Data/visdata", "Data/flags"])
 def test_a_chunk_that_does_not_decode_is_a_clear_error(tmp_path, dataset, capsys):
-    from autocal.cli import main
+    from autocal.cli.main import main
 
     obs = _observation(ntime=9)
     path = tmp_path / "corrupt.uvh5"

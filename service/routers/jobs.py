@@ -11,8 +11,8 @@
 ``GET /jobs/{id}/products/{name}``        download one product file
 ========================================  ==================================================
 
-Job kinds: ``calibrate`` (default; :func:`autocal.pipeline.run_calibration`) and
-``diagnose`` (:func:`autocal.diagnose_run.run_diagnosis`). Both are validated before they
+Job kinds: ``calibrate`` (default; :func:`autocal.pipeline.calibrate.run_calibration`) and
+``diagnose`` (:func:`autocal.diagnosis.run.run_diagnosis`). Both are validated before they
 are queued (options against the kind's configuration, paths under the allowed roots) and
 deduplicated on kind, resolved inputs and options.
 """
@@ -32,10 +32,11 @@ from fastapi import Path as PathParam
 from fastapi.responses import FileResponse
 from pydantic import ValidationError
 
-from autocal.diagnose import DiagnoseError
-from autocal.diagnose_run import DiagnoseConfig
-from autocal.pipeline import PipelineError
-from autocal.priors import PriorError
+from autocal.diagnosis.run import DiagnoseConfig
+from autocal.diagnosis.search import DiagnoseError
+from autocal.fit.priors import PriorError
+from autocal.fit.uncertainty import separation_summary
+from autocal.pipeline.calibrate import PipelineError
 from autocal.service.auth import app_settings, require_token
 from autocal.service.nightly import (
     NightlyError,
@@ -73,8 +74,7 @@ from autocal.service.schemas import (
 )
 from autocal.service.settings import Settings
 from autocal.service.store import FINAL_STATES, JobStore, StoreError
-from autocal.sky import SkyModelError
-from autocal.uncertainty import separation_summary
+from autocal.sky.models import SkyModelError
 
 logger = logging.getLogger(__name__)
 
@@ -280,9 +280,9 @@ def build_diagnose_config(
         For invalid or unknown options.
     InputPathError
         For paths outside the allowed roots (403) or missing (400).
-    autocal.diagnose.DiagnoseError
+    autocal.diagnosis.search.DiagnoseError
         For an input that is a folder rather than a UVH5 file.
-    autocal.sky.SkyModelError
+    autocal.sky.models.SkyModelError
         For an unknown sky model.
     """
     opts = checked_options(DiagnoseConfig, settings, inputs, options)

@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter, Depends
 from pydantic import ValidationError
 
-from autocal.pipeline import PipelineError
+from autocal.pipeline.calibrate import PipelineError
 from autocal.service.auth import app_settings, require_token
 from autocal.service.nightly import NightlyError, submit_nightly
 from autocal.service.paths import InputPathError
@@ -15,7 +15,7 @@ from autocal.service.routers import app_store, as_api_error
 from autocal.service.schemas import ApiError, ErrorBody, NightlyAccepted, NightlyCreate
 from autocal.service.settings import Settings
 from autocal.service.store import JobStore
-from autocal.sky import SkyModelError
+from autocal.sky.models import SkyModelError
 
 router = APIRouter(tags=["nightly"])
 

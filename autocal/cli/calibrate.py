@@ -1,0 +1,100 @@
+"""``autocal calibrate``: calibrate one observation and write its products."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from autocal.cli.args import CliError, validation_message
+from autocal.cli.options import add_calibration_arguments, calibration_settings
+
+
+def add(sub: argparse._SubParsersAction) -> None:
+    """Register the command."""
+    p = sub.add_parser(
+        "calibrate",
+        help="fit G and Trxr to the autos of one observation and write calibration products",
+        description="Calibrate the auto-correlations of one observation (UVH5 files, "
+        "Miriad folders or EDGES ACQ / HDF5 spectra, consecutive in time) against "
+        "sky x beam + CMB + ground: fit G (|g| = sqrt(G)) and Trxr per antenna, "
+        "polarisation and channel, streaming the files, and write solution.calh5 / "
+        "solution.calfits (pyuvdata UVCal), solution.h5 (every array, configuration and "
+        "provenance), PNG plots and summary.json to --out. Options not given take the "
+        "defaults shown (those of autocal.pipeline.calibrate.CalibrationConfig and the REST API).",
+    )
+    p.add_argument(
+        "inputs", nargs="+", type=Path, help="UVH5 files, Miriad folders or EDGES ACQ / HDF5 files"
+    )
+    add_calibration_arguments(p)
+    p.add_argument(
+        "--dask",
+        metavar="SCHEDULER",
+        help="map the files over a Dask cluster: a scheduler address (tcp://HOST:8786) or "
+        "'local' for a local cluster (same solution as the default in-process run)",
+    )
+    p.add_argument(
+        "--dask-workers",
+        type=int,
+        metavar="N",
+        help="worker processes of --dask local (default: the number of CPUs)",
+    )
+    p.add_argument(
+        "--block-size",
+        type=int,
+        metavar="N",
+        help="integrations read per block (default: about 8 M values; bounds the memory)",
+    )
+    p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the command."""
+    from pydantic import ValidationError
+    from tqdm import tqdm
+
+    from autocal.pipeline.calibrate import CalibrationConfig, calibrate, read_summary
+
+    settings = calibration_settings(args)
+    try:
+        config = CalibrationConfig(inputs=[str(p) for p in args.inputs], **settings)
+    except ValidationError as err:
+        raise CliError(validation_message(err)) from None
+    if args.dask_workers is not None and args.dask_workers < 1:
+        raise CliError("--dask-workers must be at least 1")
+    if args.dask_workers is not None and args.dask is None:
+        raise CliError("--dask-workers needs --dask local")
+    if args.block_size is not None and args.block_size < 1:
+        raise CliError("--block-size must be at least 1 integration")
+    with tqdm(total=100, desc="calibrate", unit="%", disable=None) as bar:
+
+        def progress(fraction: float, message: str) -> None:
+            bar.n = round(100 * min(fraction, 1.0))
+            bar.set_postfix_str(message[-60:])
+            bar.refresh()
+
+        calibrate(  # autocal.calibrate: the notebook's, the service's and nightly's function
+            config,
+            out=args.out,
+            progress=progress,
+            dask_scheduler=args.dask,
+            dask_workers=args.dask_workers,
+            block_size=args.block_size,
+        )
+    summary = read_summary(args.out)
+    print(json.dumps(summary["solution"], indent=2))
+    separation = summary.get("separation") or []
+    shown = (
+        separation
+        if len(separation) <= 12
+        else [e for e in separation if e["separation"] == "weak"][:12]
+    )
+    if len(separation) > 12:
+        nweak = sum(e["separation"] == "weak" for e in separation)
+        print(f"{nweak} of {len(separation)} antenna-pols separate G and n weakly; the first:")
+    for entry in shown:
+        print(entry["message"])
+    for name, path in summary["products"].items():
+        print(f"wrote {name}: {path}")
+    return 0

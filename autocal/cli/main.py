@@ -1,0 +1,152 @@
+"""The ``autocal`` command line.
+
+Commands (one module each in :mod:`autocal.cli`)
+------------------------------------------------
+``autocal calibrate``
+    Fit G and Trxr to the autos of one observation; write calh5/calfits, HDF5, plots.
+``autocal diagnose``
+    Name the physical effects missing from the model, add them, show the gap shrink.
+``autocal compare``
+    |g| from autos against cross-correlation (abscal or redcal/omnical) gains.
+``autocal tsky``
+    Beam-weighted sky temperature table Tsky(nu, LST) to HDF5 (and a plot).
+``autocal simulate``
+    Mock auto-correlations written as a UVH5 file, with a truth side-car.
+``autocal paper``
+    The paper's simulation scenarios: summary table, JSON results and figures.
+``autocal info``
+    Version, data folder, cache folder, and which sky models and beams are available.
+``autocal serve``
+    The REST job service (uvicorn running the FastAPI app factory).
+``autocal worker``
+    One job-worker process: claims queued jobs from the store and runs them.
+``autocal nightly``
+    Queue one calibration job per observation of a night (JD) or a watched folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+
+from autocal.cli.args import CliError, parse_range
+from autocal.errors import AutocalError
+
+__all__ = [
+    "EXIT_OK",
+    "EXIT_USER_ERROR",
+    "CliError",
+    "build_parser",
+    "main",
+    "parse_range",
+    "user_error_message",
+]
+
+logger = logging.getLogger("autocal.cli.main")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Build the argument parser."""
+    from autocal import __version__
+    from autocal.cli import (
+        calibrate,
+        compare,
+        diagnose,
+        info,
+        nightly,
+        paper,
+        serve,
+        simulate,
+        tsky,
+        worker,
+    )
+
+    parser = argparse.ArgumentParser(
+        prog="autocal",
+        description="Calibrate radio-telescope auto-correlations against sky models.",
+    )
+    parser.add_argument("--version", action="version", version=f"autocal {__version__}")
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more log output (-v info, -vv debug)"
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    for module in (
+        calibrate,
+        compare,
+        diagnose,
+        tsky,
+        simulate,
+        paper,
+        info,
+        serve,
+        worker,
+        nightly,
+    ):
+        module.add(sub)
+    return parser
+
+
+#: Exit status of a command that succeeded.
+EXIT_OK = 0
+#: Exit status of bad input: an :class:`~autocal.errors.AutocalError`, a file that is
+#: missing or cannot be written (:class:`OSError`), or options pydantic rejects.
+EXIT_USER_ERROR = 2
+
+
+def user_error_message(err: BaseException) -> str | None:
+    """Return the one-line message of an error the user caused, ``None`` for anything else.
+
+    User errors are :class:`~autocal.errors.AutocalError` (every autocal input error),
+    :class:`OSError` (a missing input, an existing output) and pydantic's
+    ``ValidationError`` (options out of range). Any other exception, a plain
+    ``ValueError`` from numpy included, is a bug and is not reported as bad input.
+
+    Parameters
+    ----------
+    err
+        The exception a command raised.
+
+    Returns
+    -------
+    str or None
+        The message to print, or ``None`` when ``err`` is not a user error.
+    """
+    from pydantic import ValidationError
+
+    if isinstance(err, ValidationError):
+        from autocal.cli.args import validation_message
+
+        return validation_message(err)
+    if isinstance(err, AutocalError | OSError):
+        return " ".join(str(err).split()) or type(err).__name__
+    return None
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; return the exit status.
+
+    Returns
+    -------
+    int
+        :data:`EXIT_OK`, or :data:`EXIT_USER_ERROR` after printing a user error's message
+        to standard error. Other exceptions (bugs) propagate with their traceback (the
+        interpreter exits with status 1).
+    """
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = [logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args))
+    except Exception as err:
+        message = user_error_message(err)
+        if message is None:
+            raise
+        print(f"autocal {args.command}: error: {message}", file=sys.stderr)
+        return EXIT_USER_ERROR
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

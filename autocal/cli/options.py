@@ -1,0 +1,204 @@
+"""Calibration options shared by ``autocal calibrate`` and ``autocal nightly``.
+
+Every field of :class:`autocal.pipeline.calibrate.CalibrationConfig` except ``inputs`` has
+exactly one option here, and the defaults shown in ``--help`` are read from the configuration
+itself, so the command line, the REST API (``service.schemas.CalibrationOptions``) and the Python
+configuration cannot drift apart (``tests/test_cli_options.py`` checks the coverage).
+Options left out on the command line are not passed on: the configuration's defaults apply.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from autocal.cli.args import (
+    BEAM_HELP,
+    SKY_HELP,
+    CliError,
+    parse_int_list,
+    parse_pair,
+    parse_str_list,
+)
+
+
+def _default(name: str) -> str:
+    """Return the configuration's default of a field, as ``--help`` shows it."""
+    from autocal.pipeline.calibrate import CalibrationConfig
+
+    field = CalibrationConfig.model_fields[name]
+    value = field.get_default(call_default_factory=True)
+    if value is None:
+        return "default: all"
+    if isinstance(value, list):
+        value = ",".join(str(v) for v in value)
+    if isinstance(value, bool):
+        value = "on" if value else "off"
+    return f"default: {value}"
+
+
+def add_calibration_arguments(group: argparse._ActionsContainer) -> None:
+    """Add one option per calibration setting to a parser or an argument group.
+
+    Parameters
+    ----------
+    group
+        The parser (``autocal calibrate``) or argument group (``autocal nightly``).
+    """
+    d = _default
+    group.add_argument(
+        "--sky",
+        help=f"sky model: {SKY_HELP} ({d('sky')})",
+    )
+    group.add_argument(
+        "--beam",
+        help=f"beam: {BEAM_HELP} ({d('beam')})",
+    )
+    group.add_argument(
+        "--tgnd",
+        dest="tgnd_k",
+        type=float,
+        metavar="K",
+        help=f"ground temperature K ({d('tgnd_k')})",
+    )
+    group.add_argument(
+        "--nside", type=int, help=f"HEALPix resolution of Tsky, a power of two ({d('nside')})"
+    )
+    group.add_argument("--model", choices=["constant", "legendre"], help=f"({d('model')})")
+    group.add_argument(
+        "--order",
+        type=int,
+        help=f"Legendre order of G(t) and n(t), --model legendre ({d('order')})",
+    )
+    group.add_argument("--weights", choices=["radiometer", "identity"], help=f"({d('weights')})")
+    group.add_argument(
+        "--passes",
+        choices=["auto", "1", "2"],
+        help="radiometer weighting passes over the data: 2 re-weights with the fitted model, "
+        "auto makes the second only when data-derived weights would bias G by more than "
+        f"1e-5 ({d('passes')})",
+    )
+    group.add_argument(
+        "--inflate-errors",
+        action=argparse.BooleanOptionalAction,
+        help="radiometer weights: scale each channel's covariance by chi2/dof when it exceeds "
+        f"1 (identity weights always scale) ({d('inflate_errors')})",
+    )
+    group.add_argument(
+        "--trxr-prior",
+        metavar="K|CSV|H5",
+        help="receiver-temperature prior: a number in K, a CSV table with the header "
+        "freq_mhz,trxr_k[,sigma_k] (MHz, K; interpolated in frequency, must cover the data "
+        "band) or a previous solution.h5 of the same antennas and pols; the errors of G "
+        "then include the prior's (default: none)",
+    )
+    group.add_argument(
+        "--trxr-prior-sigma",
+        dest="trxr_prior_sigma_k",
+        type=float,
+        metavar="K",
+        help=f"1-sigma of a number prior or a table without sigma_k ({d('trxr_prior_sigma_k')})",
+    )
+    group.add_argument("--antennas", help=f"comma-separated antenna numbers ({d('antennas')})")
+    group.add_argument("--pols", help="comma-separated polarisations (default: all in the data)")
+    group.add_argument(
+        "--freq-range", dest="freq_range_mhz", metavar="LOW:HIGH", help="frequencies in MHz"
+    )
+    group.add_argument(
+        "--lst-range",
+        dest="lst_range_h",
+        metavar="START:STOP",
+        help="LSTs in hours (START > STOP wraps)",
+    )
+    group.add_argument(
+        "--products",
+        help=f"comma-separated of calh5, calfits, hdf5, png ({d('products')})",
+    )
+    group.add_argument(
+        "--reference",
+        nargs="+",
+        type=Path,
+        help="reference gains (calfits/calh5, abscal or redcal) to compare |g| with",
+    )
+    group.add_argument(
+        "--format",
+        dest="input_format",
+        choices=["auto", "uvh5", "miriad", "edges"],
+        help=f"input format; edges: ACQ or autocal's EDGES HDF5 ({d('input_format')})",
+    )
+    group.add_argument(
+        "--edges-r",
+        choices=["q", "p0"],
+        help=f"EDGES: fit Q = (p0 - p1)/(p2 - p1) or the raw antenna power p0 ({d('edges_r')})",
+    )
+    group.add_argument(
+        "--edges-bin",
+        type=int,
+        metavar="N",
+        help=f"EDGES: native channels averaged per bin ({d('edges_bin')})",
+    )
+
+
+def calibration_settings(args: argparse.Namespace) -> dict[str, Any]:
+    """Return the calibration settings given on the command line, parsed and validated.
+
+    Parameters
+    ----------
+    args
+        Parsed arguments of a parser set up by :func:`add_calibration_arguments`.
+
+    Returns
+    -------
+    dict
+        :class:`~autocal.pipeline.calibrate.CalibrationConfig` fields (without ``inputs``); options
+        not given are left out, so the configuration's defaults apply.
+
+    Raises
+    ------
+    CliError
+        When an option is invalid.
+    """
+    from pydantic import ValidationError
+
+    from autocal.cli.args import validation_message
+    from autocal.pipeline.calibrate import CalibrationConfig
+
+    parsers = {
+        "antennas": lambda v: parse_int_list(v, "antennas"),
+        "pols": lambda v: parse_str_list(v, "pols"),
+        "products": lambda v: parse_str_list(v, "products"),
+        "freq_range_mhz": lambda v: parse_pair(v, "freq-range", "MHz"),
+        "lst_range_h": lambda v: parse_pair(v, "lst-range", "hours"),
+        "passes": lambda v: v if v == "auto" else int(v),
+        "reference": lambda v: [str(p) for p in v],
+        "trxr_prior": prior_value,
+    }
+    settings: dict[str, Any] = {}
+    for name in calibration_dests():
+        value = getattr(args, name)
+        if value is not None:
+            settings[name] = parsers.get(name, lambda v: v)(value)
+    try:
+        CalibrationConfig(inputs=["-"], **settings)
+    except ValidationError as err:
+        raise CliError(validation_message(err, "options")) from None
+    return settings
+
+
+def prior_value(text: str) -> float | str:
+    """Return a ``--trxr-prior`` value: a number in K as a float, else the path as given."""
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def calibration_dests() -> list[str]:
+    """Return the ``dest`` of every option :func:`add_calibration_arguments` adds, in order.
+
+    Each is the name of the :class:`~autocal.pipeline.calibrate.CalibrationConfig` field it sets.
+    """
+    parser = argparse.ArgumentParser(add_help=False)
+    add_calibration_arguments(parser)
+    return [action.dest for action in parser._actions]

@@ -1,0 +1,98 @@
+"""``autocal tsky``: a beam-weighted sky temperature table Tsky(nu, LST)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from autocal.cli.args import BEAM_HELP, SKY_HELP, CliError, parse_range
+
+
+def add(sub: argparse._SubParsersAction) -> None:
+    """Register the command."""
+    p = sub.add_parser(
+        "tsky",
+        help="compute a Tsky(nu, LST) table",
+        description="Compute the beam-weighted sky temperature Tsky(nu, LST) of a drift-scan "
+        "antenna (CMB and ground pickup included) with the ring-FFT engine, write it "
+        "to HDF5 and optionally plot it. Results are cached on disk.",
+    )
+    p.add_argument(
+        "--sky",
+        default="gsm2008",
+        help=f"{SKY_HELP} (default gsm2008)",
+    )
+    p.add_argument(
+        "--beam",
+        default="dipole",
+        help=f"{BEAM_HELP}; default dipole",
+    )
+    p.add_argument("--pol", default="ee", choices=["ee", "nn"], help="polarisation")
+    p.add_argument("--site", default="hera", help="hera | edges | LAT,LON[,ALT]")
+    p.add_argument(
+        "--freqs",
+        default="100e6:200e6:101",
+        help="frequencies START:STOP:N in Hz, or a list (default 100e6:200e6:101)",
+    )
+    p.add_argument(
+        "--lsts", default="0:24:97", help="LSTs START:STOP:N in hours, or a list (default 0:24:97)"
+    )
+    p.add_argument("--nside", type=int, default=64, help="HEALPix resolution (default 64)")
+    p.add_argument("--tgnd", type=float, default=300.0, help="ground temperature K (300)")
+    p.add_argument(
+        "--epoch",
+        default="J2000",
+        help="epoch of the equatorial frame: J2000, ISO date or JD (default J2000)",
+    )
+    p.add_argument(
+        "--horizon-width",
+        type=float,
+        default=2.0,
+        help="width of the soft horizon in degrees (default 2; 0 = hard cut)",
+    )
+    p.add_argument(
+        "--method",
+        default="fft",
+        choices=["fft", "brute"],
+        help="fft (fast engine, default) or brute (per-LST reference)",
+    )
+    p.add_argument("--no-cache", action="store_true", help="neither read nor write the cache")
+    p.add_argument("--out", required=True, type=Path, help="output HDF5 file")
+    p.add_argument("--plot", type=Path, help="also write a PNG plot here")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the command."""
+    from autocal.io.tskyfile import write_tsky
+    from autocal.plots import plot_tsky
+    from autocal.tsky.engine import compute_tsky
+
+    if args.out.suffix.lower() not in {".h5", ".hdf5"}:
+        raise CliError(f"--out {args.out}: the Tsky table is HDF5; use a .h5 file name")
+    freqs = parse_range(args.freqs, "freqs", "Hz")
+    lsts = parse_range(args.lsts, "lsts", "hours")
+    result = compute_tsky(
+        args.sky,
+        args.beam,
+        args.site,
+        freqs,
+        lsts,
+        tgnd=args.tgnd,
+        nside=args.nside,
+        epoch=args.epoch,
+        pol=args.pol,
+        horizon_width_deg=args.horizon_width,
+        method=args.method,
+        cache=not args.no_cache,
+        progress=None,
+    )
+    write_tsky(args.out, result)
+    print(
+        f"wrote {args.out} ({result.lsts.size} LSTs x {result.freqs.size} channels, "
+        f"Tsky {result.tsky.min():.1f}-{result.tsky.max():.1f} K)"
+    )
+    if args.plot:
+        plot_tsky(result, args.plot)
+        print(f"wrote {args.plot}")
+    return 0

@@ -1,0 +1,1 @@
+"""Comparison of autocal's gains with cross-correlation gains, and delay spectra."""

@@ -1,0 +1,591 @@
+"""Catalogue of candidate physical effects for the discrepancy workflow (DESIGN.md section 5).
+
+Each effect is a parameterised extension of the forward model
+
+    R(t, nu) = G(nu) [1 + sum_k d_k P_k(s)] {Tsky(t, nu) + sum_j D_j(t, nu; p_j)
+               + Trxr(nu) [1 + sum_k e_k P_k(s)]}   (n = G Trxr)
+
+with per-channel ``(G, n)`` (profiled out) and a few *global* parameters shared by all
+channels, antennas and polarisations. ``P_k`` are Legendre polynomials of ``s``, the LST
+mapped onto ``[-1, 1]`` (:class:`autocal.fit.lsq.FitModel`).
+
+Identifiability (constant per-channel ``G`` and ``n``):
+
+- A Tsky change constant in time (``sky_offset``, ``ground_temperature``, ``missing_cmb``)
+  is absorbed exactly by ``n`` (``Trxr``): the data chi-square cannot see it. It is seen
+  only through a *receiver prior* (a known ``Trxr(nu)`` with an uncertainty), which turns
+  the shift of the implied ``Trxr`` into chi-square.
+- A per-channel scale of the sky part ``S`` (``sky_scale``, ``sky_spectral_index``) is
+  absorbed by ``G`` plus an offset ``-s C`` (``C`` the time-constant CMB + ground part),
+  absorbed by ``n``: ``(1+s) S + C = (1+s)(S + C) - s C``. Also only seen with a receiver
+  prior (then through ``Trxr -> (Trxr - s C) / (1 + s)``).
+- ``gain_drift``, ``noise_drift`` (achromatic, relative Legendre drifts) and
+  ``beam_width`` have time x frequency structure that ``(G, n)`` cannot absorb and are
+  identifiable from the data alone.
+- ``cable_reflection`` (a bandpass ripple) is absorbed exactly by the per-channel ``G``;
+  it is detected in the bandpass domain, on the fitted ``G(nu)``, against a smooth
+  bandpass (see :func:`autocal.diagnosis.search.fit_cable_reflection`).
+
+The diagnosis measures identifiability numerically (the fraction of each template's
+Fisher information left after projecting out ``(G, n)``) and skips effects below a
+threshold, so none is ever "found" through round-off.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from numpy.polynomial import legendre
+
+from autocal.errors import AutocalError
+from autocal.sky.beams import Beam, BeamEvaluator, get_beam
+from autocal.sky.models import T_CMB
+from autocal.tsky.engine import compute_tsky
+
+logger = logging.getLogger(__name__)
+
+#: Sidereal seconds per solar second (LST advances this much faster than UTC).
+SIDEREAL_RATE = 1.002737909
+
+#: The catalogue's identifiers.
+EFFECT_NAMES = (
+    "gain_drift",
+    "gain_jitter",
+    "noise_drift",
+    "sky_scale",
+    "sky_offset",
+    "sky_spectral_index",
+    "ground_temperature",
+    "beam_width",
+    "missing_cmb",
+    "cable_reflection",
+    "timing_offset",
+    "antenna_gain_jitter",
+    "antenna_gain_drift",
+)
+#: Shortest LST span (hours) for which the diurnal drift variants are candidates.
+DIURNAL_MIN_SPAN_H = 6.0
+#: Step (hours) of the central difference of Tsky in LST behind ``timing_offset``.
+LST_STEP_H = 2.0 / 60.0
+
+
+class EffectError(AutocalError):
+    """Invalid effect or template input."""
+
+
+# templates ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class ScaledBeam(Beam):
+    """A beam whose width is scaled by ``factor``: ``A'(az, za) = A(az, za / factor)``.
+
+    Used to build the first-order ``beam_width`` template; the normalisation of the beam
+    does not matter because Tsky divides by the beam integral.
+    """
+
+    base: Beam | None = None
+    factor: float = 1.0
+    name: str = "scaled"
+
+    @property
+    def freq_range(self) -> tuple[float, float] | None:  # noqa: D102
+        return None if self.base is None else self.base.freq_range
+
+    def power(self, freqs: np.ndarray, az: np.ndarray, za: np.ndarray) -> np.ndarray:  # noqa: D102
+        if self.base is None:
+            raise EffectError("ScaledBeam needs a base beam")
+        za = np.clip(np.asarray(za) / self.factor, 0.0, np.pi)
+        return self.base.power(freqs, az, za)
+
+    def on(self, az: np.ndarray, za: np.ndarray) -> BeamEvaluator:
+        """Bind the base beam to the scaled directions (keeps its fast evaluator)."""
+        if self.base is None:
+            raise EffectError("ScaledBeam needs a base beam")
+        return self.base.on(az, np.clip(np.asarray(za) / self.factor, 0.0, np.pi))
+
+    def describe(self) -> dict[str, Any]:  # noqa: D102
+        base = {} if self.base is None else self.base.describe()
+        return {"beam": "scaled", "factor": self.factor, "base": base}
+
+
+@dataclass(frozen=True, eq=False)
+class SkyTemplates:
+    """The model Tsky split into the parts the effects act on.
+
+    Attributes
+    ----------
+    freqs, lsts
+        ``(Nfreq,)`` Hz and ``(Ntime,)`` hours.
+    total
+        ``(Npol, Ntime, Nfreq)`` model Tsky (galactic + CMB + ground), kelvin.
+    galactic
+        ``(Npol, Ntime, Nfreq)`` the sky part without CMB ("S").
+    cmb
+        ``(Npol, Ntime, Nfreq)`` the CMB part (``2.725 K f_above``).
+    ground
+        ``(Npol, Ntime, Nfreq)`` ``Tgnd f_below``.
+    f_above, f_below
+        ``(Npol, Nfreq)`` beam fractions above / below the horizon.
+    beam_dwidth
+        ``(Npol, Ntime, Nfreq)`` ``dTsky / dw`` for a fractional beam-width change ``w``
+        (central difference), or ``None``.
+    beam_width_poly
+        ``(K, Npol, Ntime, Nfreq)`` coefficients ``c_k`` of ``Tsky(w) - Tsky(0) =
+        sum_k c_k w^k`` (k = 1..K), the polynomial through Tsky computed with the beam
+        width scaled by ``1 + w`` at ``K`` nodes ``w != 0`` (+-h/2, +-h), or ``None``.
+        It makes ``beam_width`` exact at the nodes and accurate between them for the
+        5-15 % width errors of real beam models.
+    nu0
+        Reference frequency (Hz) of the spectral-index error ``(nu / nu0)^dbeta``.
+    lst_derivative
+        ``(Npol, Ntime, Nfreq)`` ``dTsky / dt`` in kelvin per second of time (central
+        difference over :data:`LST_STEP_H`), the template of ``timing_offset``, or ``None``.
+    meta
+        Provenance.
+    """
+
+    freqs: np.ndarray
+    lsts: np.ndarray
+    total: np.ndarray
+    galactic: np.ndarray
+    cmb: np.ndarray
+    ground: np.ndarray
+    f_above: np.ndarray
+    f_below: np.ndarray
+    beam_dwidth: np.ndarray | None = None
+    beam_width_poly: np.ndarray | None = None
+    nu0: float = 150e6
+    meta: dict[str, Any] = field(default_factory=dict)
+    lst_derivative: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        shape = self.total.shape
+        if len(shape) != 3 or shape[1:] != (self.lsts.size, self.freqs.size):
+            raise EffectError(f"Tsky templates have shape {shape}; expected (Npol, Ntime, Nfreq)")
+        for name in ("galactic", "cmb", "ground"):
+            if getattr(self, name).shape != shape:
+                raise EffectError(f"template {name} has the wrong shape")
+        if self.beam_dwidth is not None and self.beam_dwidth.shape != shape:
+            raise EffectError("template beam_dwidth has the wrong shape")
+        if self.beam_width_poly is not None and self.beam_width_poly.shape[1:] != shape:
+            raise EffectError("template beam_width_poly has the wrong shape")
+        if self.lst_derivative is not None and self.lst_derivative.shape != shape:
+            raise EffectError("template lst_derivative has the wrong shape")
+
+
+def sky_templates(
+    sky: Any,
+    beam: Beam | str,
+    site: Any,
+    freqs: np.ndarray,
+    lsts: np.ndarray,
+    *,
+    pols: tuple[str, ...] | list[str] = ("ee",),
+    tgnd: float = 300.0,
+    nside: int = 64,
+    epoch: Any = None,
+    beam_width_step: float | None = 0.2,
+    nu0: float | None = None,
+    timing: bool = True,
+) -> SkyTemplates:
+    """Compute the model Tsky and its effect templates (one FFT Tsky pass per beam).
+
+    Parameters
+    ----------
+    sky
+        Sky model or spec (:func:`autocal.sky.models.get_sky`).
+    beam
+        Beam or spec (:func:`autocal.sky.beams.get_beam`).
+    site
+        Site or name.
+    freqs
+        Hz.
+    lsts
+        Hours.
+    pols
+        Polarisations.
+    tgnd
+        Model ground temperature in kelvin.
+    nside
+        HEALPix resolution.
+    epoch
+        Epoch of the equatorial frame (use the observation date).
+    beam_width_step
+        Largest fractional width change ``h`` of the ``beam_width`` template: Tsky is
+        computed with the width scaled by ``1 +- h/2`` and ``1 +- h`` and a quartic in
+        ``w`` passed through them (``None``: no template).
+    nu0
+        Reference of the spectral-index error; default the sky's ``nu0`` for a power-law
+        sky, else the band centre.
+    timing
+        Compute the ``timing_offset`` template (Tsky's derivative in time).
+
+    Returns
+    -------
+    SkyTemplates
+        The templates.
+    """
+    freqs = np.asarray(freqs, np.float64)
+    lsts = np.asarray(lsts, np.float64)
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("tot", "gal", "cmb", "gnd", "bw", "dt")}
+    fa, fb = [], []
+    meta: dict[str, Any] = {}
+    for pol in pols:
+        b = get_beam(beam, pol)
+        kw = {"tgnd": tgnd, "nside": nside, "epoch": epoch, "pol": pol, "progress": False}
+        res = compute_tsky(sky, b, site, freqs, lsts, keep_components=True, cache=False, **kw)
+        assert res.components is not None and res.spectra is not None
+        labels = list(res.meta.get("component_labels", []))
+        contrib = res.components * res.spectra[None]  # (T, F, C)
+        is_cmb = np.array([lab == "cmb" for lab in labels])
+        gal = contrib[..., ~is_cmb].sum(axis=-1)
+        cmb = contrib[..., is_cmb].sum(axis=-1)
+        gnd = np.broadcast_to(tgnd * res.f_below, gal.shape)
+        parts["tot"].append(res.tsky)
+        parts["gal"].append(gal)
+        parts["cmb"].append(cmb)
+        parts["gnd"].append(np.array(gnd))
+        fa.append(res.f_above)
+        fb.append(res.f_below)
+        meta = res.meta
+        if timing:
+            # Tsky one LST step either side (cached harmonics, any LST grid): per second
+            # of time, a sidereal second being 1/1.0027379 of a solar one
+            ahead, behind = (
+                compute_tsky(sky, b, site, freqs, (lsts + d) % 24.0, **kw).tsky
+                for d in (LST_STEP_H, -LST_STEP_H)
+            )
+            per_hour = (ahead - behind) / (2 * LST_STEP_H)
+            parts["dt"].append(per_hour * SIDEREAL_RATE / 3600.0)
+        if beam_width_step:
+            nodes = beam_width_step * np.array([-1.0, -0.5, 0.5, 1.0])
+            deltas = np.stack(
+                [
+                    # the widened beams' harmonics come from the Tsky cache (every
+                    # diagnosis of the night and the calibration share them)
+                    compute_tsky(
+                        sky, ScaledBeam(base=b, factor=1 + w), site, freqs, lsts, **kw
+                    ).tsky
+                    - res.tsky
+                    for w in nodes
+                ]
+            )
+            # solve sum_k c_k w_j^k = delta_j for c_1..c_4 (exact through the 5 nodes)
+            vander = nodes[:, None] ** np.arange(1, nodes.size + 1)[None, :]
+            coef = np.tensordot(np.linalg.inv(vander), deltas, axes=([1], [0]))
+            parts["bw"].append(coef)
+    if nu0 is None:
+        nu0 = float(meta.get("sky", {}).get("nu0_Hz") or 0.5 * (freqs[0] + freqs[-1]))
+    return SkyTemplates(
+        freqs=freqs,
+        lsts=lsts,
+        total=np.stack(parts["tot"]),
+        galactic=np.stack(parts["gal"]),
+        cmb=np.stack(parts["cmb"]),
+        ground=np.stack(parts["gnd"]),
+        f_above=np.stack(fa),
+        f_below=np.stack(fb),
+        beam_dwidth=np.stack([c[0] for c in parts["bw"]]) if parts["bw"] else None,
+        beam_width_poly=np.stack(parts["bw"], axis=1) if parts["bw"] else None,
+        lst_derivative=np.stack(parts["dt"]) if parts["dt"] else None,
+        nu0=nu0,
+        meta={"tsky": meta, "tgnd_K": tgnd, "beam_width_step": beam_width_step},
+    )
+
+
+# effects --------------------------------------------------------------------------------
+
+
+def time_basis(lsts: np.ndarray, order: int) -> np.ndarray:
+    """``(order, Ntime)`` Legendre polynomials ``P_1..P_order`` of the LST on ``[-1, 1]``."""
+    from autocal.fit.lsq import FitModel
+
+    model = FitModel.for_lsts(np.asarray(lsts), "legendre", max(order, 1))
+    return legendre.legvander(model.s(lsts), order)[:, 1:].T
+
+
+def diurnal_basis(lsts: np.ndarray, harmonics: int) -> np.ndarray:
+    """``(2 harmonics, Ntime)``: ``sin(2 pi k L / 24 h)``, ``cos(2 pi k L / 24 h)``, k = 1.."""
+    phase = 2 * np.pi * np.asarray(lsts, np.float64) / 24.0
+    rows = []
+    for k in range(1, harmonics + 1):
+        rows += [np.sin(k * phase), np.cos(k * phase)]
+    return np.array(rows)
+
+
+@dataclass(frozen=True)
+class Effect:
+    """A candidate effect: a parameterised extension of the forward model.
+
+    Attributes
+    ----------
+    name
+        Catalogue identifier (:data:`EFFECT_NAMES`).
+    kind
+        ``"tsky"`` (additive change of Tsky), ``"gain"`` (relative achromatic gain
+        drift), ``"noise"`` (relative achromatic noise drift), ``"bandpass"`` or
+        ``"feed_gain"`` (one gain series per antenna-pol, fitted feed by feed:
+        :func:`autocal.diagnosis.search.fit_feed_gains`).
+    params
+        Parameter names.
+    units
+        Parameter units.
+    order
+        Legendre order (``basis="legendre"``) or number of harmonics of the sidereal day
+        (``basis="diurnal"``) of drift effects.
+    fixed
+        For discrete hypotheses (``missing_cmb``): parameter values held fixed.
+    signature
+        One-line description of the effect's signature.
+    """
+
+    name: str
+    kind: Literal["tsky", "gain", "noise", "bandpass", "feed_gain"]
+    params: tuple[str, ...]
+    units: tuple[str, ...]
+    order: int = 0
+    fixed: tuple[float, ...] | None = None
+    signature: str = ""
+    basis: Literal["legendre", "diurnal", "integration", "feed_integration", "feed_legendre"] = (
+        "legendre"
+    )
+
+    def time_basis(self, lsts: np.ndarray) -> np.ndarray:
+        """``(k, Ntime)`` time basis of a drift effect (:func:`time_basis`)."""
+        if self.basis == "diurnal":
+            return diurnal_basis(lsts, self.order)
+        if self.basis == "integration":
+            if len(self.params) != len(lsts) - 1:
+                raise EffectError(
+                    f"gain_jitter was built for {len(self.params) + 1} integrations, "
+                    f"the data have {len(lsts)}"
+                )
+            return np.eye(len(lsts))[1:]
+        return time_basis(lsts, self.order)
+
+    @property
+    def nfree(self) -> int:
+        """Number of free (penalised) parameters (``feed_gain``: counted by its fit)."""
+        if self.kind == "bandpass":
+            return 3
+        return 0 if self.fixed is not None else len(self.params)
+
+    def delta(self, p: np.ndarray, tpl: SkyTemplates) -> np.ndarray:
+        """Additive Tsky change ``(Npol, Ntime, Nfreq)`` for ``kind == "tsky"``."""
+        p = np.asarray(p, np.float64)
+        if self.name == "sky_spectral_index":
+            ratio = tpl.freqs / tpl.nu0
+            return tpl.galactic * (ratio ** p[0] - 1.0)[None, None, :]
+        if self.name == "beam_width" and tpl.beam_width_poly is not None:
+            powers = float(p[0]) ** np.arange(1, tpl.beam_width_poly.shape[0] + 1)
+            return np.tensordot(powers, tpl.beam_width_poly, axes=([0], [0]))
+        return np.tensordot(self.jacobian(p, tpl), p, axes=([-1], [0]))
+
+    def jacobian(self, p: np.ndarray, tpl: SkyTemplates) -> np.ndarray:
+        """``d delta / d p`` as ``(Npol, Ntime, Nfreq, k)`` for ``kind == "tsky"``."""
+        shape = tpl.total.shape
+        if self.name == "sky_scale":
+            t = tpl.galactic
+        elif self.name == "sky_offset":
+            t = np.broadcast_to(tpl.f_above[:, None, :], shape)
+        elif self.name == "ground_temperature":
+            t = np.broadcast_to(tpl.f_below[:, None, :], shape)
+        elif self.name == "missing_cmb":
+            t = np.broadcast_to(T_CMB * tpl.f_above[:, None, :], shape)
+        elif self.name == "beam_width":
+            if tpl.beam_dwidth is None:
+                raise EffectError("beam_width needs templates built with beam_width_step")
+            t = tpl.beam_dwidth
+            if tpl.beam_width_poly is not None:
+                k = np.arange(1, tpl.beam_width_poly.shape[0] + 1)
+                dpow = k * float(p[0]) ** (k - 1)
+                t = np.tensordot(dpow, tpl.beam_width_poly, axes=([0], [0]))
+        elif self.name == "sky_spectral_index":
+            ratio = tpl.freqs / tpl.nu0
+            t = tpl.galactic * (np.log(ratio) * ratio ** float(p[0]))[None, None, :]
+        elif self.name == "timing_offset":
+            if tpl.lst_derivative is None:
+                raise EffectError("timing_offset needs templates built with timing=True")
+            t = tpl.lst_derivative
+        else:
+            raise EffectError(f"{self.name} is not a Tsky effect")
+        return np.asarray(t)[..., None]
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-serialisable description."""
+        return {
+            "name": self.name,
+            "kind": self.kind,
+            "params": list(self.params),
+            "units": list(self.units),
+            "order": self.order,
+            "fixed": None if self.fixed is None else list(self.fixed),
+            "signature": self.signature,
+            "basis": self.basis,
+        }
+
+
+def catalogue(
+    max_drift_order: int = 2,
+    include_beam_width: bool = True,
+    ntime: int | None = None,
+    include_timing: bool = False,
+    span_h: float | None = None,
+    nfeeds: int | None = None,
+) -> list[Effect]:
+    """Return the candidate effects (drifts in every order ``1..max_drift_order``).
+
+    Parameters
+    ----------
+    max_drift_order
+        Highest Legendre order of ``gain_drift`` and ``noise_drift``.
+    include_beam_width
+        Include ``beam_width`` (needs :attr:`SkyTemplates.beam_dwidth`).
+    include_timing
+        Include ``timing_offset`` (needs :attr:`SkyTemplates.lst_derivative`).
+    span_h
+        LST span of the data (hours): the diurnal drift variants only when it is at least
+        :data:`DIURNAL_MIN_SPAN_H` (over a shorter span a sidereal-day sine and cosine are
+        nearly collinear with a constant and a linear drift).
+    ntime
+        Number of integrations: with 3 or more, include ``gain_jitter`` (one broadband
+        gain factor per integration, the first one the reference).
+    nfeeds
+        Number of antenna-pols: with 2 or more, include ``antenna_gain_drift`` (every
+        antenna-pol its own Legendre drift, orders ``1..max_drift_order``) and (with
+        ``ntime`` >= 3) ``antenna_gain_jitter``, every antenna-pol its own ``gain_jitter``
+        series (tested against a common series once ``gain_jitter`` is in the model).
+    """
+    out: list[Effect] = []
+    if ntime is not None and ntime >= 3:
+        out.append(
+            Effect(
+                "gain_jitter",
+                "gain",
+                tuple(f"eps_{t}" for t in range(1, ntime)),
+                ("1",) * (ntime - 1),
+                1,
+                signature="G(t_i) = G (1 + eps_i), every integration its own achromatic "
+                "gain factor (broadband gain fluctuations)",
+                basis="integration",
+            )
+        )
+        if nfeeds is not None and nfeeds >= 2:
+            out.append(
+                Effect(
+                    "antenna_gain_jitter",
+                    "feed_gain",
+                    ("rms",),
+                    ("1",),
+                    1,
+                    signature="G_a(t_i) = G_a (1 + eps_a,i), every antenna-pol its own "
+                    "per-integration gain series (gain fluctuations in each signal chain, "
+                    "not common to the array)",
+                    basis="feed_integration",
+                )
+            )
+    for order in range(1, max_drift_order + 1):
+        names = tuple(f"d_{k}" for k in range(1, order + 1))
+        if nfeeds is not None and nfeeds >= 2:
+            out.append(
+                Effect(
+                    "antenna_gain_drift",
+                    "feed_gain",
+                    names,
+                    ("1",) * order,
+                    order,
+                    signature="G_a(t) = G_a (1 + sum_k d_a,k P_k(s)), every antenna-pol its "
+                    "own achromatic drift (one signal chain's gain changing against the "
+                    "others')",
+                    basis="feed_legendre",
+                )
+            )
+        out.append(
+            Effect(
+                "gain_drift",
+                "gain",
+                names,
+                ("1",) * order,
+                order,
+                signature="G(t) = G (1 + sum_k d_k P_k(s)), achromatic",
+            )
+        )
+        names = tuple(f"e_{k}" for k in range(1, order + 1))
+        out.append(
+            Effect(
+                "noise_drift",
+                "noise",
+                names,
+                ("1",) * order,
+                order,
+                signature="n(t) = n (1 + sum_k e_k P_k(s)), achromatic",
+            )
+        )
+    diurnal = ("gain", "gain_drift", "d"), ("noise", "noise_drift", "e")
+    if span_h is not None and span_h < DIURNAL_MIN_SPAN_H:
+        diurnal = ()
+    for kind, name, letter in diurnal:
+        out.append(
+            Effect(
+                name,
+                kind,  # type: ignore[arg-type]
+                (f"{letter}_sin", f"{letter}_cos"),
+                ("1", "1"),
+                1,
+                signature=f"{'G' if kind == 'gain' else 'n'}(t) x (1 + {letter}_sin sin(2 pi "
+                f"L / 24 h) + {letter}_cos cos(2 pi L / 24 h)), diurnal, achromatic",
+                basis="diurnal",
+            )
+        )
+    out += [
+        Effect("sky_scale", "tsky", ("s",), ("1",), signature="S -> (1 + s) S"),
+        Effect("sky_offset", "tsky", ("T_offset",), ("K",), signature="+ T_offset f_above"),
+        Effect(
+            "sky_spectral_index",
+            "tsky",
+            ("dbeta",),
+            ("1",),
+            signature="S -> S (nu / nu0)^dbeta",
+        ),
+        Effect("ground_temperature", "tsky", ("dT_gnd",), ("K",), signature="+ dT f_below"),
+        Effect(
+            "missing_cmb",
+            "tsky",
+            ("cmb_factor",),
+            ("1",),
+            signature="+ m 2.725 K f_above, m = -1 (no CMB in data) or +1 (CMB missed)",
+        ),
+        Effect(
+            "cable_reflection",
+            "bandpass",
+            ("a", "tau_ns", "phi"),
+            ("1", "ns", "rad"),
+            signature="G(nu) smooth x (1 + a cos(2 pi nu tau + phi))",
+        ),
+    ]
+    if include_timing:
+        out.append(
+            Effect(
+                "timing_offset",
+                "tsky",
+                ("dt_s",),
+                ("s",),
+                signature="Tsky(t + dt): a clock or LST error, or a sky in a frame rotated in "
+                "right ascension (e.g. J2000 instead of the frame of date)",
+            )
+        )
+    if include_beam_width:
+        out.append(
+            Effect(
+                "beam_width",
+                "tsky",
+                ("w",),
+                ("1",),
+                signature="beam width x (1 + w): + sum_k c_k w^k (quartic via Tsky at 4 widths)",
+            )
+        )
+    return out

@@ -1,0 +1,569 @@
+"""Diagnose one observation end to end: configuration in, products out.
+
+``UVH5 files -> Observation -> model Tsky and effect templates -> diagnose -> products``
+
+The shared entry point of ``autocal diagnose`` and the service's ``diagnose`` jobs
+(:mod:`autocal.service.worker`). :func:`run_diagnosis` reads the autos
+(:func:`read_observation`, a block of integrations at a time), computes the model Tsky and
+the templates of the candidate effects (:func:`autocal.diagnosis.effects.sky_templates`), runs the
+discrepancy workflow (:func:`autocal.diagnosis.search.diagnose`, DESIGN.md section 5) and writes
+its products: ``diagnosis.json``, ``summary.txt``, the residual plots
+(:func:`autocal.diagnosis.search.write_diagnosis`) and ``summary.json`` (accepted effects, final
+gap, provenance, timings).
+
+As in :mod:`autocal.pipeline.calibrate`, products are written to a staging folder inside ``out``
+and moved into place only when all of them succeeded (``summary.json`` last), so a failed
+or cancelled run never leaves a half-written product set.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    field_validator,
+    model_validator,
+)
+
+from autocal.core.coords import night_epoch
+from autocal.diagnosis.search import ALPHA, BIC_THRESHOLD, DiagnoseError
+from autocal.pipeline.calibrate import PipelineError, check_prior_spec, check_ranges
+
+logger = logging.getLogger(__name__)
+
+Progress = Callable[[float, str], None]
+#: Beam polarisation of each data polarisation the diagnosis accepts (x points east).
+BEAM_POLS = {"ee": "ee", "nn": "nn", "xx": "ee", "yy": "nn"}
+#: Name of the summary product (always written, moved into place last).
+SUMMARY = "summary.json"
+
+
+class DiagnoseConfig(BaseModel):
+    """Everything that defines one diagnosis (shared by the CLI, the API and workers).
+
+    Frequencies in MHz, LSTs in hours, temperatures in kelvin. The statistic settings
+    (``bic_threshold``, ``alpha``, ``max_steps``) default to those of
+    :func:`autocal.diagnosis.search.diagnose`.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+    inputs: list[Annotated[str, StringConstraints(min_length=1)]] = Field(
+        ..., min_length=1, description="UVH5 files of one observation"
+    )
+    sky: str = Field(
+        "gsm2008", min_length=1, description="model sky (autocal.sky.models.get_sky spec)"
+    )
+    beam: str = Field(
+        "hera", min_length=1, description="model beam (autocal.sky.beams.get_beam spec)"
+    )
+    tgnd_k: float = Field(300.0, ge=0.0, description="model ground temperature")
+    nside: int = Field(64, ge=1, le=8192, description="HEALPix resolution of the templates")
+    antennas: list[Annotated[int, Field(ge=0)]] | None = Field(
+        None, min_length=1, description="antenna numbers (default: every antenna with autos)"
+    )
+    pols: list[Literal["ee", "nn", "xx", "yy"]] | None = Field(
+        None, min_length=1, description="polarisations (default: the file's ee/nn or xx/yy)"
+    )
+    freq_range_mhz: tuple[float, float] | None = Field(None, description="(low, high) MHz")
+    lst_range_h: tuple[float, float] | None = Field(
+        None, description="(start, stop) hours; start > stop wraps through 24 h"
+    )
+    trxr_prior: float | str | None = Field(
+        None,
+        description="known receiver temperature: a number (K), a CSV table "
+        "freq_mhz,trxr_k[,sigma_k] or a previous solution.h5; makes effects that are "
+        "constant in time (sky_offset, ground_temperature, missing_cmb) and sky scalings "
+        "identifiable",
+    )
+    trxr_prior_sigma_k: float = Field(
+        1.0, gt=0.0, description="1-sigma of a number prior or a table without sigma_k"
+    )
+    bic_threshold: float = Field(
+        BIC_THRESHOLD, ge=0.0, description="Delta BIC an effect must exceed to be accepted"
+    )
+    alpha: float = Field(
+        ALPHA,
+        gt=0.0,
+        le=1.0,
+        description="largest chi^2 survival probability of an accepted effect's Delta chi^2",
+    )
+    max_steps: int = Field(5, ge=0, le=50, description="most effects added")
+
+    @field_validator("pols", mode="before")
+    @classmethod
+    def _lower_pols(cls, value: Any) -> Any:
+        if isinstance(value, list | tuple):
+            return [v.strip().lower() if isinstance(v, str) else v for v in value]
+        return value
+
+    @field_validator("nside")
+    @classmethod
+    def _power_of_two(cls, value: int) -> int:
+        if value & (value - 1):
+            raise ValueError(f"nside must be a power of two (got {value})")
+        return value
+
+    @model_validator(mode="after")
+    def _check(self) -> DiagnoseConfig:
+        check_ranges(self.freq_range_mhz, self.lst_range_h)
+        check_prior_spec(self.trxr_prior, self.trxr_prior_sigma_k)
+        return self
+
+
+def product_name(filename: str) -> str:
+    """Return the product name of a file (``diagnosis.json`` -> ``diagnosis``).
+
+    JSON files are named by their stem (``diagnosis``, ``summary``), other files by stem
+    and suffix (``summary_txt``, ``residuals_png``, ``residuals_step1_png``), as the
+    calibration's ``residuals_png``.
+    """
+    path = Path(filename)
+    suffix = path.suffix.lower().lstrip(".")
+    return path.stem if suffix in ("json", "") else f"{path.stem}_{suffix}"
+
+
+def _strict_json(value: Any) -> Any:
+    """``value`` as strict JSON data: numpy to Python, non-finite floats to ``None``."""
+    if isinstance(value, dict):
+        return {str(k): _strict_json(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_strict_json(v) for v in value]
+    if isinstance(value, np.ndarray | np.generic):
+        return _strict_json(value.tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    return str(value)
+
+
+def _input_paths(config: DiagnoseConfig) -> list[Path]:
+    paths = [Path(p).expanduser().absolute() for p in config.inputs]
+    missing = [str(p) for p in paths if not p.exists()]
+    if missing:
+        raise DiagnoseError(f"input(s) not found: {missing}")
+    folders = [str(p) for p in paths if p.is_dir()]
+    if folders:
+        raise DiagnoseError(
+            f"diagnose reads UVH5 files; {folders} are folders (Miriad data: convert them "
+            "to UVH5 first)"
+        )
+    return paths
+
+
+def _beam_pols(pols: tuple[str, ...]) -> tuple[str, ...]:
+    unknown = [p for p in pols if p not in BEAM_POLS]
+    if unknown:
+        raise DiagnoseError(
+            f"polarisation(s) {unknown} have no power beam: diagnose ee/nn (or xx/yy); "
+            "select them with pols"
+        )
+    return tuple(BEAM_POLS[p] for p in pols)
+
+
+#: Peak memory of a diagnosis: this much plus :data:`BYTES_PER_SAMPLE` per sample (antenna x
+#: pol x channel x integration), measured with ``benchmarks/diagnose_scale.py`` (``autocal
+#: diagnose`` on the first file of the HERA-size night, 192 integrations x 1536 channels x 2
+#: pols; README, "Diagnosing", **Size.**): 1.83 GB for 30 antennas (17.7 M samples), 6.33 GB
+#: for all 350 (206 M). The fit streams antennas in chunks (:func:`autocal.diagnosis.search.
+#: fit_extended`), so what grows with the samples is the observation (float64 data, flags),
+#: the float32 weights and, while outliers are flagged, their high-passed residuals.
+BASE_BYTES = 1.5e9
+#: See :data:`BASE_BYTES` (the slope between those two runs, 23.8 bytes, rounded up).
+BYTES_PER_SAMPLE = 26.0
+
+
+def available_memory() -> float | None:
+    """Return the bytes this process can still allocate, or ``None`` when unknown.
+
+    ``MemAvailable`` of ``/proc/meminfo``, lowered to what a cgroup v2 memory limit leaves
+    (containers, systemd units with ``MemoryMax``).
+    """
+    avail: float | None = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                avail = float(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        used = float(Path("/sys/fs/cgroup/memory.current").read_text().strip())
+        if limit != "max" and avail is not None:
+            avail = min(avail, float(limit) - used)
+    except (OSError, ValueError):
+        pass
+    return avail
+
+
+def check_memory(shape: tuple[int, ...]) -> None:
+    """Refuse a diagnosis the machine has no memory for, saying how to make it smaller.
+
+    Parameters
+    ----------
+    shape
+        ``(Nant, Npol, Ntime, Nfreq)`` of the observation.
+
+    Raises
+    ------
+    autocal.diagnosis.search.DiagnoseError
+        When the estimate (:data:`BASE_BYTES` + :data:`BYTES_PER_SAMPLE` per sample) exceeds
+        :func:`available_memory`.
+    """
+    nsamples = math.prod(shape)
+    need = BASE_BYTES + BYTES_PER_SAMPLE * nsamples
+    avail = available_memory()
+    if avail is not None and need > avail:
+        nant, npol, ntime, nfreq = shape
+        raise DiagnoseError(
+            f"diagnosing {nsamples / 1e6:.1f} M samples ({nant} antennas x {npol} pols x "
+            f"{nfreq} channels x {ntime} integrations) needs about {need / 1e9:.1f} GB and "
+            f"{max(avail, 0) / 1e9:.1f} GB are available: select fewer antennas (--antennas, "
+            "API 'antennas'), channels (--freq-range) or LSTs (--lst-range)"
+        )
+    logger.debug("diagnosis of %d samples: about %.1f GB", nsamples, need / 1e9)
+
+
+def read_observation(
+    paths: list[Path],
+    *,
+    antennas: list[int] | None = None,
+    pols: list[str] | None = None,
+    freq_range: tuple[float, float] | None = None,
+    lst_range: tuple[float, float] | None = None,
+    check: Callable[[tuple[int, int, int, int]], None] | None = None,
+) -> Any:
+    """Read the autos of UVH5 files into one observation, a block of integrations at a time.
+
+    The values are those :func:`autocal.io.uvh5.read_uvh5` returns for the same selections,
+    but the blocks (:func:`autocal.io.uvh5.iter_uvh5`) are copied straight into the
+    observation's arrays: :func:`~autocal.io.uvh5.read_uvh5` holds several copies of the
+    data while it joins them (a peak of 8.0 GB for a whole HERA file, whose observation is
+    1.9 GB). ``nsamples`` uniform over the observation are kept as one number.
+
+    Parameters
+    ----------
+    paths
+        The UVH5 files.
+    antennas, pols, freq_range, lst_range
+        As for :func:`~autocal.io.uvh5.read_uvh5` (``freq_range`` in Hz).
+    check
+        Called with ``(Nant, Npol, Ntime, Nfreq)`` (``Ntime``: every integration of the
+        files, before the LST selection) once the first block is read, before the
+        observation's arrays are allocated (:func:`check_memory`).
+
+    Returns
+    -------
+    autocal.core.observation.Observation
+        The observation.
+    """
+    from autocal.core.observation import Observation
+    from autocal.io.uvh5 import iter_uvh5, scan_uvh5
+
+    files = scan_uvh5(paths)
+    ntime_max = sum(f.jds.size for f in files)
+    data = flags = nsamples = None
+    uniform: float | None = None
+    first: Any = None
+    lsts, jds, tint, sha, used = [], [], [], {}, []
+    t = 0
+    for block in iter_uvh5(
+        paths,
+        antennas=antennas,
+        pols=pols,
+        freq_range=freq_range,
+        lst_range=lst_range,
+        block_size=0,
+    ):
+        nant, npol, nt, nfreq = block.data.shape
+        if first is None:
+            first = block
+            if check is not None:
+                check((nant, npol, ntime_max, nfreq))
+            data = np.empty((nant, npol, ntime_max, nfreq))
+            flags = np.empty(data.shape, bool)
+            uniform = float(block.nsamples.flat[0])
+        assert data is not None and flags is not None
+        data[:, :, t : t + nt] = block.data
+        flags[:, :, t : t + nt] = block.flags
+        if nsamples is None and not np.all(block.nsamples == uniform):
+            nsamples = np.empty(data.shape)
+            nsamples[:, :, :t] = uniform
+        if nsamples is not None:
+            nsamples[:, :, t : t + nt] = block.nsamples
+        lsts.append(block.lsts)
+        jds.append(block.jds)
+        tint.append(block.integration_time)
+        sha.update(block.meta.get("sha256", {}))
+        used += [f for f in block.meta.get("files", []) if f not in used]
+        t += nt
+    if first is None or data is None or flags is None:
+        raise DiagnoseError(f"no integrations in LST range {lst_range} h in {paths}")
+    if t < ntime_max:  # an LST selection: keep only what was read
+        data = np.ascontiguousarray(data[:, :, :t])
+        flags = np.ascontiguousarray(flags[:, :, :t])
+        nsamples = None if nsamples is None else np.ascontiguousarray(nsamples[:, :, :t])
+    obs = Observation(
+        data=data,
+        freqs=first.freqs,
+        lsts=np.concatenate(lsts),
+        jds=np.concatenate(jds),
+        antennas=first.antennas,
+        pols=first.pols,
+        site=first.site,
+        flags=flags,
+        channel_width=first.channel_width,
+        integration_time=np.concatenate(tint),
+        nsamples=uniform if nsamples is None else nsamples,
+        antenna_names=first.antenna_names,
+        telescope_name=first.telescope_name,
+        meta={
+            "source": "uvh5",
+            "files": used,
+            "sha256": sha,
+            **{k: first.meta[k] for k in ("x_orientation", "vis_units") if k in first.meta},
+        },
+    )
+    logger.info(
+        "read %d file(s): %d antennas, pols %s, %d times, %d channels",
+        len(used),
+        obs.nant,
+        ",".join(obs.pols),
+        obs.ntime,
+        obs.nfreq,
+    )
+    return obs
+
+
+def run_diagnosis(
+    config: DiagnoseConfig,
+    out: str | Path,
+    progress: Progress | None = None,
+    should_stop: Callable[[], bool] | None = None,
+) -> Path:
+    """Diagnose one observation and write its products.
+
+    Parameters
+    ----------
+    config
+        The diagnosis settings.
+    out
+        Output folder (created when the products are written). Products:
+        ``diagnosis.json``, ``summary.txt``, ``residuals_step<i>.png`` (before/after each
+        accepted step; ``residuals.png`` when nothing was accepted), ``gain_series.png``
+        (when a per-integration gain series was accepted) and ``summary.json``
+        (``effects``, ``final_gap``, ``config``, ``provenance``, ``products``,
+        ``timings_s``).
+    progress
+        Called with (fraction done, message) at each stage.
+    should_stop
+        Polled between stages and before every model fit of the search; returning
+        ``True`` aborts with :class:`autocal.pipeline.calibrate.PipelineError` ``"cancelled"`` (the
+        service's cancellation) and publishes nothing.
+
+    Returns
+    -------
+    pathlib.Path
+        The output folder.
+
+    Raises
+    ------
+    autocal.diagnosis.search.DiagnoseError
+        Missing inputs, folders instead of UVH5 files, polarisations without a beam, or
+        data the diagnosis cannot fit.
+    autocal.pipeline.calibrate.PipelineError
+        When cancelled.
+    """
+    from autocal import __version__
+    from autocal.diagnosis.effects import sky_templates
+    from autocal.diagnosis.search import diagnose, write_diagnosis
+
+    def check_stop() -> None:
+        if should_stop is not None and should_stop():
+            logger.info("diagnosis cancelled")
+            raise PipelineError("cancelled")
+
+    def report(fraction: float, message: str) -> None:
+        logger.info("%3.0f%% %s", 100 * fraction, message)
+        if progress is not None:
+            progress(fraction, message)
+        check_stop()
+
+    out = Path(out)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    paths = _input_paths(config)
+    prior = None
+    if config.trxr_prior is not None:  # a malformed prior fails before any reading
+        from autocal.fit.priors import parse_trxr_prior
+
+        prior = parse_trxr_prior(config.trxr_prior, sigma_k=config.trxr_prior_sigma_k)
+    report(0.0, f"reading {len(paths)} UVH5 file(s)")
+    mhz = config.freq_range_mhz
+    obs = read_observation(
+        paths,
+        antennas=config.antennas,
+        pols=config.pols,
+        freq_range=None if mhz is None else (mhz[0] * 1e6, mhz[1] * 1e6),
+        lst_range=config.lst_range_h,
+        check=check_memory,
+    )
+    timings["read_s"] = time.perf_counter() - t0
+    prior_mean = prior_sigma = None
+    if prior is not None:
+        prior_mean, prior_sigma = prior.at(obs.freqs, antennas=obs.antennas, pols=obs.pols)
+
+    beam_pols = _beam_pols(tuple(p.lower() for p in obs.pols))
+    epoch = night_epoch(obs.jds, obs.site.lon_deg)
+    report(
+        0.15,
+        f"sky templates for {len(beam_pols)} pol(s), {obs.nfreq} channels, {obs.ntime} LSTs",
+    )
+    t1 = time.perf_counter()
+    templates = sky_templates(
+        config.sky,
+        config.beam,
+        obs.site,
+        obs.freqs,
+        obs.lsts,
+        pols=beam_pols,
+        tgnd=config.tgnd_k,
+        nside=config.nside,
+        epoch=epoch,
+    )
+    timings["templates_s"] = time.perf_counter() - t1
+
+    report(
+        0.5,
+        f"diagnosing {len(obs.antennas)} antenna(s) x {len(obs.pols)} pol(s): fitting the "
+        "model and the candidate effects",
+    )
+    t2 = time.perf_counter()
+    diag = diagnose(
+        obs,
+        templates,
+        trxr_prior=prior_mean,
+        trxr_prior_sigma=1.0 if prior_sigma is None else prior_sigma,
+        bic_threshold=config.bic_threshold,
+        alpha=config.alpha,
+        max_steps=config.max_steps,
+        progress=lambda fraction, message: report(0.5 + 0.4 * fraction, message),
+    )
+    timings["diagnose_s"] = time.perf_counter() - t2
+    logger.info("accepted effects: %s", ", ".join(diag.effects) or "none")
+
+    report(0.9, "writing products")
+    t3 = time.perf_counter()
+    tsky_meta = templates.meta.get("tsky", {})
+    provenance = {
+        "autocal_version": __version__,
+        "inputs": obs.meta.get("sha256", {}),
+        "input_bytes": {str(p): p.stat().st_size for p in paths},
+        "input_format": "uvh5",
+        "sky": tsky_meta.get("sky"),
+        "beam": tsky_meta.get("beam"),
+        "site": obs.site.describe(),
+        "tgnd_K": config.tgnd_k,
+        "cmb": tsky_meta.get("cmb"),
+        "frame": tsky_meta.get("frame"),
+        "epoch_jd": epoch,
+        "nside": config.nside,
+        "created_unix": time.time(),
+    }
+    doc = diag.to_dict()
+    summary: dict[str, Any] = {
+        "kind": "diagnose",
+        "effects": list(diag.effects),
+        "steps": [
+            {
+                "name": step.get("name"),
+                "statistic": step.get("statistic"),
+                "delta": step.get("delta"),
+                "parameters": step.get("parameters"),
+            }
+            for step in doc.get("steps", [])
+        ],
+        "initial_gap": doc.get("initial_gap"),
+        "final_gap": doc.get("final_gap"),
+        "observation": obs.describe(),
+        "config": config.model_dump(mode="json"),
+        "provenance": provenance,
+    }
+
+    def write(staging: Path) -> None:
+        write_diagnosis(diag, staging, obs)
+
+    products = _publish(out, write, summary, timings, t0, t3, check_stop)
+    logger.info("wrote %d products to %s", len(products), out)
+    if progress is not None:  # the products are in place: too late to cancel
+        progress(1.0, f"done: {', '.join(diag.effects) or 'no significant effect'}")
+    return out
+
+
+def _publish(
+    out: Path,
+    write: Callable[[Path], None],
+    summary: dict[str, Any],
+    timings: dict[str, float],
+    t0: float,
+    t_write: float,
+    check_stop: Callable[[], None],
+) -> dict[str, str]:
+    """Write the products into a staging folder inside ``out``, then move them into ``out``.
+
+    ``summary.json`` (with the final product paths and timings) is written last into the
+    staging folder and moved last; the staging folder is removed whatever happens.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    staging = out / f".staging-{os.getpid()}-{time.time_ns()}"
+    staging.mkdir()
+    try:
+        write(staging)
+        files = sorted(p.name for p in staging.iterdir() if p.name != SUMMARY)
+        products = {product_name(name): str(out / name) for name in files}
+        products[product_name(SUMMARY)] = str(out / SUMMARY)
+        timings["products_s"] = time.perf_counter() - t_write
+        timings["total_s"] = time.perf_counter() - t0
+        summary = {
+            **summary,
+            "products": products,
+            "timings_s": {k: round(v, 3) for k, v in timings.items()},
+        }
+        text = json.dumps(_strict_json(summary), indent=2, allow_nan=False)
+        (staging / SUMMARY).write_text(text + "\n")
+        check_stop()  # last chance to cancel: nothing is published yet
+        for name in [*files, SUMMARY]:
+            os.replace(staging / name, out / name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return products
+
+
+def read_summary(out: str | Path) -> dict[str, Any]:
+    """Return the ``summary.json`` of a diagnosis written by :func:`run_diagnosis`.
+
+    Parameters
+    ----------
+    out
+        The output folder.
+
+    Returns
+    -------
+    dict
+        The summary (``effects``, ``final_gap``, ``provenance``, ``products``...).
+    """
+    return json.loads((Path(out) / SUMMARY).read_text())

@@ -1,0 +1,1 @@
+"""EDGES receiver calibration: noise-wave parameters and the three-position switch."""
