@@ -3,7 +3,7 @@
 Every field of :class:`autocal.pipeline.calibrate.CalibrationConfig` except ``inputs`` has
 exactly one option here, and the defaults shown in ``--help`` are read from the configuration
 itself, so the command line, the REST API (``service.schemas.CalibrationOptions``) and the Python
-configuration cannot drift apart (``tests/test_cli_options.py`` checks the coverage).
+configuration cannot drift apart (``tests/cli/test_cli_options.py`` checks the coverage).
 Options left out on the command line are not passed on: the configuration's defaults apply.
 """
 

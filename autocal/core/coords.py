@@ -80,7 +80,7 @@ def night_epoch(jds: np.ndarray | list[float] | float, lon_deg: float) -> float:
     data the frame is within ~12 h of every sample; precession and nutation move it by
     < 0.1 arcsec in that time, which changes a HERA-beam GSM2008 Tsky by at most 4.9 mK
     (2e-6 of Tsky) at nside 128 over a day of LSTs (``python benchmarks/observations.py
-    --parts frame``; tested at a coarser resolution in ``tests/test_tsky_harmonics.py``).
+    --parts frame``; tested at a coarser resolution in ``tests/tsky/test_tsky_harmonics.py``).
 
     Parameters
     ----------

@@ -38,7 +38,7 @@ def _few_jds(count: int = 3) -> np.ndarray:
 
 
 def _script() -> Any:
-    path = Path(__file__).resolve().parents[1] / "scripts" / "diagnose_independent_suite.py"
+    path = Path(__file__).resolve().parents[2] / "scripts" / "diagnose_independent_suite.py"
     spec = importlib.util.spec_from_file_location("diagnose_independent_suite", path)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)

@@ -19,7 +19,7 @@ from autocal.io.products import (
     read_solution,
     write_solution,
 )
-from tests.test_calsol import fitted_solution, make_solution
+from tests.io.test_calsol import fitted_solution, make_solution
 
 
 def assert_same_solution(a: Solution, b: Solution) -> None:

@@ -39,7 +39,7 @@ from autocal.io.calsol import (
 )
 from autocal.io.products import write_solution
 from autocal.sky.beams import FunctionBeam
-from tests.test_calsol import H1C_ABS, REF, make_solution
+from tests.io.test_calsol import H1C_ABS, REF, make_solution
 
 BEAM_FILE = "hera/beams/HERA_NF_dipole_power.beamfits"
 

@@ -10,8 +10,8 @@ import pytest
 
 from autocal.cli.main import main, parse_range
 from autocal.io.tskyfile import read_tsky, write_tsky
-from autocal.tsky.engine import TskyError, compute_tsky
 from autocal.tsky import cache as tsky_cache
+from autocal.tsky.engine import TskyError, compute_tsky
 
 
 def test_parse_range():

@@ -28,7 +28,7 @@ from autocal.pipeline.calibrate import CalibrationConfig
 from autocal.service.settings import Settings
 from autocal.service.store import JobStore
 from autocal.service.worker import Worker, describe_error, jsonable
-from tests.test_service_store import BACKENDS, database_url
+from tests.service.test_service_store import BACKENDS, database_url
 
 HEARTBEAT_S = 0.5
 STALE_AFTER_S = 3.0

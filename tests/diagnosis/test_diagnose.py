@@ -108,7 +108,7 @@ def test_gain_drift(setup):
     check(diag, "gain_drift", {"d_1": c1 / c0})
     assert diag.effects == ["gain_drift"]
     # what the effect does to the calibration products: a constant fit of this drift is
-    # biased by ~10 % in G (tests/test_paper.py); the diagnosed model removes that bias
+    # biased by ~10 % in G (tests/simulate/test_paper.py); the diagnosed model removes that bias
     impact = diag.steps[0]["product_impact"]
     for key, value in impact["G"].items():  # one step: the same change (after re-weighting)
         assert diag.product_change["G"][key] == pytest.approx(value, rel=1e-3)

@@ -102,8 +102,8 @@ def test_import_configures_astropy_offline():
 
 
 def test_sky_components_are_computed_once_per_sky_grid_and_epoch(monkeypatch):
-    from autocal.sky.models import UniformSky
     from autocal.sky import models as sky_module
+    from autocal.sky.models import UniformSky
 
     monkeypatch.setattr(sky_module, "_COMPONENTS", {})
     calls = []

@@ -1,7 +1,7 @@
 """Total uncertainties (autocal.fit.uncertainty): algebra, limits and behaviour on toy data.
 
 Coverage on observations written by an independent simulator is in
-tests/test_uncertainty_coverage.py.
+tests/fit/test_uncertainty_coverage.py.
 """
 
 from __future__ import annotations
@@ -222,8 +222,8 @@ def test_the_jackknife_is_judged_against_what_the_model_predicts(order: int) -> 
     """A Legendre fit's delete-a-block refits extrapolate at the ends of the span, so the raw
     jackknife variance exceeds the statistical one on clean data; the factor compares it
     with the jackknife variance the statistical model predicts instead (~1 on clean data)."""
-    from tests.test_fit import make_obs as day_obs
-    from tests.test_fit import noisy, toy_tsky
+    from tests.fit.test_fit import make_obs as day_obs
+    from tests.fit.test_fit import noisy, toy_tsky
 
     rng = np.random.default_rng(12)
     tsky = toy_tsky()
