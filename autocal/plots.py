@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from autocal.core.files import atomic_path
+
 logger = logging.getLogger(__name__)
 
 
@@ -21,15 +23,14 @@ def _pyplot() -> Any:
     return plt
 
 
-def _figure(nrows: int, ncols: int, size: tuple[float, float]) -> tuple[Any, Any]:
+def figure(nrows: int, ncols: int, size: tuple[float, float]) -> tuple[Any, Any]:
+    """Return ``(fig, axes)``: a grid of panels (inches) with constrained layout."""
     return _pyplot().subplots(nrows, ncols, figsize=size, constrained_layout=True)
 
 
 def save_figure(fig: Any, path: str | Path) -> Path:
     """Save a figure atomically (PNG unless the suffix says otherwise) and close it."""
     import matplotlib.pyplot as plt
-
-    from autocal.io.tskyfile import atomic_path
 
     path = Path(path)
     with atomic_path(path) as tmp:
@@ -58,7 +59,7 @@ def plot_tsky(result: Any, path: str | Path, title: str | None = None) -> Path:
     """
     fmhz = result.freqs / 1e6
     lsts = result.lsts
-    fig, axes = _figure(1, 3, (15, 4.2))
+    fig, axes = figure(1, 3, (15, 4.2))
     order = np.argsort(lsts)
     if lsts.size > 1 and fmhz.size > 1:
         mesh = axes[0].pcolormesh(
@@ -204,7 +205,7 @@ def plot_solution(solution: Any, path: str | Path, title: str | None = None) -> 
 
 def _solution_lines(solution: Any) -> Any:
     fmhz = solution.freqs / 1e6
-    fig, axes = _figure(3, 1, (9, 9))
+    fig, axes = figure(3, 1, (9, 9))
     stat = solution.total is not None
     values = (
         (solution.abs_g, solution.sigma_abs_g, solution.sigma_abs_g_stat, "|g|"),
@@ -371,7 +372,7 @@ def plot_gain_series(steps: list[dict[str, Any]], path: str | Path) -> Path | No
     found = [st for st in steps if st.get("series") and "dropped_in_backward_pass" not in st]
     if not found:
         return None
-    fig, axes = _figure(len(found), 1, (9, 2.8 * len(found) + 0.4))
+    fig, axes = figure(len(found), 1, (9, 2.8 * len(found) + 0.4))
     axes = np.atleast_1d(axes)
     for ax, st in zip(axes, found, strict=True):
         series = st["series"]

@@ -25,10 +25,10 @@ from pathlib import Path
 import numpy as np
 
 import autocal.io.uvh5_blocks as uvh5_blocks
+from autocal.core.files import file_sha256 as _file_sha256
 from autocal.fit.lsq import FitModel
 from autocal.io.uvh5 import scan_uvh5
 from autocal.pipeline.calibrate import FileTask, PartialSpec, compute_partial
-from autocal.sky.beams import _file_sha256
 
 CONFIGS = {
     "plain": {"prefetch": False, "reuse_buffers": False, "decode_repeats_once": False},

@@ -91,11 +91,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from autocal.core.files import atomic_path, file_checksum
 from autocal.errors import AutocalError
 from autocal.io.pyuvdata_helpers import warnings_to_log
 from autocal.io.pyuvdata_helpers import x_orientation as feed_orientation
-from autocal.io.tskyfile import atomic_path
-from autocal.sky.beams import file_checksum
 
 if TYPE_CHECKING:
     from autocal.fit.lsq import Solution

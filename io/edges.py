@@ -68,11 +68,10 @@ from typing import Any, Literal
 
 import numpy as np
 
+from autocal.core.files import atomic_path, file_checksum
 from autocal.core.observation import Observation
 from autocal.core.sites import EDGES, Site
 from autocal.errors import AutocalError
-from autocal.io.tskyfile import atomic_path
-from autocal.sky.beams import file_checksum
 
 logger = logging.getLogger(__name__)
 

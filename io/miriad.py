@@ -14,11 +14,11 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
+from autocal.core.files import file_checksum
 from autocal.core.observation import Observation
 from autocal.errors import AutocalError
 from autocal.io.pyuvdata_helpers import uvdata_class, warnings_to_log
 from autocal.io.uvh5 import UVH5FormatError, read_uvh5
-from autocal.sky.beams import file_checksum
 
 logger = logging.getLogger(__name__)
 

@@ -51,8 +51,8 @@ from typing import TYPE_CHECKING, Any
 import h5py
 import numpy as np
 
+from autocal.core.files import atomic_path
 from autocal.errors import AutocalError
-from autocal.io.tskyfile import atomic_path
 
 if TYPE_CHECKING:
     from autocal.fit.lsq import Solution
@@ -158,7 +158,7 @@ def _input_files(config: dict[str, Any]) -> list[dict[str, Any]]:
     are searched (in the order provenance, top level, calibration) for ``inputs``,
     ``files``, ``input_files`` or ``observation_files``; the first non-empty one wins.
     """
-    from autocal.sky.beams import file_checksum
+    from autocal.core.files import file_checksum
 
     config = config or {}
     sections = [config.get("provenance"), config, config.get("calibration")]

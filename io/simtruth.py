@@ -15,8 +15,8 @@ from typing import Any
 import h5py
 import numpy as np
 
+from autocal.core.files import atomic_path
 from autocal.errors import AutocalError
-from autocal.io.tskyfile import atomic_path
 
 FORMAT = "autocal-simtruth-1"
 

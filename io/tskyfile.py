@@ -16,16 +16,13 @@ Files are written atomically (temporary file, then rename).
 from __future__ import annotations
 
 import json
-import os
-import tempfile
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import h5py
 import numpy as np
 
+from autocal.core.files import atomic_path
 from autocal.errors import AutocalError
 
 FORMAT = "autocal-tsky-1"
@@ -34,39 +31,6 @@ HARMONICS_FORMAT = "autocal-tsky-harmonics-1"
 
 class TskyFileError(AutocalError):
     """A file that is not a readable autocal Tsky table or harmonics file."""
-
-
-def _current_umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-#: The process umask, read once at import (``os.umask`` can only be read by setting it).
-_UMASK = _current_umask()
-
-
-@contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; rename it onto ``path`` on success.
-
-    On any exception the temporary file is removed and ``path`` is left untouched.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
-    try:
-        yield tmp_path
-        # mkstemp makes the file private (0600); give the product the usual permissions
-        # so that a service reading it as another user (API vs worker) can serve it
-        if tmp_path.exists():
-            os.chmod(tmp_path, 0o666 & ~_UMASK)
-        os.replace(tmp_path, path)
-    except BaseException:
-        tmp_path.unlink(missing_ok=True)
-        raise
 
 
 def _attr(value: Any) -> Any:

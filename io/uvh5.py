@@ -34,13 +34,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from autocal.core.files import atomic_path, file_checksum
 from autocal.core.observation import Observation, ObservationError
 from autocal.core.sites import Site
 from autocal.errors import AutocalError
 from autocal.io.pyuvdata_helpers import uvdata_class, warnings_to_log
 from autocal.io.pyuvdata_helpers import x_orientation as feed_orientation
-from autocal.io.tskyfile import atomic_path
-from autocal.sky.beams import file_checksum
 
 if TYPE_CHECKING:
     from autocal.io.uvh5_blocks import ReadStats

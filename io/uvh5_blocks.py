@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from autocal.core.files import file_checksum
 from autocal.core.observation import Observation
 from autocal.errors import AutocalError
 from autocal.io.uvh5 import (
@@ -38,7 +39,6 @@ from autocal.io.uvh5 import (
     _select_pols,
     _site,
 )
-from autocal.sky.beams import file_checksum
 
 logger = logging.getLogger(__name__)
 

@@ -21,7 +21,7 @@ import numpy as np
 import autocal  # noqa: F401  (offline configuration)
 from autocal.io.datasets import data_dir
 from autocal.pipeline.calibrate import CalibrationConfig, run_calibration
-from autocal.plots import _figure, band, robust_ylim, save_figure
+from autocal.plots import band, figure, robust_ylim, save_figure
 
 NIGHTS = (2458043, 2458044, 2458045)
 #: LSTs shared by the three nights (hours).
@@ -162,7 +162,7 @@ def hera_repeatability(root: Path, out: Path) -> dict:
                 "separation": [seps[n][int(ant)]["separation"] for n in nights],
             }
         )
-    fig, axes = _figure(2, 1, (10, 7))
+    fig, axes = figure(2, 1, (10, 7))
     fmhz = sols[0].freqs / 1e6
     for night, sol in zip(NIGHTS, sols, strict=True):
         band(axes[0], fmhz, sol.G[0, 0], sol.sigma_G[0, 0], f"JD {night}")

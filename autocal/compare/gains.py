@@ -1827,11 +1827,11 @@ def plot_comparison(comparison: Comparison, path: str | Path, title: str | None 
     pathlib.Path
         The written file.
     """
-    from autocal.plots import _figure, band, save_figure
+    from autocal.plots import band, figure, save_figure
 
     c = comparison
     fmhz = c.freqs / 1e6
-    fig, axes = _figure(4, 1, (9, 13))
+    fig, axes = figure(4, 1, (9, 13))
     for ia, ant in enumerate(c.antennas):
         for ip, pol in enumerate(c.pols):
             label = f"ant {ant} {pol}"
@@ -1981,7 +1981,7 @@ def write_comparison(
     import h5py
 
     from autocal import __version__
-    from autocal.io.tskyfile import atomic_path
+    from autocal.core.files import atomic_path
 
     out_dir = Path(out_dir)
     paths = {k: out_dir / v for k, v in OUTPUT_NAMES.items()}

@@ -71,8 +71,8 @@ from typing import Any, Literal
 import numpy as np
 
 from autocal.core.coords import night_epoch
+from autocal.core.files import file_checksum
 from autocal.errors import AutocalError
-from autocal.sky.beams import file_checksum
 
 logger = logging.getLogger(__name__)
 

@@ -980,7 +980,7 @@ def _calibrate(
     }
     if out is not None:
         summary_path = out / SUMMARY_NAME
-        from autocal.io.tskyfile import atomic_path
+        from autocal.core.files import atomic_path
 
         with atomic_path(summary_path) as tmp:
             tmp.write_text(json.dumps(summary, indent=2, default=_json_default))

@@ -330,7 +330,7 @@ def run_paper(
     dict
         Paths of the written files and the metrics.
     """
-    from autocal.io.tskyfile import atomic_path
+    from autocal.core.files import atomic_path
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

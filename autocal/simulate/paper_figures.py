@@ -8,12 +8,12 @@ from typing import Any
 import numpy as np
 
 from autocal.compare.delay import delay_spectrum
-from autocal.plots import _figure, band, save_figure
+from autocal.plots import band, figure, save_figure
 
 
 def plot_scenarios(results: list[Any], path: str | Path) -> Path:
     """G and Trxr vs frequency with 2-sigma bands, one row per scenario, truth dashed."""
-    fig, axes = _figure(len(results), 2, (11, 2.0 * len(results) + 1))
+    fig, axes = figure(len(results), 2, (11, 2.0 * len(results) + 1))
     axes = np.atleast_2d(axes)
     for row, res in zip(axes, results, strict=True):
         sol = res.solution
@@ -34,7 +34,7 @@ def plot_scenarios(results: list[Any], path: str | Path) -> Path:
 
 def plot_time_model(results: list[Any], path: str | Path) -> Path:
     """Time-model fits: G and Trxr averaged over time (vs freq) and over frequency (vs LST)."""
-    fig, axes = _figure(len(results), 4, (17, 2.4 * len(results) + 1))
+    fig, axes = figure(len(results), 4, (17, 2.4 * len(results) + 1))
     axes = np.atleast_2d(axes)
     for row, res in zip(axes, results, strict=True):
         sol = res.solution
@@ -71,7 +71,7 @@ def plot_delay_spectra(results: list[Any], noisy: Any, path: str | Path) -> Path
     ``results`` are noiseless runs (the systematic structure each scenario imprints);
     ``noisy`` is a run with noise, drawn in grey to show the noise floor.
     """
-    fig, axes = _figure(1, 2, (13, 4.5))
+    fig, axes = figure(1, 2, (13, 4.5))
     sol = noisy.solution
     for ax, values in zip(axes, (sol.G[0, 0], sol.Trxr[0, 0]), strict=True):
         ds = delay_spectrum(values, sol.freqs)

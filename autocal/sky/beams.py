@@ -20,12 +20,11 @@ azimuth by ``rotation_from_north`` (edges-analysis default: 90 deg).
 
 from __future__ import annotations
 
-import hashlib
 import logging
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import cached_property, lru_cache
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +33,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.special import j1
 
+from autocal.core.files import file_checksum
 from autocal.errors import AutocalError
 
 logger = logging.getLogger(__name__)
@@ -319,21 +319,6 @@ class PerturbedBeam(Beam):
 
 
 # file beams -----------------------------------------------------------------------------
-
-
-@lru_cache(maxsize=32)
-def _file_sha256(path: str, _mtime: int) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-def file_checksum(path: str | Path) -> str:
-    """Return the SHA-256 of a file (memoised on path and modification time)."""
-    path = Path(path).resolve()
-    return _file_sha256(str(path), path.stat().st_mtime_ns)
 
 
 class _GriddedFileBeam(Beam):

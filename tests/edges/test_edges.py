@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import read_acq
 
+from autocal.core.files import file_checksum
 from autocal.core.sites import EDGES
 from autocal.edges import receiver as er
 from autocal.io.edges import (
@@ -29,7 +30,6 @@ from autocal.io.edges import (
     write_acq,
     write_edges_hdf5,
 )
-from autocal.sky.beams import file_checksum
 
 ACQ_DIR = "edges/acq"
 RECEIVER01 = "edges/acq/Receiver01_25C_2019_11_26_040_to_200MHz"

@@ -116,7 +116,7 @@ def test_provenance_records_inputs_and_conventions(tmp_path):
     assert prov["autocal_version"] == autocal.__version__
     assert prov["job"] == "42"
     assert prov["software"]["pyuvdata"]
-    from autocal.sky.beams import file_checksum
+    from autocal.core.files import file_checksum
 
     assert prov["inputs"][0] == {"path": str(data_file), "sha256": file_checksum(data_file)}
     assert prov["inputs"][1] == {"path": "/nonexistent/file.uvh5"}
