@@ -17,6 +17,8 @@ from pathlib import Path
 from typing import Any
 
 from autocal.core.observation import Observation
+from autocal.diagnosis.run import DiagnoseConfig, run_diagnosis
+from autocal.diagnosis.run import read_summary as read_diagnosis
 from autocal.fit.lsq import Solution
 from autocal.pipeline.calibrate import CalibrationConfig, calibrate, read, read_summary
 from autocal.tsky.engine import TskyResult, compute_tsky
@@ -65,9 +67,6 @@ def diagnose(
     dict
         The diagnosis summary (``effects``, ``steps``, gaps, ``products``...).
     """
-    from autocal.diagnosis.run import DiagnoseConfig, run_diagnosis
-    from autocal.diagnosis.run import read_summary as read_diagnosis
-
     if isinstance(inputs, DiagnoseConfig):
         config = DiagnoseConfig(**{**inputs.model_dump(), **options})
     else:

@@ -24,6 +24,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from autocal import __version__
 from autocal.service.routers import (
     MAX_ERRORS,
     describe_problem,
@@ -145,8 +146,6 @@ def create_app(settings: Settings | None = None, store: JobStore | None = None) 
     fastapi.FastAPI
         The application; ``app.state.settings`` and ``app.state.store`` hold the above.
     """
-    from autocal import __version__
-
     settings = settings if settings is not None else get_settings()
     owns_store = store is None
     store = store if store is not None else JobStore(settings.resolved_database_url())

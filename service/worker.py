@@ -371,6 +371,8 @@ class Worker:
     ) -> tuple[dict[str, Any], dict[str, str]]:
         """Run a job of ``kind`` into ``out``; return its summary and product paths."""
         if kind == "diagnose":
+            # the science stack is imported by the job that needs it: a worker that only
+            # claims jobs, or the API importing this module, stays light
             from autocal.diagnosis.run import DiagnoseConfig, read_summary, run_diagnosis
 
             folder = run_diagnosis(

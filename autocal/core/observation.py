@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from autocal.core.reprs import list_summary, span
 from autocal.core.sites import Site
 from autocal.errors import AutocalError
 
@@ -168,8 +169,6 @@ class Observation:
 
     def __repr__(self) -> str:
         """Return one line: telescope, antennas, pols, shape, ranges (never the arrays)."""
-        from autocal.core.reprs import list_summary, span
-
         nant = self.nant
         return (
             f"Observation({self.telescope_name} at {self.site.name}: "

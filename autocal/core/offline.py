@@ -29,6 +29,15 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import astropy
+import astropy_iers_data
+import numpy as np
+from astropy.coordinates import EarthLocation
+from astropy.coordinates.sites import SiteRegistry
+from astropy.utils import iers
+from astropy.utils.data import conf as data_conf
+
+from autocal.core.sites import SITES
 from autocal.core.user_cache import user_cache_dir
 
 logger = logging.getLogger(__name__)
@@ -49,10 +58,6 @@ def configure_offline() -> None:
     global _CONFIGURED
     if _CONFIGURED:
         return
-    from astropy.coordinates import EarthLocation
-    from astropy.coordinates.sites import SiteRegistry
-    from astropy.utils import iers
-    from astropy.utils.data import conf as data_conf
 
     allow = downloads_allowed()
     iers.conf.auto_download = allow
@@ -63,8 +68,6 @@ def configure_offline() -> None:
         # A non-empty registry stops astropy from fetching the online one.  The
         # entries are the two sites autocal knows; pyuvdata falls back to its own
         # built-in telescope locations for everything else.
-        from autocal.core.sites import SITES
-
         for site in SITES.values():
             registry.add_site([site.name], site.location)
         EarthLocation._site_registry = registry
@@ -86,11 +89,6 @@ def iers_cache_file() -> Path | None:
     folder = user_cache_dir("AUTOCAL_IERS_CACHE", "iers")
     if folder is None or os.path.exists("finals2000A.all"):
         return None
-    import astropy
-    import astropy_iers_data
-    import numpy as np
-    from astropy.utils import iers
-
     stamp: list[Any] = [
         sys.version,
         np.__version__,
@@ -121,8 +119,6 @@ def install_iers_table() -> None:
     so an entry or folder owned by another user or writable by everyone is not loaded (a
     warning says so and the text tables are parsed instead).
     """
-    from astropy.utils import iers
-
     path = iers_cache_file()
     if path is None:
         return

@@ -31,6 +31,8 @@ from autocal.core.coords import night_epoch
 from autocal.core.observation import Observation
 from autocal.core.sites import get_site
 from autocal.errors import AutocalError
+from autocal.fit.lsq import unwrap_lsts
+from autocal.io.datasets import data_file
 from autocal.sky.beams import Beam, PerturbedBeam, get_beam, s1_airy, s1_dipole
 from autocal.tsky.engine import compute_tsky
 
@@ -90,8 +92,6 @@ def hera_h1c_bandpass(freqs: np.ndarray) -> np.ndarray:
     The polynomial (``hera/instrument/HERA_H1C_BANDPASS.npy``, frequency in GHz) gives
     the voltage-gain amplitude; ``G`` is its square.
     """
-    from autocal.io.datasets import data_file
-
     coeffs = np.load(data_file("hera/instrument/HERA_H1C_BANDPASS.npy"))
     amp = np.polyval(coeffs, np.asarray(freqs) / 1e9)
     ref = np.polyval(coeffs, 0.15)
@@ -129,8 +129,6 @@ def lsts_to_jds(lsts: np.ndarray, site: Any, jd_start: float) -> np.ndarray:
             np.atleast_1d(jd), latitude=site.lat_deg, longitude=site.lon_deg, altitude=site.alt_m
         )
         return np.asarray(rad) * 12.0 / np.pi
-
-    from autocal.fit.lsq import unwrap_lsts
 
     un = unwrap_lsts(lsts)
     lst0 = lst_of(np.array([jd_start]))[0]

@@ -23,9 +23,11 @@ import numpy as np
 
 from autocal.compare.delay import delay_spectrum
 from autocal.core.coords import night_epoch
+from autocal.core.files import atomic_path
 from autocal.core.observation import Observation
 from autocal.core.sites import get_site
 from autocal.fit.lsq import Solution, fit
+from autocal.simulate import paper_figures as plots
 from autocal.simulate.mock import (
     SIDEREAL_DAY,
     SimulationConfig,
@@ -34,6 +36,7 @@ from autocal.simulate.mock import (
     mock_autos,
     perturbed,
 )
+from autocal.sky.beams import get_beam
 from autocal.tsky.engine import compute_tsky
 
 logger = logging.getLogger(__name__)
@@ -194,8 +197,6 @@ class PaperRun:
         """``(Ntime, Nfreq)`` Tsky of a sky and the (possibly perturbed) beam, pol ee."""
         key = (sky, beam_error)
         if key not in self._tsky:
-            from autocal.sky.beams import get_beam
-
             beam = get_beam(self.beam, "ee")
             if beam_error:
                 beam = perturbed(beam)
@@ -330,8 +331,6 @@ def run_paper(
     dict
         Paths of the written files and the metrics.
     """
-    from autocal.core.files import atomic_path
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -362,8 +361,6 @@ def run_paper(
         )
     written["results"] = str(json_path)
     if figures:
-        from autocal.simulate import paper_figures as plots
-
         written["figures"] = []
         for beam in beams:
             mine = [r for r in results if r.beam == beam]

@@ -7,6 +7,7 @@ import logging
 from fastapi import APIRouter, Depends
 from fastapi.responses import JSONResponse
 
+from autocal import __version__
 from autocal.service.routers import app_store
 from autocal.service.schemas import Health
 from autocal.service.store import JobStore
@@ -23,8 +24,6 @@ router = APIRouter(tags=["health"])
 )
 def health(store: JobStore = Depends(app_store)) -> Health | JSONResponse:  # noqa: B008
     """Report the service version, whether the database answers and the queue length."""
-    from autocal import __version__
-
     try:
         store.ping()
         queued, running = store.count("queued"), store.count("running")

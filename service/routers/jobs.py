@@ -534,6 +534,7 @@ def job_results(
     ``delta`` (Delta chi^2), ``gap_before`` and ``gap_after`` (chi2/dof, rms normalised
     residual...); the initial and final gap and the identifiability of each effect.
     """
+    # the API process imports the product reader (h5py, the fit records) on first use only
     from autocal.io.products import ProductFormatError, read_solution
 
     job = _job_or_404(store, job_id)
