@@ -46,6 +46,13 @@ def add_calibration_arguments(group: argparse._ActionsContainer) -> None:
     group
         The parser (``autocal calibrate``) or argument group (``autocal nightly``).
     """
+    _add_model_arguments(group)
+    _add_fit_arguments(group)
+    _add_selection_arguments(group)
+
+
+def _add_model_arguments(group: argparse._ActionsContainer) -> None:
+    """Add the sky, beam, ground and gain-model options."""
     d = _default
     group.add_argument(
         "--sky",
@@ -71,6 +78,11 @@ def add_calibration_arguments(group: argparse._ActionsContainer) -> None:
         type=int,
         help=f"Legendre order of G(t) and n(t), --model legendre ({d('order')})",
     )
+
+
+def _add_fit_arguments(group: argparse._ActionsContainer) -> None:
+    """Add the weights, passes, error-inflation and receiver-prior options."""
+    d = _default
     group.add_argument("--weights", choices=["radiometer", "identity"], help=f"({d('weights')})")
     group.add_argument(
         "--passes",
@@ -100,6 +112,11 @@ def add_calibration_arguments(group: argparse._ActionsContainer) -> None:
         metavar="K",
         help=f"1-sigma of a number prior or a table without sigma_k ({d('trxr_prior_sigma_k')})",
     )
+
+
+def _add_selection_arguments(group: argparse._ActionsContainer) -> None:
+    """Add the data-selection, product, reference and input-format options."""
+    d = _default
     group.add_argument("--antennas", help=f"comma-separated antenna numbers ({d('antennas')})")
     group.add_argument("--pols", help="comma-separated polarisations (default: all in the data)")
     group.add_argument(
