@@ -90,12 +90,12 @@ def test_streamed_pipeline_equals_in_memory_fit(night, tmp_path, model, order) -
 
 
 def test_selection_and_failed_run_leave_no_products(night, tmp_path, monkeypatch) -> None:
-    import autocal.plots
+    import autocal.pipeline.products
 
     def broken(*args, **kwargs):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr(autocal.plots, "plot_residuals", broken)
+    monkeypatch.setattr(autocal.pipeline.products, "plot_residuals", broken)
     config = CalibrationConfig(
         inputs=[str(p) for p in night],
         beam="dipole",
