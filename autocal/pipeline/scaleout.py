@@ -1,7 +1,7 @@
 """Scale-out of the calibration over a Dask cluster (dask.distributed).
 
 The calibration's unit of work is one file's partial normal sums
-(:func:`autocal.pipeline.calibrate.compute_partial`: the file read block by block, its blocks
+(:func:`autocal.pipeline.partials.compute_partial`: the file read block by block, its blocks
 added in order). :class:`DaskExecutor` maps these over the workers of a cluster and
 hands the partials back **in file order**, so the pipeline adds them exactly as the
 serial run does and the solution is the same bit for bit. At most a window of files is
@@ -17,7 +17,7 @@ Where the cluster comes from:
   Workers need autocal installed (same version) and the input files at the same paths.
 
 A scheduler that cannot be reached within :data:`CONNECT_TIMEOUT_S`, or that has no
-workers within :data:`WORKER_TIMEOUT_S`, is a :class:`autocal.pipeline.calibrate.PipelineError`
+workers within :data:`WORKER_TIMEOUT_S`, is a :class:`autocal.pipeline.config.PipelineError`
 with what to do, never a hang.
 """
 
@@ -33,7 +33,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
 
-from autocal.pipeline.calibrate import PipelineError
+from autocal.pipeline.config import PipelineError
 
 logger = logging.getLogger(__name__)
 
@@ -244,13 +244,7 @@ def dask_client(
         For a malformed address, an unreachable scheduler, a scheduler without workers,
         or a worker count below 1.
     """
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError as err:  # pragma: no cover - a declared dependency
-        raise PipelineError(
-            "Dask scale-out needs the 'distributed' package: pip install distributed"
-        ) from err
-
+    distributed = _distributed()
     if workers is not None and int(workers) < 1:
         raise PipelineError(f"the number of Dask workers must be at least 1, got {workers}")
     connect_timeout = CONNECT_TIMEOUT_S if connect_timeout is None else connect_timeout
@@ -258,45 +252,11 @@ def dask_client(
     cluster = None
     started = time.perf_counter()
     if scheduler.strip().lower() == LOCAL:
-        nworkers = int(workers or os.cpu_count() or 1)
-        processes = LOCAL_PROCESSES if processes is None else processes
-        logger.info("starting a local Dask cluster of %d worker(s)", nworkers)
-        import dask
-
-        # None unsets the nanny's MALLOC_TRIM_THRESHOLD_ (see MALLOC_TRIM_ENV)
-        with dask.config.set({f"distributed.nanny.pre-spawn-environ.{MALLOC_TRIM_ENV}": None}):
-            cluster = LocalCluster(
-                n_workers=nworkers,
-                threads_per_worker=1,
-                processes=processes,
-                dashboard_address=None,
-                silence_logs=logging.WARNING,
-                **({"host": "127.0.0.1"} if processes else {}),
-            )
-        description: dict[str, Any] = {
-            "scheduler": LOCAL,
-            "address": cluster.scheduler_address,
-            "processes": processes,
-        }
-        try:
-            client = Client(cluster, timeout=connect_timeout)
-        except BaseException:
-            cluster.close()
-            raise
+        cluster, client, description = _start_local(
+            distributed, workers, processes, connect_timeout
+        )
     else:
-        address = _address(scheduler)
-        if workers is not None:
-            logger.info("--dask-workers applies to 'local' only; %s has its own workers", address)
-        try:
-            client = Client(address, timeout=connect_timeout)
-        except (OSError, TimeoutError) as err:
-            raise PipelineError(
-                f"cannot reach the Dask scheduler at {address} within {connect_timeout:g} s "
-                f"({type(err).__name__}: {err}). Start one (`dask scheduler`, then "
-                f"`dask worker {address}` on each node), check the address and firewall, "
-                "or use 'local'."
-            ) from None
-        description = {"scheduler": address, "processes": True}
+        client, description = _connect(distributed, scheduler, workers, connect_timeout)
     try:
         try:
             client.wait_for_workers(1, timeout=worker_timeout)
@@ -313,3 +273,65 @@ def dask_client(
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _distributed() -> Any:
+    """Return the ``distributed`` module (imported here: only scale-out needs it)."""
+    try:
+        import distributed  # optional heavy dependency, used on the Dask path only
+    except ImportError as err:  # pragma: no cover - a declared dependency
+        raise PipelineError(
+            "Dask scale-out needs the 'distributed' package: pip install distributed"
+        ) from err
+    return distributed
+
+
+def _start_local(
+    distributed: Any, workers: int | None, processes: bool | None, connect_timeout: float
+) -> tuple[Any, Any, dict[str, Any]]:
+    """Start a local cluster and connect to it: the cluster, the client, its description."""
+    import dask  # optional heavy dependency, used on the Dask path only
+
+    nworkers = int(workers or os.cpu_count() or 1)
+    processes = LOCAL_PROCESSES if processes is None else processes
+    logger.info("starting a local Dask cluster of %d worker(s)", nworkers)
+    # None unsets the nanny's MALLOC_TRIM_THRESHOLD_ (see MALLOC_TRIM_ENV)
+    with dask.config.set({f"distributed.nanny.pre-spawn-environ.{MALLOC_TRIM_ENV}": None}):
+        cluster = distributed.LocalCluster(
+            n_workers=nworkers,
+            threads_per_worker=1,
+            processes=processes,
+            dashboard_address=None,
+            silence_logs=logging.WARNING,
+            **({"host": "127.0.0.1"} if processes else {}),
+        )
+    description: dict[str, Any] = {
+        "scheduler": LOCAL,
+        "address": cluster.scheduler_address,
+        "processes": processes,
+    }
+    try:
+        client = distributed.Client(cluster, timeout=connect_timeout)
+    except BaseException:
+        cluster.close()
+        raise
+    return cluster, client, description
+
+
+def _connect(
+    distributed: Any, scheduler: str, workers: int | None, connect_timeout: float
+) -> tuple[Any, dict[str, Any]]:
+    """Connect to a running scheduler: the client and its description."""
+    address = _address(scheduler)
+    if workers is not None:
+        logger.info("--dask-workers applies to 'local' only; %s has its own workers", address)
+    try:
+        client = distributed.Client(address, timeout=connect_timeout)
+    except (OSError, TimeoutError) as err:
+        raise PipelineError(
+            f"cannot reach the Dask scheduler at {address} within {connect_timeout:g} s "
+            f"({type(err).__name__}: {err}). Start one (`dask scheduler`, then "
+            f"`dask worker {address}` on each node), check the address and firewall, "
+            "or use 'local'."
+        ) from None
+    return client, {"scheduler": address, "processes": True}

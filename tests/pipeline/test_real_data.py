@@ -7,7 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from autocal.pipeline.calibrate import CalibrationConfig, run_calibration
+from autocal.pipeline.calibrate import run_calibration
+from autocal.pipeline.config import CalibrationConfig
 
 pytestmark = [pytest.mark.slow, pytest.mark.data]
 

@@ -13,14 +13,19 @@ import h5py
 import numpy as np
 import pytest
 
-import autocal.pipeline.calibrate
+import autocal.pipeline.passes
 import autocal.pipeline.scaleout
 from autocal.cli.main import main
 from autocal.core.coords import night_epoch
 from autocal.fit.lsq import fit
 from autocal.io.uvh5 import UVH5AutosWriter, read_uvh5, scan_uvh5
 from autocal.io.uvh5_blocks import ReadStats, iter_uvh5_blocks
-from autocal.pipeline.calibrate import CalibrationConfig, PipelineError, run_calibration
+from autocal.pipeline.calibrate import run_calibration
+from autocal.pipeline.config import CalibrationConfig, PipelineError, read_selection
+from autocal.pipeline.partials import PartialSpec, compute_partial
+from autocal.pipeline.passes import PassesResult
+from autocal.pipeline.products import waterfall_residuals
+from autocal.pipeline.sources import open_source
 from autocal.simulate.mock import SimulationConfig, simulate
 from autocal.tsky.engine import compute_tsky
 
@@ -142,7 +147,7 @@ def test_data_are_read_once_and_the_waterfall_needs_no_second_read(
     night, tmp_path, monkeypatch
 ) -> None:
     monkeypatch.setattr(
-        autocal.pipeline.calibrate, "MAX_WATERFALL_ROWS", 10
+        autocal.pipeline.passes, "MAX_WATERFALL_ROWS", 10
     )  # 36 integrations -> bins
     config = _config(night, products=["hdf5", "png"])
     result = run_calibration(config, tmp_path / "out", block_size=4)
@@ -168,17 +173,17 @@ def test_data_are_read_once_and_the_waterfall_needs_no_second_read(
 
 def test_waterfall_rows_are_the_normalised_residuals(night, tmp_path) -> None:
     result = run_calibration(_config(night), tmp_path / "out", block_size=5)
-    run = autocal.pipeline.calibrate._Run(
+    run = PassesResult(
         result.solution, None, None, 1, 1, result.solution.antennas, (), {}, {}
     )  # only .waterfall and .bin_size are used below
-    spec = autocal.pipeline.calibrate.PartialSpec(
+    spec = PartialSpec(
         result.solution.model,
         "radiometer",
-        autocal.pipeline.calibrate._selection(_config(night)),
+        read_selection(_config(night)),
         2,
         1,
     )
-    source = autocal.pipeline.calibrate._open_source(_config(night))
+    source = open_source(_config(night))
     whole = read_uvh5(night)
     tsky = np.stack(
         [
@@ -195,11 +200,9 @@ def test_waterfall_rows_are_the_normalised_residuals(night, tmp_path) -> None:
             for p in whole.pols
         ]
     )
-    partials = [autocal.pipeline.calibrate.compute_partial(spec, t) for t in source.tasks(tsky)]
+    partials = [compute_partial(spec, t) for t in source.tasks(tsky)]
     run.waterfall = np.concatenate([p.waterfall for p in partials], axis=2)
-    labels, resid, lsts = autocal.pipeline.calibrate._waterfall_residuals(
-        result.solution, run, _config(night), source.lsts
-    )
+    labels, resid, lsts = waterfall_residuals(result.solution, run, _config(night), source.lsts)
     pred = result.solution.predict(tsky)[:2]
     expected = (whole.data[:2] - pred) * np.sqrt(whole.bandwidth_time()[:2]) / whole.data[:2]
     np.testing.assert_allclose(resid, expected.reshape(resid.shape), rtol=1e-9, atol=1e-9)

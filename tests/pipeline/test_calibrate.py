@@ -13,7 +13,8 @@ from autocal.cli.main import main
 from autocal.core.coords import night_epoch
 from autocal.fit.lsq import fit
 from autocal.io.uvh5 import read_uvh5, write_uvh5
-from autocal.pipeline.calibrate import CalibrationConfig, PipelineError, run_calibration
+from autocal.pipeline.calibrate import run_calibration
+from autocal.pipeline.config import CalibrationConfig, PipelineError
 from autocal.simulate.mock import SimulationConfig, simulate
 from autocal.tsky.engine import compute_tsky
 
@@ -89,12 +90,12 @@ def test_streamed_pipeline_equals_in_memory_fit(night, tmp_path, model, order) -
 
 
 def test_selection_and_failed_run_leave_no_products(night, tmp_path, monkeypatch) -> None:
-    import autocal.plots
+    import autocal.pipeline.products
 
     def broken(*args, **kwargs):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr(autocal.plots, "plot_residuals", broken)
+    monkeypatch.setattr(autocal.pipeline.products, "plot_residuals", broken)
     config = CalibrationConfig(
         inputs=[str(p) for p in night],
         beam="dipole",
@@ -250,17 +251,17 @@ def test_cli_calibrates_edges_p0_with_a_chosen_binning(data_root, tmp_path, caps
 def test_radiometer_bandwidth_time_is_shared_when_nsamples_are_uniform() -> None:
     import dataclasses
 
-    from autocal.pipeline.calibrate import _bandwidth_time
+    from autocal.pipeline.partials import bandwidth_time
 
     obs, _ = simulate(SIM)
     full = obs.bandwidth_time()
-    bt = _bandwidth_time(obs)
+    bt = bandwidth_time(obs)
     assert bt.shape == (obs.ntime, obs.nfreq)
     np.testing.assert_array_equal(np.broadcast_to(bt, full.shape), full)
     nsamples = np.array(obs.nsamples)
     nsamples[0, 0, 2, 3] *= 0.5  # one sample with half the integration
     varied = dataclasses.replace(obs, nsamples=nsamples)
-    np.testing.assert_array_equal(_bandwidth_time(varied), varied.bandwidth_time())
+    np.testing.assert_array_equal(bandwidth_time(varied), varied.bandwidth_time())
 
 
 def test_edges_options_on_uvh5_input_are_reported(night, tmp_path, caplog) -> None:
@@ -268,12 +269,12 @@ def test_edges_options_on_uvh5_input_are_reported(night, tmp_path, caplog) -> No
     config = CalibrationConfig(
         inputs=[str(night[0])], beam="dipole", nside=32, products=[], edges_bin=128
     )
-    with caplog.at_level("WARNING", logger="autocal.pipeline.calibrate"):
+    with caplog.at_level("WARNING", logger="autocal.pipeline.sources"):
         run_calibration(config, tmp_path / "o")
     assert "edges_bin=128: options of EDGES spectra, ignored for uvh5 input" in caplog.text
     caplog.clear()
     dumped = CalibrationConfig(**config.model_dump(mode="json") | {"edges_bin": 64})
-    with caplog.at_level("WARNING", logger="autocal.pipeline.calibrate"):
+    with caplog.at_level("WARNING", logger="autocal.pipeline.sources"):
         run_calibration(dumped, tmp_path / "o2")  # every field set, all at their defaults
     assert "EDGES" not in caplog.text
 

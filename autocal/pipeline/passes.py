@@ -1,0 +1,243 @@
+"""The passes over the data: every file's partial sums, added in file order, per pass.
+
+Radiometer weights built from the data bias ``G`` by ``-2 / (dnu dt N)`` relative; when
+that exceeds :data:`autocal.fit.lsq.REWEIGHT_THRESHOLD` (simulations with the paper's
+``dnu dt = 5000``) a second pass weights by the first pass's model, otherwise (HERA data:
+``dnu dt >~ 2e5``) the data are read once (:func:`autocal.fit.lsq.run_passes` decides). The
+files' partials (:func:`autocal.pipeline.partials.compute_partial`) are computed in this
+process or mapped over a Dask cluster (:mod:`autocal.pipeline.scaleout`), and added in file
+order either way, so the two give the same result bit for bit.
+
+The residual waterfall plot needs no second read: during the pass the weighted sums of the
+data and of the model's design columns are kept per time bin for the shown antennas
+(:data:`MAX_PLOTTED` antenna-polarisations, at most :data:`MAX_WATERFALL_ROWS` bins), which
+give the normalised residuals once solved.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from autocal.fit.lsq import FitModel, NormalSums, Solution, run_passes
+from autocal.fit.uncertainty import BlockSums, block_edges, extended_model, sums_nbytes
+from autocal.pipeline.config import CalibrationConfig, PipelineError, Progress, read_selection
+from autocal.pipeline.partials import FilePartial, FileTask, PartialSpec, compute_partial, fold
+from autocal.pipeline.sources import Source
+
+logger = logging.getLogger(__name__)
+
+#: Antenna-polarisations shown in the residual waterfall.
+MAX_PLOTTED = 4
+#: Rows (time bins) of the residual waterfall; longer observations are binned in time.
+MAX_WATERFALL_ROWS = 512
+
+
+@dataclass
+class PassesResult:
+    """What the passes over the data produced.
+
+    Attributes
+    ----------
+    sums
+        The fitted model's normal sums over the whole observation (the last pass).
+    blocks
+        The time blocks' sums of the total uncertainty.
+    waterfall
+        ``(Nshow, Npol, Nbins, Nfreq, nparam + 2)`` the waterfall rows' weighted sums
+        (:attr:`autocal.pipeline.partials.FilePartial.waterfall`).
+    bin_size
+        Integrations per waterfall row.
+    npass
+        Passes made.
+    antennas, antenna_names
+        The selected antennas.
+    checksums
+        ``{path: sha256}`` of the inputs read.
+    execution
+        How the sums were computed (executor, read counters, timings), for the summary.
+    """
+
+    sums: NormalSums
+    blocks: BlockSums | None
+    waterfall: np.ndarray  # (S, P, Nbins, F, M + 2)
+    bin_size: int
+    npass: int
+    antennas: np.ndarray
+    antenna_names: tuple[str, ...]
+    checksums: dict[str, str]
+    execution: dict[str, Any]
+
+
+def sum_passes(
+    config: CalibrationConfig,
+    source: Source,
+    pols: tuple[str, ...],
+    tsky_all: np.ndarray,
+    model: FitModel,
+    report: Callable[[float, str], None],
+    progress: Progress | None,
+    should_stop: Callable[[], bool] | None,
+    executor: Any,
+    block_size: int | None,
+) -> PassesResult:
+    """Accumulate the normal sums file by file (one or two passes), serially or on Dask."""
+    tasks = source.tasks(tsky_all)
+    ntime = source.lsts.size
+    bin_size = max(1, -(-ntime // MAX_WATERFALL_ROWS))
+    nbins = -(-ntime // bin_size)
+    nshow = max(1, MAX_PLOTTED // len(pols))
+    edges = _time_block_edges(config, source, pols, model)
+    client = _dask_client_for(executor, source)
+    execution = _execution(source, tasks, block_size, client)
+    stats_total: dict[str, int] = {}
+
+    def one_pass(
+        coeffs: np.ndarray | None, ipass: int, npass: int
+    ) -> tuple[tuple[BlockSums, NormalSums, np.ndarray, list[FilePartial]], NormalSums, float]:
+        spec = PartialSpec(
+            model,
+            config.weights,
+            read_selection(config),
+            nshow,
+            bin_size,
+            block_size,
+            coeffs,
+            tuple(int(e) for e in edges),
+        )
+        lo = 0.1 + 0.7 * ipass / npass
+        hi = 0.1 + 0.7 * (ipass + 1) / npass
+        if client is not None:
+            partials = client.map_ordered(compute_partial, spec, tasks)
+        else:
+            partials = _serial_partials(spec, tasks, ntime, (lo, hi), progress, should_stop)
+        folded, waterfall, infos = fold(partials, len(tasks), (nbins,), report, (lo, hi))
+        assert isinstance(folded, tuple)
+        per_block, extended = folded
+        blocks = BlockSums(
+            [per_block[b] for b in range(len(edges) - 1)], model, edges, source.lsts, extended
+        )
+        _add_stats(stats_total, infos)
+        bt_min = min(info.bt_min for info in infos)
+        total = blocks.fitted_total()
+        return (blocks, total, waterfall, infos), total, bt_min
+
+    # inverse variances given by the format (EDGES): nothing to re-weight, one pass
+    radiometer = config.weights == "radiometer" and source.weights is None
+    (blocks, sums, waterfall, infos), npass = run_passes(
+        one_pass, passes=config.passes, radiometer=radiometer
+    )
+    if client is not None:
+        execution["dask"]["worker_peak_rss_bytes"] = client.worker_peak_rss()
+    assert sums is not None and waterfall is not None and infos
+    checksums: dict[str, str] = {}
+    for info in infos:
+        checksums.update(info.checksums)
+    nant = len(infos[0].antennas)
+    execution["samples_per_pass"] = int(ntime * source.freqs.size * len(pols) * nant)
+    execution["passes"] = npass
+    execution["io"] = stats_total
+    execution["file_seconds"] = [round(info.seconds, 3) for info in infos]
+    antennas, names = infos[0].antennas, infos[0].antenna_names
+    return PassesResult(
+        sums, blocks, waterfall, bin_size, npass, antennas, names, checksums, execution
+    )
+
+
+def _time_block_edges(
+    config: CalibrationConfig, source: Source, pols: tuple[str, ...], model: FitModel
+) -> Any:
+    """Return the edges of the total uncertainty's time blocks (a memory budget per block)."""
+    nbytes = sums_nbytes(
+        extended_model(model),
+        max(1, len(source.antenna_numbers(config.antennas))),
+        len(pols),
+        source.freqs.size,
+    )
+    return block_edges(source.lsts.size, bytes_per_block=nbytes)
+
+
+def _dask_client_for(executor: Any, source: Source) -> Any:
+    """Return the Dask executor if the source is read file by file (UVH5), else ``None``."""
+    use_dask = executor is not None and source.kind == "uvh5"
+    if executor is not None and not use_dask:
+        logger.info("%s input is read whole in this process; Dask is not used", source.kind)
+    return executor if use_dask else None
+
+
+def _execution(
+    source: Source, tasks: list[FileTask], block_size: int | None, client: Any
+) -> dict[str, Any]:
+    """Return the run's execution record before the passes (completed after them)."""
+    execution: dict[str, Any] = {
+        "executor": "dask" if client is not None else "serial",
+        "block_size": block_size or "auto",
+        "files": len(tasks),
+        "bytes_on_disk": source.disk_bytes(),
+    }
+    if client is not None:
+        execution["dask"] = client.describe()
+    return execution
+
+
+def _add_stats(stats_total: dict[str, int], infos: list[FilePartial]) -> None:
+    """Add the files' read counters into the run's (the largest array: the maximum)."""
+    for info in infos:
+        for key, value in info.stats.items():
+            if key == "largest_array":
+                stats_total[key] = max(stats_total.get(key, 0), value)
+            else:
+                stats_total[key] = stats_total.get(key, 0) + value
+
+
+def _serial_partials(
+    spec: PartialSpec,
+    tasks: list[FileTask],
+    ntime: int,
+    progress_range: tuple[float, float],
+    progress: Progress | None,
+    should_stop: Callable[[], bool] | None,
+) -> Iterator[FilePartial]:
+    """Compute the files' partials in this process, reporting block by block."""
+    done = 0
+    lo, hi = progress_range
+
+    def tick(nt: int) -> None:
+        nonlocal done
+        done += nt
+        if progress is not None:
+            progress(lo + (hi - lo) * done / max(ntime, 1), f"{done}/{ntime} integrations")
+        if should_stop is not None and should_stop():
+            raise PipelineError("cancelled")
+
+    for task in tasks:
+        yield compute_partial(spec, task, tick)
+
+
+def solution_of(
+    model: FitModel,
+    run: PassesResult,
+    solved: dict[str, np.ndarray],
+    source: Source,
+    pols: tuple[str, ...],
+    config: dict[str, Any],
+    total: Any = None,
+) -> Solution:
+    """Build the solution of a run's sums and their solve on the observation's axes."""
+    return Solution.from_solved(
+        model,
+        run.sums,
+        solved,
+        antennas=run.antennas,
+        pols=pols,
+        freqs=source.freqs,
+        lsts=source.lsts,
+        jds=source.jds,
+        antenna_names=run.antenna_names,
+        config=config,
+        total=total,
+    )

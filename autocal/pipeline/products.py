@@ -1,0 +1,178 @@
+"""The products of a calibration: solution files, plots, comparison and ``summary.json``.
+
+Products are written to a staging folder inside ``out`` and moved into place only when
+all of them succeeded (:func:`write_products`), so a failed run never leaves a half-written
+product set. :func:`write_solution_products` is also the writer of
+:meth:`autocal.fit.lsq.Solution.write`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from autocal.compare.gains import compare, write_comparison
+from autocal.core.files import atomic_path
+from autocal.fit.lsq import Solution
+from autocal.io.calsol import read_reference_gains, write_calfits, write_calh5
+from autocal.io.products import write_solution
+from autocal.pipeline.config import CalibrationConfig, PipelineError
+from autocal.pipeline.passes import PassesResult
+from autocal.plots import plot_residuals, plot_solution
+
+#: File name of each product of a solution (``CalibrationConfig.products``).
+PRODUCT_FILES: dict[str, str] = {
+    "calh5": "solution.calh5",
+    "calfits": "solution.calfits",
+    "hdf5": "solution.h5",
+    "png": "solution.png",
+}
+
+#: Name of the run's JSON summary in the output folder.
+SUMMARY_NAME = "summary.json"
+
+
+def write_solution_products(
+    solution: Solution,
+    out: str | Path,
+    products: Sequence[str],
+    *,
+    overwrite: bool = False,
+) -> dict[str, str]:
+    """Write a solution's products into ``out`` (:data:`PRODUCT_FILES`; each atomically).
+
+    The writers of ``autocal calibrate`` and :meth:`autocal.fit.lsq.Solution.write`:
+    calh5/calfits through pyuvdata ``UVCal`` (:mod:`autocal.io.calsol`), the HDF5 product
+    (:func:`autocal.io.products.write_solution`) and the solution plot.
+
+    Parameters
+    ----------
+    solution
+        The solution.
+    out
+        Folder (created).
+    products
+        Any of :data:`PRODUCT_FILES`' names.
+    overwrite
+        Replace existing files; otherwise an existing one is a ``FileExistsError``.
+
+    Returns
+    -------
+    dict
+        Product name -> path written.
+    """
+    unknown = sorted(set(products) - set(PRODUCT_FILES))
+    if unknown:
+        raise PipelineError(f"unknown product(s) {unknown}: use {sorted(PRODUCT_FILES)}")
+    folder = Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    written: dict[str, str] = {}
+    for name in PRODUCT_FILES:  # a fixed order, whatever the order asked for
+        if name not in products:
+            continue
+        path = folder / PRODUCT_FILES[name]
+        if name == "calh5":
+            write_calh5(solution, path, overwrite=overwrite)
+        elif name == "calfits":
+            write_calfits(solution, path, overwrite=overwrite)
+        elif name == "hdf5":
+            write_solution(solution, path, overwrite=overwrite)
+        else:
+            if path.exists() and not overwrite:
+                raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
+            plot_solution(solution, path)
+        written[name] = str(path)
+    return written
+
+
+def waterfall_residuals(
+    solution: Solution, run: PassesResult, config: CalibrationConfig, lsts: np.ndarray
+) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Normalised residuals of the shown antenna-pols: labels, (K, Nbins, F), bin LSTs.
+
+    A row's residual is ``sum w (R - model) / sqrt(sum w)`` over its integrations: the
+    per-sample normalised residuals ``(R - model) sqrt(w)`` when a row is one
+    integration, and a unit-variance average of them when rows are binned.
+    """
+    wf = run.waterfall
+    ns = wf.shape[0]
+    coeffs = solution.coeffs[:ns]  # (S, P, F, M)
+    model_sum = np.einsum("spbfm,spfm->spbf", wf[..., 2:], coeffs)
+    wsum = wf[..., 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        resid = np.where(wsum > 0, (wf[..., 0] - model_sum) / np.sqrt(wsum), np.nan)
+        if config.weights == "identity":
+            resid = resid / np.sqrt(solution.reduced_chi2[:ns])[:, :, None, :]
+    ants = solution.antennas[:ns].tolist()
+    labels = [f"ant {a} {p}" for a in ants for p in solution.pols]
+    centre = np.minimum(np.arange(wf.shape[2]) * run.bin_size + run.bin_size // 2, lsts.size - 1)
+    return labels, resid.reshape(-1, *resid.shape[2:]), lsts[centre]
+
+
+def write_products(
+    config: CalibrationConfig,
+    solution: Solution,
+    lsts: np.ndarray,
+    run: PassesResult,
+    out: Path,
+    comparison_inputs: dict[str, Any] | None = None,
+) -> dict[str, str]:
+    """Write every product into a staging folder, then move them into ``out``.
+
+    ``lsts`` are the observation's (hours), for the residual waterfall's rows.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    staging = out / f".staging-{os.getpid()}-{time.time_ns()}"
+    staging.mkdir()
+    names = dict(PRODUCT_FILES)
+    written: dict[str, str] = {}
+    try:
+        write_solution_products(solution, staging, config.products)
+        if "png" in config.products:
+            labels, resid, bin_lsts = waterfall_residuals(solution, run, config, lsts)
+            plot_residuals(labels, resid, solution.freqs, bin_lsts, staging / "residuals.png")
+            names["residuals_png"] = "residuals.png"
+        if config.reference:
+            reference = read_reference_gains(config.reference)
+            comparison = compare(solution, reference, **(comparison_inputs or {}))
+            paths = write_comparison(comparison, staging)
+            names.update({f"compare_{k}": Path(v).name for k, v in paths.items()})
+        for item in sorted(staging.iterdir()):
+            target = out / item.name
+            os.replace(item, target)
+            key = next((k for k, v in names.items() if v == item.name), item.name)
+            written[key] = str(target)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return written
+
+
+def write_summary(out: Path, summary: dict[str, Any]) -> str:
+    """Write a run's summary as :data:`SUMMARY_NAME` into ``out`` (atomically); return its path."""
+    summary_path = out / SUMMARY_NAME
+    with atomic_path(summary_path) as tmp:
+        tmp.write_text(json.dumps(summary, indent=2, default=_json_default))
+    return str(summary_path)
+
+
+def comparison_summary(products: dict[str, str]) -> dict[str, Any] | None:
+    """Return the written reference comparison's JSON summary (``None`` without one)."""
+    path = products.get("compare_json")
+    if path is None:
+        return None
+    return json.loads(Path(path).read_text())
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)
