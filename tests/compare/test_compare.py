@@ -12,25 +12,22 @@ import pytest
 import autocal  # noqa: F401
 from autocal.cli import compare as compare_cmd
 from autocal.cli.args import CliError
-from autocal.compare.gains import (
+from autocal.compare.beam_area import (
     C_LIGHT,
     HERA_SIM_BEAM_INTEGRALS,
     K_B,
-    REFERENCE_DRIFT_ALLOWANCE,
-    REFERENCE_DRIFT_FACTOR,
-    CompareError,
-    auto_trend,
+    beam_from_config,
     beam_solid_angle,
-    block_bootstrap_error,
-    compare,
-    fractional_end_change,
-    interpolate_frequency,
     jy_per_kelvin,
-    smooth_frequency,
-    time_average,
     uvbeam_solid_angle,
-    write_comparison,
 )
+from autocal.compare.comparison import compare
+from autocal.compare.drift import auto_trend, fractional_end_change
+from autocal.compare.errors import CompareError
+from autocal.compare.ratio_stats import block_bootstrap_error
+from autocal.compare.reference import interpolate_frequency, smooth_frequency, time_average
+from autocal.compare.report import write_comparison
+from autocal.compare.stability import REFERENCE_DRIFT_ALLOWANCE, REFERENCE_DRIFT_FACTOR
 from autocal.io.calsol import (
     ReferenceGains,
     read_reference_gains,
@@ -436,8 +433,6 @@ def test_write_comparison_refuses_overwrite(tmp_path):
 
 
 def test_beam_defaults_to_the_one_recorded_in_the_solution():
-    from autocal.compare.gains import beam_from_config
-
     assert beam_from_config({"beam": "dipole"}) == "dipole"
     assert beam_from_config({"provenance": {"beam": {"beam": "airy", "diameter_m": 14}}}) == "airy"
     assert beam_from_config({"provenance": {"beam": {"file": "/x/b.beamfits"}}}) == "/x/b.beamfits"
