@@ -8,7 +8,7 @@ export AUTOCAL_DATA_DIR
 DEMO_OUT ?= demo-output
 PYTEST_ARGS ?=
 
-.PHONY: install demo test lint format bench bench-night clean
+.PHONY: install demo test docs lint format bench bench-night clean
 
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -30,6 +30,15 @@ test: install
 	$(VENV)/bin/ruff format --check .
 	$(PY) -m pytest -n 2 -ra $(PYTEST_ARGS)
 
+# The documentation (docs/: Markdown pages, Sphinx with MyST and numpydoc) as HTML in
+# docs/_build/html. Warnings are errors; every page is read afresh (-E), and the API, command
+# and REST references are generated from the code (docs/conf.py), so they follow it.
+SPHINXOPTS ?=
+docs: install
+	MPLBACKEND=Agg $(VENV)/bin/sphinx-build -E -W --keep-going -q -b html $(SPHINXOPTS) \
+		docs docs/_build/html
+	@echo "documentation: $(abspath docs/_build/html/index.html)"
+
 lint:
 	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .
 
@@ -45,7 +54,7 @@ bench-night: install
 	$(PY) benchmarks/night.py
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache .ruff_cache *.egg-info
+	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache .ruff_cache *.egg-info docs/_build docs/_generated docs/api
 
 # The job service from the repository's venv (settings: AUTOCAL_* variables, deploy/README.md).
 SERVE_ARGS ?=
