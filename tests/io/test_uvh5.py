@@ -12,8 +12,11 @@ from astropy.time import Time
 
 from autocal.core.observation import Observation, ObservationError
 from autocal.core.sites import EDGES, HERA
-from autocal.io.uvh5 import UVH5AutosWriter, UVH5FormatError, read_uvh5, write_uvh5
-from autocal.io.uvh5_blocks import ReadStats, iter_uvh5_blocks
+from autocal.io.uvh5 import read_uvh5, write_uvh5
+from autocal.io.uvh5_blocks import iter_uvh5_blocks
+from autocal.io.uvh5_chunks import ReadStats
+from autocal.io.uvh5_meta import UVH5FormatError
+from autocal.io.uvh5_writer import UVH5AutosWriter
 
 AUTOS = "hera/autos"
 H1C_2458116 = [f"zen.2458116.{t}.HH.uvh5" for t in (30448, 31193, 31939)]
@@ -110,10 +113,10 @@ def test_round_trip_hera(tmp_path, capsys):
 
 def test_scanned_header_keeps_no_per_row_arrays(tmp_path):
     """A scanned file's metadata must not grow with its rows (a night scans every file)."""
-    from autocal.io.uvh5 import _read_meta
+    from autocal.io.uvh5_meta import read_file_meta
 
     path = write_uvh5(_observation(), tmp_path / "rows.uvh5", extra_keywords={"k": 3})
-    meta = _read_meta(path)
+    meta = read_file_meta(path)
     assert meta.uv.extra_keywords["k"] == 3 and meta.uv.telescope.name
     for name in ("time_array", "lst_array", "uvw_array", "ant_1_array", "baseline_array"):
         assert not hasattr(meta.uv, name)
@@ -511,25 +514,25 @@ def test_reused_buffers_alternate_between_two_sets(tmp_path):
 
 
 def test_block_reader_early_close_and_errors_leave_no_thread_or_open_file(tmp_path, monkeypatch):
-    import autocal.io.uvh5_blocks as uvh5
+    import autocal.io.uvh5_blocks as uvh5_blocks
 
     obs = _observation(ntime=9)
     path = tmp_path / "obs.uvh5"
     write_uvh5(obs, path)
     opened: list = []
 
-    class Tracked(uvh5._CountingFile):
+    class Tracked(uvh5_blocks.CountingFile):
         def __init__(self, p):
             super().__init__(p)
             opened.append(self)
 
-    monkeypatch.setattr(uvh5, "_CountingFile", Tracked)
+    monkeypatch.setattr(uvh5_blocks, "CountingFile", Tracked)
     blocks = iter_uvh5_blocks(path, block_size=2)
     first = next(blocks)  # the second block is being read meanwhile
     blocks.close()
     assert first.ntime == 2 and opened[-1].closed and not _reader_threads()
 
-    real_read = uvh5._read_rows
+    real_read = uvh5_blocks.read_rows
     calls = []
 
     def failing(*args, **kwargs):
@@ -538,7 +541,7 @@ def test_block_reader_early_close_and_errors_leave_no_thread_or_open_file(tmp_pa
             raise OSError("simulated read error")
         return real_read(*args, **kwargs)
 
-    monkeypatch.setattr(uvh5, "_read_rows", failing)
+    monkeypatch.setattr(uvh5_blocks, "read_rows", failing)
     got = []
     with pytest.raises(UVH5FormatError, match="simulated read error"):
         for block in iter_uvh5_blocks(path, block_size=2):
@@ -549,7 +552,7 @@ def test_block_reader_early_close_and_errors_leave_no_thread_or_open_file(tmp_pa
 
 @pytest.mark.parametrize("legacy", [False, True])
 def test_repeated_chunks_give_exactly_a_plain_read(tmp_path, legacy):
-    from autocal.io.uvh5_blocks import _RepeatedChunks
+    from autocal.io.uvh5_chunks import RepeatedChunks
 
     shape, chunks = (50, 37, 2), (7, 8, 1)  # chunks straddle every edge
     if legacy:  # the old (Nblts, 1, Nfreq, Npol) layout
@@ -567,7 +570,7 @@ def test_repeated_chunks_give_exactly_a_plain_read(tmp_path, legacy):
     with h5py.File(tmp_path / "c.h5", "r") as h5:
         for name in ("same", "mixed", "noisy", "gaps"):
             dset = h5[name]
-            rep = _RepeatedChunks(dset)
+            rep = RepeatedChunks(dset)
             stats = ReadStats()
             for lo, hi, chans, pols in [
                 (0, 50, slice(0, 37), slice(0, 2)),
@@ -588,13 +591,13 @@ def test_repeated_chunks_give_exactly_a_plain_read(tmp_path, legacy):
                 assert len(rep.decoded) == (4 if name == "same" else 5)
     # a data set whose chunks never repeat is read normally after the trial
     with h5py.File(tmp_path / "c.h5", "r") as h5:
-        rep = _RepeatedChunks(h5["noisy"])
+        rep = RepeatedChunks(h5["noisy"])
         lo_hi = [(i, i + 7) for i in range(0, 49, 7)] * 3
         for lo, hi in lo_hi:
             out = np.empty((hi - lo, 37, 2))
             if not rep.fill(out, lo, hi, slice(0, 37), slice(0, 2), ReadStats()):
                 break
-        assert not rep.active and not rep.decoded and rep.seen >= _RepeatedChunks.TRIAL_CHUNKS
+        assert not rep.active and not rep.decoded and rep.seen >= RepeatedChunks.TRIAL_CHUNKS
 
 
 def test_block_reader_decodes_repeated_flag_and_nsample_chunks_once(tmp_path):
