@@ -349,8 +349,7 @@ class UVH5File:
     pols: tuple[str, ...]
     site: Site
     header: Any = field(default=None, repr=False, compare=False)
-    """The file's :class:`FileMeta` as scanned (lets the block reader,
-    :func:`autocal.io.uvh5_blocks.iter_uvh5_blocks`, skip a re-scan)."""
+    """The file's :class:`FileMeta` as scanned (lets the block reader skip a re-scan)."""
 
 
 def scan_uvh5(paths: str | Path | Sequence[str | Path]) -> list[UVH5File]:
