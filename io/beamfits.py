@@ -9,6 +9,8 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+from pyuvdata import UVBeam
+from pyuvdata import utils as uvutils
 
 from autocal.io.feko import BeamFileError
 
@@ -75,9 +77,6 @@ def read_healpix_power_beam(path: str | Path, pol: str = "ee") -> HealpixBeamDat
 
 @lru_cache(maxsize=8)
 def _read_cached(path: str, pol: str, _mtime: int) -> HealpixBeamData:
-    from pyuvdata import UVBeam
-    from pyuvdata import utils as uvutils
-
     if pol not in POL_NAMES:
         raise BeamFileError(f"polarisation {pol!r} not supported: use one of {POL_NAMES}")
     try:

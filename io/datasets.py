@@ -12,6 +12,8 @@ import logging
 import os
 from pathlib import Path
 
+from astropy.utils.data import import_file_to_cache, is_url_in_cache
+
 from autocal.core.offline import downloads_allowed
 from autocal.errors import AutocalError
 
@@ -136,8 +138,6 @@ def ensure_pygdsm_file(urls: list[str], relpath: str | None, model: str) -> None
     DataFileMissingError
         If the file is neither cached, nor available locally, nor downloadable.
     """
-    from astropy.utils.data import import_file_to_cache, is_url_in_cache
-
     if any(is_url_in_cache(url) for url in urls):
         return
     local: Path | None = None

@@ -18,7 +18,8 @@ from autocal.core.files import file_checksum
 from autocal.core.observation import Observation
 from autocal.errors import AutocalError
 from autocal.io.pyuvdata_helpers import uvdata_class, warnings_to_log
-from autocal.io.uvh5 import UVH5FormatError, read_uvh5
+from autocal.io.uvh5 import read_uvh5
+from autocal.io.uvh5_meta import UVH5FormatError
 
 logger = logging.getLogger(__name__)
 

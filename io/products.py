@@ -37,6 +37,11 @@ The configuration is stored as JSON: a configuration made of JSON types (dicts w
 string keys, lists, strings, numbers, booleans, None) reads back identical; numpy values
 are stored as their list/number equivalents and tuples as lists. Files are written
 atomically (temporary file, then rename) and never overwritten unless asked.
+
+The solution's record types (:class:`~autocal.fit.lsq.Solution`, ``FitModel``,
+``FLAG_REASONS``, ``TotalUncertainty``) are imported where they are used, not at module
+top: :mod:`autocal.fit.lsq` leads to :mod:`autocal.fit.priors`, which reads a previous
+solution product and imports :data:`FORMAT` from here.
 """
 
 from __future__ import annotations
@@ -51,7 +56,8 @@ from typing import TYPE_CHECKING, Any
 import h5py
 import numpy as np
 
-from autocal.core.files import atomic_path
+from autocal import __version__
+from autocal.core.files import atomic_path, file_checksum
 from autocal.errors import AutocalError
 
 if TYPE_CHECKING:
@@ -158,8 +164,6 @@ def _input_files(config: dict[str, Any]) -> list[dict[str, Any]]:
     are searched (in the order provenance, top level, calibration) for ``inputs``,
     ``files``, ``input_files`` or ``observation_files``; the first non-empty one wins.
     """
-    from autocal.core.files import file_checksum
-
     config = config or {}
     sections = [config.get("provenance"), config, config.get("calibration")]
     found: list[Any] = []
@@ -211,9 +215,7 @@ def build_provenance(solution: Solution, extra: dict[str, Any] | None = None) ->
         the top level and the ``provenance`` and ``calibration`` sections),
         ``model`` and ``extra`` entries.
     """
-    from autocal import __version__
-
-    try:
+    try:  # pyuvdata takes a second to import; a process that only reads products never does
         from pyuvdata import __version__ as uvd_version
     except ImportError:  # pragma: no cover
         uvd_version = None
@@ -277,7 +279,8 @@ def write_solution(
     FileExistsError
         If ``path`` exists and ``overwrite`` is false.
     """
-    from autocal import __version__
+    # not at module top: autocal.fit.lsq leads to autocal.fit.priors, which imports this
+    # module's FORMAT (see the module notes)
     from autocal.fit.lsq import FLAG_REASONS
 
     path = Path(path)
@@ -370,7 +373,7 @@ def read_solution(path: str | Path) -> Solution:
         If the file is missing, not HDF5, truncated, or not an ``autocal-solution-1``
         product.
     """
-    from autocal.fit.lsq import FitModel, Solution
+    from autocal.fit.lsq import FitModel, Solution  # not at module top: see the module notes
 
     path = Path(path)
     _open_check(path)
@@ -378,7 +381,9 @@ def read_solution(path: str | Path) -> Solution:
         with h5py.File(path, "r") as h5:
             fmt = h5.attrs.get("format")
             if fmt != FORMAT:
-                hint = " (a calh5 file? read it with autocal.io.calsol)" if "Header" in h5 else ""
+                hint = (
+                    " (a calh5 file? read it with autocal.io.calsol_read)" if "Header" in h5 else ""
+                )
                 raise ProductFormatError(
                     f"{path} is not an autocal solution product: format {fmt!r}, "
                     f"expected {FORMAT!r}{hint}"
@@ -394,7 +399,7 @@ def read_solution(path: str | Path) -> Solution:
             residuals = h5["residuals"][()] if "residuals" in h5 else None
             total = None
             if "uncertainty" in h5:
-                from autocal.fit.uncertainty import TotalUncertainty
+                from autocal.fit.uncertainty import TotalUncertainty  # see the module notes
 
                 unc = h5["uncertainty"]
                 total = TotalUncertainty(

@@ -37,6 +37,7 @@ def x_orientation(telescope: Any) -> str | None:
 def uvdata_class() -> Any:
     """Return pyuvdata's ``UVData``, its compiled helpers cached on disk (:func:`cache_jit`)."""
     cache_jit()
+    # pyuvdata takes a second to import: this module's warning helpers are used without it
     from pyuvdata import UVData
 
     return UVData
@@ -55,7 +56,7 @@ def cache_jit() -> int:
     file with its Tsky cached 13.6-14.6 s -> 12.5-13.3 s (three runs each, alternated).
     Where nothing is writable, or pyuvdata changes, the functions compile as before.
     """
-    try:
+    try:  # numba and pyuvdata are heavy: imported on the first UVH5 read only
         from numba.core.dispatcher import Dispatcher
         from pyuvdata.utils import bls_numba
     except ImportError:  # pragma: no cover - a pyuvdata without numba helpers

@@ -15,6 +15,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from autocal import __version__
 from autocal.core.files import atomic_path
 from autocal.errors import AutocalError
 
@@ -27,8 +28,6 @@ class SimTruthError(AutocalError):
 
 def write_truth(path: str | Path, truth: Any, obs: Any) -> Path:
     """Write a :class:`autocal.simulate.mock.Truth` with the observation's axes."""
-    from autocal import __version__
-
     path = Path(path)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
         h5.attrs["format"] = FORMAT

@@ -7,38 +7,44 @@ complex64) never sits in memory whole. Reading is a two-stage pipeline in backgr
 threads (HDF5 reads and decompression; conversion to the ``(Nant, Npol, Ntime, Nfreq)``
 layout and the observation checks) running ahead of the caller, with the file's SHA-256
 computed alongside; chunks of flags and nsamples that are stored identically (raw files:
-no flags, uniform nsamples) are decoded once. :class:`ReadStats` counts what was read (the
-night benchmark's "data read once" figures). Headers, selections and whole-file reads are in
-:mod:`autocal.io.uvh5`.
+no flags, uniform nsamples) are decoded once. The HDF5 reading itself (rows, buffers,
+repeated chunks, :class:`~autocal.io.uvh5_chunks.ReadStats`) is
+:mod:`autocal.io.uvh5_chunks`; headers and selections are :mod:`autocal.io.uvh5_meta`;
+whole-file reads are :mod:`autocal.io.uvh5`.
 """
 
 from __future__ import annotations
 
-import io
-import itertools
 import logging
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import h5py
 import numpy as np
 
 from autocal.core.files import file_checksum
 from autocal.core.observation import Observation
 from autocal.errors import AutocalError
-from autocal.io.uvh5 import (
+from autocal.io.uvh5_chunks import Buffers, CountingFile, ReadStats, RepeatedChunks, read_rows
+from autocal.io.uvh5_meta import (
+    FileMeta,
     UVH5File,
     UVH5FormatError,
-    _FileMeta,
-    _lst_mask,
-    _scan,
-    _select_antennas,
-    _select_channels,
-    _select_pols,
-    _site,
+    antenna_names,
+    file_meta_of,
+    lst_mask,
+    select_antennas,
+    select_channels,
+    select_pols,
+    site_of,
 )
+
+# Temporary re-exports for the layout merge.
+# isort: off
+from autocal.io.uvh5_meta import file_meta_of as _meta_of  # noqa: F401
+# isort: on
 
 logger = logging.getLogger(__name__)
 
@@ -46,71 +52,8 @@ logger = logging.getLogger(__name__)
 #: block of :func:`iter_uvh5_blocks`: 2**23 = 8.4 M values, i.e. 67 MB as float64.
 BLOCK_SAMPLES = 1 << 23
 
-
-@dataclass
-class ReadStats:
-    """What :func:`iter_uvh5_blocks` read (counters add up over files and blocks).
-
-    Attributes
-    ----------
-    files, blocks, integrations
-        Files opened, blocks yielded, integrations yielded.
-    samples
-        Values yielded (antennas x pols x integrations x channels).
-    bytes_read
-        Bytes the HDF5 library read from the files (headers, chunk indices and the
-        compressed chunks), counted at the file object.
-    bytes_decoded
-        Bytes of the arrays the data sets were decoded into.
-    bytes_reused
-        Of those, bytes copied from a stored chunk identical to one already decoded
-        instead of decoded again (uniform nsamples, unflagged data; see
-        :class:`_RepeatedChunks`).
-    largest_array
-        Bytes of the largest single array read from a data set (bounded by the block).
-    checksum_bytes
-        Bytes read to compute the files' SHA-256 (provenance).
-    """
-
-    files: int = 0
-    blocks: int = 0
-    integrations: int = 0
-    samples: int = 0
-    bytes_read: int = 0
-    bytes_decoded: int = 0
-    bytes_reused: int = 0
-    largest_array: int = 0
-    checksum_bytes: int = 0
-
-    def add(self, other: ReadStats) -> None:
-        """Add another reader's counters to these (``largest_array``: the maximum)."""
-        for key, value in asdict(other).items():
-            if key == "largest_array":
-                self.largest_array = max(self.largest_array, value)
-            else:
-                setattr(self, key, getattr(self, key) + value)
-
-    def as_dict(self) -> dict[str, int]:
-        """Return the counters as a dictionary."""
-        return asdict(self)
-
-
-class _CountingFile(io.FileIO):
-    """A binary file that counts the bytes read through it (h5py file-object driver)."""
-
-    def __init__(self, path: Path) -> None:
-        super().__init__(path, "rb")
-        self.nread = 0
-
-    def readinto(self, buffer: Any) -> int | None:
-        n = super().readinto(buffer)
-        self.nread += n or 0
-        return n
-
-    def read(self, size: int = -1) -> bytes:
-        data = super().read(size)
-        self.nread += len(data)
-        return data
+#: Polarisation codes whose autos are real powers (pyuvdata makes them real with abs()).
+SAME_FEED_POL_CODES = (-1, -2, -5, -6, 1, 2, 3, 4)
 
 
 def _time_blocks(kept: np.ndarray, block_size: int) -> list[tuple[int, int]]:
@@ -124,174 +67,6 @@ def _time_blocks(kept: np.ndarray, block_size: int) -> list[tuple[int, int]]:
             part = run[start : start + block_size]
             blocks.append((int(part[0]), int(part[-1]) + 1))
     return blocks
-
-
-def _read_rows(
-    dset: Any,
-    rows: np.ndarray,
-    chans: slice,
-    pols: slice,
-    stats: ReadStats,
-    buffers: _Buffers | None = None,
-    repeats: _RepeatedChunks | None = None,
-) -> np.ndarray:
-    """Read ``rows`` (sorted blt indices) of a data set as ``(Nrows, Nchan, Npol)``.
-
-    A dense set of rows is read as one slab (one hyperslab, whole chunks) and the rows
-    picked in memory; a sparse one (e.g. autos among cross-correlations) by h5py's
-    point selection, so memory stays bounded by the rows asked for. With ``buffers`` a
-    slab of consecutive rows is decoded into a reused array (``read_direct``; no fresh
-    pages to fault in per block); the result is then only valid until the next read of
-    this data set. With ``repeats`` such a slab is assembled from the data set's distinct
-    stored chunks, each decoded once (:class:`_RepeatedChunks`).
-    """
-    lo, hi = int(rows[0]), int(rows[-1]) + 1
-    dense = rows.size >= 0.5 * (hi - lo)
-    first: slice | np.ndarray = slice(lo, hi) if dense else rows
-    index: tuple[Any, ...] = (first, 0, chans, pols) if dset.ndim == 4 else (first, chans, pols)
-    slab = dense and rows.size == hi - lo and not dset.dtype.names
-    if slab and (buffers is not None or (repeats is not None and repeats.active)):
-        nchan = len(range(*chans.indices(dset.shape[-2])))
-        npol = len(range(*pols.indices(dset.shape[-1])))
-        shape = (rows.size, nchan, npol)
-        arr = (
-            np.empty(shape, dset.dtype)
-            if buffers is None
-            else buffers.get(f"raw {dset.name}", shape, dset.dtype)
-        )
-        if repeats is None or not repeats.fill(arr, lo, hi, chans, pols, stats):
-            dset.read_direct(arr, source_sel=index)
-    else:
-        arr = dset[index]
-    if arr.dtype.names:  # the HERA correlator's compound type (fields r, i)
-        arr = arr["r"] + 1j * arr["i"].astype(np.float64)
-    stats.bytes_decoded += arr.nbytes
-    stats.largest_array = max(stats.largest_array, arr.nbytes)
-    if dense and rows.size != hi - lo:
-        arr = arr[rows - lo]
-    return arr
-
-
-class _Buffers:
-    """Named arrays reused from block to block (grown when a block needs more)."""
-
-    def __init__(self) -> None:
-        self._flat: dict[str, np.ndarray] = {}
-
-    def get(self, name: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
-        """Return an uninitialised C-ordered array of ``shape`` backed by buffer ``name``."""
-        dtype = np.dtype(dtype)
-        size = int(np.prod(shape))
-        flat = self._flat.get(name)
-        if flat is None or flat.dtype != dtype or flat.size < size:
-            flat = self._flat[name] = np.empty(size, dtype)
-        return flat[:size].reshape(shape)
-
-
-#: Polarisation codes whose autos are real powers (pyuvdata makes them real with abs()).
-SAME_FEED_POL_CODES = (-1, -2, -5, -6, 1, 2, 3, 4)
-
-
-class _RepeatedChunks:
-    """Decode each distinct stored chunk of a chunked data set once.
-
-    Raw HERA files have flags that are all ``False`` and ``nsamples`` that are all equal,
-    so their compressed chunks are identical byte for byte; decoding them took a third of
-    the HDF5 time of a night file (profile: 5.7 s -> 3.8 s, ``benchmarks/night.py``).
-    Here the stored bytes of every chunk a slab touches are read without decompression
-    (``read_direct_chunk``); a chunk whose bytes (and filter mask and extent) were seen
-    before is copied from its decoded copy, and only new ones are decoded by HDF5.
-    Decompression is deterministic, so the values are exactly those of a plain read.
-    After :data:`TRIAL_CHUNKS` chunks with fewer than half reused (e.g. real flags with
-    RFI), or on a chunk that is not stored, the data set is read normally for the rest of
-    the file.
-    """
-
-    #: Decoded chunks kept (distinct contents), and their largest total size in bytes.
-    MAX_DISTINCT = 8
-    MAX_BYTES = 64 << 20
-    #: Chunks looked at before giving up on a data set whose chunks rarely repeat.
-    TRIAL_CHUNKS = 64
-
-    def __init__(self, dset: Any) -> None:
-        self.dset = dset
-        # h5py properties take its lock on every access: read them once
-        self.ndim, self.shape, self.chunks, self.name = (
-            dset.ndim,
-            dset.shape,
-            dset.chunks,
-            dset.name,
-        )
-        self.dsid = dset.id
-        self.active = self.chunks is not None and not dset.dtype.names
-        self.decoded: dict[tuple[Any, ...], np.ndarray] = {}
-        self.seen = 0
-        self.reused = 0
-
-    def fill(
-        self, out: np.ndarray, lo: int, hi: int, chans: slice, pols: slice, stats: ReadStats
-    ) -> bool:
-        """Fill ``out`` (rows ``lo:hi``, ``chans``, ``pols``) and return ``True``.
-
-        ``False`` (nothing to rely on in ``out``) when the data set is to be read
-        normally.
-        """
-        if not self.active:
-            return False
-        dset = self.dset
-        c0, c1, _ = chans.indices(self.shape[-2])
-        p0, p1, _ = pols.indices(self.shape[-1])
-        # (start, stop) per data set axis; the legacy 4-d layout has a spectral-window axis
-        ranges = [(lo, hi), (c0, c1), (p0, p1)]
-        if self.ndim == 4:
-            ranges.insert(1, (0, 1))
-        grids = [
-            range(start - start % size, stop, size)
-            for (start, stop), size in zip(ranges, self.chunks, strict=True)
-        ]
-        copies = []
-        for offset in itertools.product(*grids):
-            try:
-                mask, stored = self.dsid.read_direct_chunk(offset)
-            except (KeyError, OSError, RuntimeError, ValueError):  # not stored: fill value
-                self.active = False
-                self.decoded.clear()
-                return False
-            extent = tuple(
-                min(o + size, n) - o
-                for o, size, n in zip(offset, self.chunks, self.shape, strict=True)
-            )
-            key = (mask, extent, stored)
-            chunk = self.decoded.get(key)
-            reused = chunk is not None
-            if chunk is None:
-                chunk = dset[tuple(slice(o, o + e) for o, e in zip(offset, extent, strict=True))]
-                kept = sum(c.nbytes for c in self.decoded.values()) + chunk.nbytes
-                if len(self.decoded) < self.MAX_DISTINCT and kept <= self.MAX_BYTES:
-                    self.decoded[key] = chunk
-            self.seen += 1
-            self.reused += reused
-            copies.append((offset, chunk, reused))
-        if self.seen >= self.TRIAL_CHUNKS and 2 * self.reused < self.seen:
-            logger.debug("%s: stored chunks rarely repeat; decoding all", self.name)
-            self.active = False
-            self.decoded.clear()
-        for offset, chunk, reused in copies:
-            part = [
-                (max(start, o), min(stop, o + n))
-                for (start, stop), o, n in zip(ranges, offset, chunk.shape, strict=True)
-            ]
-            src = tuple(slice(a - o, b - o) for (a, b), o in zip(part, offset, strict=True))
-            dst = [
-                slice(a - start, b - start) for (a, b), (start, _) in zip(part, ranges, strict=True)
-            ]
-            block = chunk[src]
-            if self.ndim == 4:
-                block, dst = block[:, 0], [dst[0], *dst[2:]]
-            out[tuple(dst)] = block
-            if reused:
-                stats.bytes_reused += block.nbytes
-        return True
 
 
 def _auto_power(arr: np.ndarray, same_feed: np.ndarray) -> np.ndarray:
@@ -309,17 +84,8 @@ def _auto_power(arr: np.ndarray, same_feed: np.ndarray) -> np.ndarray:
     return np.where(fix, np.abs(arr), real)
 
 
-def _meta_of(file: UVH5File | _FileMeta | str | Path) -> _FileMeta:
-    if isinstance(file, _FileMeta):
-        return file
-    if isinstance(file, UVH5File) and isinstance(file.header, _FileMeta):
-        return file.header
-    path = file.path if isinstance(file, UVH5File) else Path(file)
-    return _scan([path])[0]
-
-
 def iter_uvh5_blocks(
-    file: UVH5File | _FileMeta | str | Path,
+    file: UVH5File | FileMeta | str | Path,
     *,
     antennas: Sequence[int] | None = None,
     pols: Sequence[str] | None = None,
@@ -338,15 +104,16 @@ def iter_uvh5_blocks(
     The data sets are sliced with h5py along the baseline-time axis, so memory is
     bounded by the block, not by the file (a HERA file of 350 antennas x 1536 channels
     x 192 integrations is 1.65 GB as complex64). Selections are those of
-    :func:`read_uvh5`; the values equal what :func:`read_uvh5` returns for the same
+    :func:`~autocal.io.uvh5.read_uvh5`; the values equal what it returns for the same
     integrations.
 
     Parameters
     ----------
     file
-        A :class:`UVH5File` from :func:`scan_uvh5` (its header is reused) or a path.
+        A :class:`~autocal.io.uvh5_meta.UVH5File` from
+        :func:`~autocal.io.uvh5_meta.scan_uvh5` (its header is reused) or a path.
     antennas, pols, freq_range, lst_range
-        As for :func:`read_uvh5`.
+        As for :func:`~autocal.io.uvh5.read_uvh5`.
     block_size
         Integrations per block (default: as many as fit in ``max_block_samples``).
         Blocks never span a gap in the LST selection.
@@ -372,8 +139,8 @@ def iter_uvh5_blocks(
         values are the same.
     decode_repeats_once
         Decode each distinct stored chunk of the flags and nsamples once and copy its
-        repeats (:class:`_RepeatedChunks`; on raw files a third of the HDF5 time). The
-        values are the same; ``False`` decodes every chunk.
+        repeats (:class:`~autocal.io.uvh5_chunks.RepeatedChunks`; on raw files a third
+        of the HDF5 time). The values are the same; ``False`` decodes every chunk.
 
     Yields
     ------
@@ -384,16 +151,14 @@ def iter_uvh5_blocks(
     Raises
     ------
     UVH5FormatError, ObservationError
-        As :func:`read_uvh5`; ``ValueError`` for a block size below 1.
+        As :func:`~autocal.io.uvh5.read_uvh5`; ``ValueError`` for a block size below 1.
     """
-    import h5py
-
-    meta = _meta_of(file)
+    meta = file_meta_of(file)
     stats = stats if stats is not None else ReadStats()
-    ants = _select_antennas(meta, antennas)
-    pol_idx = _select_pols(meta, pols)
-    chans = _select_channels(meta, freq_range)
-    kept = np.flatnonzero(_lst_mask(meta.lsts, lst_range))
+    ants = select_antennas(meta, antennas)
+    pol_idx = select_pols(meta, pols)
+    chans = select_channels(meta, freq_range)
+    kept = np.flatnonzero(lst_mask(meta.lsts, lst_range))
     if kept.size == 0:
         return
     nant, npol, nfreq = len(ants), len(pol_idx), chans.size
@@ -403,163 +168,187 @@ def iter_uvh5_blocks(
         raise AutocalError(f"block_size must be at least 1 integration, got {block_size}")
     blocks = _time_blocks(kept, int(block_size))
 
-    telescope = meta.uv.telescope
-    names_by_number = {
-        int(n): str(name)
-        for n, name in zip(telescope.antenna_numbers, telescope.antenna_names, strict=True)
-    }
-    common: dict[str, Any] = {
-        "freqs": meta.freqs[chans],
-        "antennas": np.array(ants),
-        "pols": tuple(meta.pol_names[i] for i in pol_idx),
-        "site": _site(meta.uv),
-        "channel_width": meta.channel_width[chans],
-        "antenna_names": tuple(names_by_number.get(a, f"ant{a}") for a in ants),
-        "telescope_name": str(telescope.name),
-    }
-    file_meta: dict[str, Any] = {
-        "source": "uvh5",
-        "files": [str(meta.path)],
-        "x_orientation": meta.x_orientation,
-        "vis_units": str(meta.uv.vis_units),
-    }
-    c0, c1 = int(chans.min()), int(chans.max()) + 1
-    fidx = chans - c0
-    fidx_all = bool(np.array_equal(fidx, np.arange(c1 - c0)))
-    p0, p1 = min(pol_idx), max(pol_idx) + 1
-    pidx = np.asarray(pol_idx) - p0
-    pidx_all = bool(np.array_equal(pidx, np.arange(p1 - p0)))
-    same_feed = np.array([meta.pol_codes[i] in SAME_FEED_POL_CODES for i in pol_idx])
-    block_sets = (_Buffers(), _Buffers()) if reuse_buffers else None
-    raw_sets = (_Buffers(), _Buffers()) if reuse_buffers else None
-
-    raw = _CountingFile(meta.path)
-    counted = 0
+    reader = _BlockReader(meta, blocks, ants, pol_idx, chans, stats, reuse_buffers)
+    raw = CountingFile(meta.path)
     try:
         with h5py.File(raw, "r") as h5:
-            try:
-                header = h5["Header"]
-                ant1 = np.asarray(header["ant_1_array"][()])
-                ant2 = np.asarray(header["ant_2_array"][()])
-                times = np.asarray(header["time_array"][()], np.float64)
-                tint_blt = np.broadcast_to(
-                    np.asarray(header["integration_time"][()], np.float64), times.shape
-                )
-                datasets = [h5["Data/visdata"], h5["Data/flags"], h5["Data/nsamples"]]
-            except KeyError as err:
-                raise UVH5FormatError(f"{meta.path} lacks a UVH5 data set: {err}") from err
-            if datasets[0].dtype.names is None and datasets[0].dtype.kind != "c":
-                raise UVH5FormatError(
-                    f"{meta.path}: visdata has data type {datasets[0].dtype}, not complex"
-                )
-            # Map every baseline-time row onto (selected antenna, file time index).
-            tpos = np.searchsorted(meta.times, times)
-            tclip = np.clip(tpos, 0, meta.times.size - 1)
-            tvalid = np.isclose(meta.times[tclip], times, rtol=0, atol=1e-9)
-            order = np.argsort(ants)
-            sorted_ants = np.asarray(ants)[order]
-            k = np.clip(np.searchsorted(sorted_ants, ant1), 0, nant - 1)
-            ia_all = np.where((sorted_ants[k] == ant1) & (ant1 == ant2) & tvalid, order[k], -1)
-            wrows = np.flatnonzero(ia_all >= 0)
-            wrows = wrows[np.argsort(tclip[wrows], kind="stable")]
-            wtimes = tclip[wrows]
-            # flags and nsamples of raw files repeat chunk for chunk: decode each once
-            repeats = [None] + [
-                _RepeatedChunks(d) if decode_repeats_once else None for d in datasets[1:]
-            ]
-
-            def read(iblock: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
-                """Stage 1: the block's rows of the three data sets, as stored (HDF5)."""
-                nonlocal counted
-                t0, t1 = blocks[iblock]
-                lo, hi = np.searchsorted(wtimes, [t0, t1])
-                rows = np.sort(wrows[lo:hi])
-                arrays: dict[str, np.ndarray] = {}
-                if rows.size:
-                    bufs = None if raw_sets is None else raw_sets[iblock % 2]
-                    keys = ("data", "flags", "nsamples")
-                    for key, dset, rep in zip(keys, datasets, repeats, strict=True):
-                        try:
-                            arrays[key] = _read_rows(
-                                dset, rows, slice(c0, c1), slice(p0, p1), stats, bufs, rep
-                            )
-                        except OSError as err:  # a chunk that does not decode, a short file
-                            raise UVH5FormatError(
-                                f"{meta.path}: cannot read {dset.name} for integrations "
-                                f"{t0}-{t1 - 1} ({err}); the file is corrupt or truncated: "
-                                "copy it again from the archive, or leave it out"
-                            ) from err
-                stats.bytes_read += raw.nread - counted
-                counted = raw.nread
-                return arrays, rows
-
-            def convert(
-                iblock: int, stored: tuple[dict[str, np.ndarray], np.ndarray]
-            ) -> Observation:
-                """Stage 2: the (Nant, Npol, Ntime, Nfreq) block as a checked Observation."""
-                arrays, rows = stored
-                t0, t1 = blocks[iblock]
-                nt = t1 - t0
-                shape = (nant, npol, nt, nfreq)
-                ia, it = ia_all[rows], tclip[rows] - t0
-                # Time-major rows in the selection's antenna order: a reshape, no scatter.
-                regular = (
-                    rows.size == nant * nt
-                    and np.array_equal(ia, np.tile(np.arange(nant), nt))
-                    and np.array_equal(it, np.repeat(np.arange(nt), nant))
-                )
-                dtypes = {"data": np.float64, "flags": bool, "nsamples": np.float64}
-                if block_sets is None:
-                    block = {key: np.empty(shape, dt) for key, dt in dtypes.items()}
-                else:
-                    bufs = block_sets[iblock % 2]
-                    block = {key: bufs.get(key, shape, dt) for key, dt in dtypes.items()}
-                if not regular:
-                    for key, fill in (("data", np.nan), ("flags", True), ("nsamples", 0.0)):
-                        block[key].fill(fill)
-                for key, arr in arrays.items():
-                    if not fidx_all:
-                        arr = arr[:, fidx]
-                    if not pidx_all:
-                        arr = arr[:, :, pidx]
-                    if arr.dtype.kind == "c":
-                        arr = _auto_power(arr, same_feed)
-                    if regular:
-                        block[key][...] = arr.reshape(nt, nant, nfreq, npol).transpose(1, 3, 0, 2)
-                    else:
-                        block[key][ia, :, it, :] = arr.transpose(0, 2, 1)
-                tint = np.full(nt, np.nan)
-                tint[it] = tint_blt[rows]
-                if rows.size < nant * nt:
-                    logger.warning(
-                        "%s: %d antenna-time samples are missing; they are flagged",
-                        meta.name,
-                        nant * nt - rows.size,
-                    )
-                if np.any(np.isnan(tint)):
-                    fallback = float(np.nanmedian(tint)) if np.any(np.isfinite(tint)) else 0.0
-                    tint = np.where(np.isnan(tint), fallback, tint)
-                stats.blocks += 1
-                stats.integrations += nt
-                stats.samples += block["data"].size
-                return Observation(
-                    **block,
-                    **common,
-                    lsts=meta.lsts[t0:t1],
-                    jds=meta.times[t0:t1],
-                    integration_time=tint,
-                    meta={**file_meta, "block": iblock, "nblocks": len(blocks)},
-                )
-
+            reader.open(h5, raw, decode_repeats_once)
             if checksum:
                 stats.checksum_bytes += meta.path.stat().st_size
             yield from _run_blocks(
-                read, convert, len(blocks), meta.path if checksum else None, prefetch
+                reader.read, reader.convert, len(blocks), meta.path if checksum else None, prefetch
             )
     finally:
-        stats.bytes_read += raw.nread - counted
+        stats.bytes_read += raw.nread - reader.counted
         stats.files += 1
         raw.close()
+
+
+class _BlockReader:
+    """The two stages of :func:`iter_uvh5_blocks` for one file's selection.
+
+    :meth:`read` reads a block's rows of the three data sets as stored (HDF5) and
+    :meth:`convert` turns them into the ``(Nant, Npol, Ntime, Nfreq)`` block as a checked
+    :class:`Observation`; :func:`_run_blocks` runs them, pipelined, in threads. With
+    ``reuse_buffers`` each stage decodes into two sets of arrays used alternately.
+    """
+
+    def __init__(
+        self,
+        meta: FileMeta,
+        blocks: list[tuple[int, int]],
+        ants: list[int],
+        pol_idx: list[int],
+        chans: np.ndarray,
+        stats: ReadStats,
+        reuse_buffers: bool,
+    ) -> None:
+        self.meta, self.blocks, self.ants, self.stats = meta, blocks, ants, stats
+        self.shape = (len(ants), len(pol_idx), chans.size)
+        self.common: dict[str, Any] = {
+            "freqs": meta.freqs[chans],
+            "antennas": np.array(ants),
+            "pols": tuple(meta.pol_names[i] for i in pol_idx),
+            "site": site_of(meta.uv),
+            "channel_width": meta.channel_width[chans],
+            "antenna_names": antenna_names(meta, ants),
+            "telescope_name": str(meta.uv.telescope.name),
+        }
+        self.file_meta: dict[str, Any] = {
+            "source": "uvh5",
+            "files": [str(meta.path)],
+            "x_orientation": meta.x_orientation,
+            "vis_units": str(meta.uv.vis_units),
+        }
+        c0, c1 = int(chans.min()), int(chans.max()) + 1
+        self.chans = slice(c0, c1)
+        self.fidx = chans - c0
+        self.fidx_all = bool(np.array_equal(self.fidx, np.arange(c1 - c0)))
+        p0, p1 = min(pol_idx), max(pol_idx) + 1
+        self.pols = slice(p0, p1)
+        self.pidx = np.asarray(pol_idx) - p0
+        self.pidx_all = bool(np.array_equal(self.pidx, np.arange(p1 - p0)))
+        self.same_feed = np.array([meta.pol_codes[i] in SAME_FEED_POL_CODES for i in pol_idx])
+        self.block_sets = (Buffers(), Buffers()) if reuse_buffers else None
+        self.raw_sets = (Buffers(), Buffers()) if reuse_buffers else None
+        self.counted = 0  # bytes of the file counted into stats.bytes_read so far
+
+    def open(self, h5: Any, raw: CountingFile, decode_repeats_once: bool) -> None:
+        """Read the header's per-row arrays and map every row onto (antenna, time)."""
+        meta = self.meta
+        self.raw = raw
+        try:
+            header = h5["Header"]
+            ant1 = np.asarray(header["ant_1_array"][()])
+            ant2 = np.asarray(header["ant_2_array"][()])
+            times = np.asarray(header["time_array"][()], np.float64)
+            self.tint_blt = np.broadcast_to(
+                np.asarray(header["integration_time"][()], np.float64), times.shape
+            )
+            self.datasets = [h5["Data/visdata"], h5["Data/flags"], h5["Data/nsamples"]]
+        except KeyError as err:
+            raise UVH5FormatError(f"{meta.path} lacks a UVH5 data set: {err}") from err
+        if self.datasets[0].dtype.names is None and self.datasets[0].dtype.kind != "c":
+            raise UVH5FormatError(
+                f"{meta.path}: visdata has data type {self.datasets[0].dtype}, not complex"
+            )
+        # Map every baseline-time row onto (selected antenna, file time index).
+        nant = self.shape[0]
+        tpos = np.searchsorted(meta.times, times)
+        self.tclip = np.clip(tpos, 0, meta.times.size - 1)
+        tvalid = np.isclose(meta.times[self.tclip], times, rtol=0, atol=1e-9)
+        order = np.argsort(self.ants)
+        sorted_ants = np.asarray(self.ants)[order]
+        k = np.clip(np.searchsorted(sorted_ants, ant1), 0, nant - 1)
+        self.ia_all = np.where((sorted_ants[k] == ant1) & (ant1 == ant2) & tvalid, order[k], -1)
+        wrows = np.flatnonzero(self.ia_all >= 0)
+        self.wrows = wrows[np.argsort(self.tclip[wrows], kind="stable")]
+        self.wtimes = self.tclip[self.wrows]
+        # flags and nsamples of raw files repeat chunk for chunk: decode each once
+        self.repeats = [None] + [
+            RepeatedChunks(d) if decode_repeats_once else None for d in self.datasets[1:]
+        ]
+
+    def read(self, iblock: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """Stage 1: the block's rows of the three data sets, as stored (HDF5)."""
+        t0, t1 = self.blocks[iblock]
+        lo, hi = np.searchsorted(self.wtimes, [t0, t1])
+        rows = np.sort(self.wrows[lo:hi])
+        arrays: dict[str, np.ndarray] = {}
+        if rows.size:
+            bufs = None if self.raw_sets is None else self.raw_sets[iblock % 2]
+            keys = ("data", "flags", "nsamples")
+            for key, dset, rep in zip(keys, self.datasets, self.repeats, strict=True):
+                try:
+                    arrays[key] = read_rows(
+                        dset, rows, self.chans, self.pols, self.stats, bufs, rep
+                    )
+                except OSError as err:  # a chunk that does not decode, a short file
+                    raise UVH5FormatError(
+                        f"{self.meta.path}: cannot read {dset.name} for integrations "
+                        f"{t0}-{t1 - 1} ({err}); the file is corrupt or truncated: "
+                        "copy it again from the archive, or leave it out"
+                    ) from err
+        self.stats.bytes_read += self.raw.nread - self.counted
+        self.counted = self.raw.nread
+        return arrays, rows
+
+    def convert(self, iblock: int, stored: tuple[dict[str, np.ndarray], np.ndarray]) -> Observation:
+        """Stage 2: the (Nant, Npol, Ntime, Nfreq) block as a checked Observation."""
+        arrays, rows = stored
+        t0, t1 = self.blocks[iblock]
+        nt = t1 - t0
+        nant, npol, nfreq = self.shape
+        shape = (nant, npol, nt, nfreq)
+        ia, it = self.ia_all[rows], self.tclip[rows] - t0
+        # Time-major rows in the selection's antenna order: a reshape, no scatter.
+        regular = (
+            rows.size == nant * nt
+            and np.array_equal(ia, np.tile(np.arange(nant), nt))
+            and np.array_equal(it, np.repeat(np.arange(nt), nant))
+        )
+        dtypes = {"data": np.float64, "flags": bool, "nsamples": np.float64}
+        if self.block_sets is None:
+            block = {key: np.empty(shape, dt) for key, dt in dtypes.items()}
+        else:
+            bufs = self.block_sets[iblock % 2]
+            block = {key: bufs.get(key, shape, dt) for key, dt in dtypes.items()}
+        if not regular:
+            for key, fill in (("data", np.nan), ("flags", True), ("nsamples", 0.0)):
+                block[key].fill(fill)
+        for key, arr in arrays.items():
+            if not self.fidx_all:
+                arr = arr[:, self.fidx]
+            if not self.pidx_all:
+                arr = arr[:, :, self.pidx]
+            if arr.dtype.kind == "c":
+                arr = _auto_power(arr, self.same_feed)
+            if regular:
+                block[key][...] = arr.reshape(nt, nant, nfreq, npol).transpose(1, 3, 0, 2)
+            else:
+                block[key][ia, :, it, :] = arr.transpose(0, 2, 1)
+        tint = np.full(nt, np.nan)
+        tint[it] = self.tint_blt[rows]
+        if rows.size < nant * nt:
+            logger.warning(
+                "%s: %d antenna-time samples are missing; they are flagged",
+                self.meta.name,
+                nant * nt - rows.size,
+            )
+        if np.any(np.isnan(tint)):
+            fallback = float(np.nanmedian(tint)) if np.any(np.isfinite(tint)) else 0.0
+            tint = np.where(np.isnan(tint), fallback, tint)
+        self.stats.blocks += 1
+        self.stats.integrations += nt
+        self.stats.samples += block["data"].size
+        return Observation(
+            **block,
+            **self.common,
+            lsts=self.meta.lsts[t0:t1],
+            jds=self.meta.times[t0:t1],
+            integration_time=tint,
+            meta={**self.file_meta, "block": iblock, "nblocks": len(self.blocks)},
+        )
 
 
 def _run_blocks(

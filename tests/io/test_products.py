@@ -161,7 +161,7 @@ def test_errors_name_the_problem(tmp_path):
         h5.attrs["format"] = "autocal-tsky-1"
     with pytest.raises(ProductFormatError, match="autocal-tsky-1"):
         read_solution(other)
-    from autocal.io.calsol import write_calh5
+    from autocal.io.calsol_write import write_calh5
 
     cal = write_calh5(make_solution(), tmp_path / "gains.calh5")
     with pytest.raises(ProductFormatError, match="calh5"):

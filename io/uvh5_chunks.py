@@ -1,0 +1,255 @@
+"""Reading the data sets of a UVH5 file with h5py: rows, reused buffers, repeated chunks.
+
+The block reader (:mod:`autocal.io.uvh5_blocks`) reads the ``Data/visdata``,
+``Data/flags`` and ``Data/nsamples`` data sets of a UVH5 file a run of baseline-time rows
+at a time with :func:`read_rows`. :class:`CountingFile` counts the bytes HDF5 reads from
+the file, :class:`Buffers` keeps arrays that are reused from block to block, and
+:class:`RepeatedChunks` decodes each distinct stored chunk once (raw files store the same
+flags and nsamples chunk over and over). :class:`ReadStats` adds up what was read (the
+night benchmark's "data read once" figures).
+"""
+
+from __future__ import annotations
+
+import io
+import itertools
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class ReadStats:
+    """What :func:`~autocal.io.uvh5_blocks.iter_uvh5_blocks` read (summed over files and blocks).
+
+    Attributes
+    ----------
+    files, blocks, integrations
+        Files opened, blocks yielded, integrations yielded.
+    samples
+        Values yielded (antennas x pols x integrations x channels).
+    bytes_read
+        Bytes the HDF5 library read from the files (headers, chunk indices and the
+        compressed chunks), counted at the file object.
+    bytes_decoded
+        Bytes of the arrays the data sets were decoded into.
+    bytes_reused
+        Of those, bytes copied from a stored chunk identical to one already decoded
+        instead of decoded again (uniform nsamples, unflagged data; see
+        :class:`RepeatedChunks`).
+    largest_array
+        Bytes of the largest single array read from a data set (bounded by the block).
+    checksum_bytes
+        Bytes read to compute the files' SHA-256 (provenance).
+    """
+
+    files: int = 0
+    blocks: int = 0
+    integrations: int = 0
+    samples: int = 0
+    bytes_read: int = 0
+    bytes_decoded: int = 0
+    bytes_reused: int = 0
+    largest_array: int = 0
+    checksum_bytes: int = 0
+
+    def add(self, other: ReadStats) -> None:
+        """Add another reader's counters to these (``largest_array``: the maximum)."""
+        for key, value in asdict(other).items():
+            if key == "largest_array":
+                self.largest_array = max(self.largest_array, value)
+            else:
+                setattr(self, key, getattr(self, key) + value)
+
+    def as_dict(self) -> dict[str, int]:
+        """Return the counters as a dictionary."""
+        return asdict(self)
+
+
+class CountingFile(io.FileIO):
+    """A binary file that counts the bytes read through it (h5py file-object driver)."""
+
+    def __init__(self, path: Path) -> None:
+        super().__init__(path, "rb")
+        self.nread = 0
+
+    def readinto(self, buffer: Any) -> int | None:
+        """Read into ``buffer`` and count the bytes."""
+        n = super().readinto(buffer)
+        self.nread += n or 0
+        return n
+
+    def read(self, size: int = -1) -> bytes:
+        """Read up to ``size`` bytes and count them."""
+        data = super().read(size)
+        self.nread += len(data)
+        return data
+
+
+def read_rows(
+    dset: Any,
+    rows: np.ndarray,
+    chans: slice,
+    pols: slice,
+    stats: ReadStats,
+    buffers: Buffers | None = None,
+    repeats: RepeatedChunks | None = None,
+) -> np.ndarray:
+    """Read ``rows`` (sorted blt indices) of a data set as ``(Nrows, Nchan, Npol)``.
+
+    A dense set of rows is read as one slab (one hyperslab, whole chunks) and the rows
+    picked in memory; a sparse one (e.g. autos among cross-correlations) by h5py's
+    point selection, so memory stays bounded by the rows asked for. With ``buffers`` a
+    slab of consecutive rows is decoded into a reused array (``read_direct``; no fresh
+    pages to fault in per block); the result is then only valid until the next read of
+    this data set. With ``repeats`` such a slab is assembled from the data set's distinct
+    stored chunks, each decoded once (:class:`RepeatedChunks`).
+    """
+    lo, hi = int(rows[0]), int(rows[-1]) + 1
+    dense = rows.size >= 0.5 * (hi - lo)
+    first: slice | np.ndarray = slice(lo, hi) if dense else rows
+    index: tuple[Any, ...] = (first, 0, chans, pols) if dset.ndim == 4 else (first, chans, pols)
+    slab = dense and rows.size == hi - lo and not dset.dtype.names
+    if slab and (buffers is not None or (repeats is not None and repeats.active)):
+        nchan = len(range(*chans.indices(dset.shape[-2])))
+        npol = len(range(*pols.indices(dset.shape[-1])))
+        shape = (rows.size, nchan, npol)
+        arr = (
+            np.empty(shape, dset.dtype)
+            if buffers is None
+            else buffers.get(f"raw {dset.name}", shape, dset.dtype)
+        )
+        if repeats is None or not repeats.fill(arr, lo, hi, chans, pols, stats):
+            dset.read_direct(arr, source_sel=index)
+    else:
+        arr = dset[index]
+    if arr.dtype.names:  # the HERA correlator's compound type (fields r, i)
+        arr = arr["r"] + 1j * arr["i"].astype(np.float64)
+    stats.bytes_decoded += arr.nbytes
+    stats.largest_array = max(stats.largest_array, arr.nbytes)
+    if dense and rows.size != hi - lo:
+        arr = arr[rows - lo]
+    return arr
+
+
+class Buffers:
+    """Named arrays reused from block to block (grown when a block needs more)."""
+
+    def __init__(self) -> None:
+        self._flat: dict[str, np.ndarray] = {}
+
+    def get(self, name: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+        """Return an uninitialised C-ordered array of ``shape`` backed by buffer ``name``."""
+        dtype = np.dtype(dtype)
+        size = int(np.prod(shape))
+        flat = self._flat.get(name)
+        if flat is None or flat.dtype != dtype or flat.size < size:
+            flat = self._flat[name] = np.empty(size, dtype)
+        return flat[:size].reshape(shape)
+
+
+class RepeatedChunks:
+    """Decode each distinct stored chunk of a chunked data set once.
+
+    Raw HERA files have flags that are all ``False`` and ``nsamples`` that are all equal,
+    so their compressed chunks are identical byte for byte; decoding them took a third of
+    the HDF5 time of a night file (profile: 5.7 s -> 3.8 s, ``benchmarks/night.py``).
+    Here the stored bytes of every chunk a slab touches are read without decompression
+    (``read_direct_chunk``); a chunk whose bytes (and filter mask and extent) were seen
+    before is copied from its decoded copy, and only new ones are decoded by HDF5.
+    Decompression is deterministic, so the values are exactly those of a plain read.
+    After :data:`TRIAL_CHUNKS` chunks with fewer than half reused (e.g. real flags with
+    RFI), or on a chunk that is not stored, the data set is read normally for the rest of
+    the file.
+    """
+
+    #: Decoded chunks kept (distinct contents), and their largest total size in bytes.
+    MAX_DISTINCT = 8
+    MAX_BYTES = 64 << 20
+    #: Chunks looked at before giving up on a data set whose chunks rarely repeat.
+    TRIAL_CHUNKS = 64
+
+    def __init__(self, dset: Any) -> None:
+        self.dset = dset
+        # h5py properties take its lock on every access: read them once
+        self.ndim, self.shape, self.chunks, self.name = (
+            dset.ndim,
+            dset.shape,
+            dset.chunks,
+            dset.name,
+        )
+        self.dsid = dset.id
+        self.active = self.chunks is not None and not dset.dtype.names
+        self.decoded: dict[tuple[Any, ...], np.ndarray] = {}
+        self.seen = 0
+        self.reused = 0
+
+    def fill(
+        self, out: np.ndarray, lo: int, hi: int, chans: slice, pols: slice, stats: ReadStats
+    ) -> bool:
+        """Fill ``out`` (rows ``lo:hi``, ``chans``, ``pols``) and return ``True``.
+
+        ``False`` (nothing to rely on in ``out``) when the data set is to be read
+        normally.
+        """
+        if not self.active:
+            return False
+        dset = self.dset
+        c0, c1, _ = chans.indices(self.shape[-2])
+        p0, p1, _ = pols.indices(self.shape[-1])
+        # (start, stop) per data set axis; the legacy 4-d layout has a spectral-window axis
+        ranges = [(lo, hi), (c0, c1), (p0, p1)]
+        if self.ndim == 4:
+            ranges.insert(1, (0, 1))
+        grids = [
+            range(start - start % size, stop, size)
+            for (start, stop), size in zip(ranges, self.chunks, strict=True)
+        ]
+        copies = []
+        for offset in itertools.product(*grids):
+            try:
+                mask, stored = self.dsid.read_direct_chunk(offset)
+            except (KeyError, OSError, RuntimeError, ValueError):  # not stored: fill value
+                self.active = False
+                self.decoded.clear()
+                return False
+            extent = tuple(
+                min(o + size, n) - o
+                for o, size, n in zip(offset, self.chunks, self.shape, strict=True)
+            )
+            key = (mask, extent, stored)
+            chunk = self.decoded.get(key)
+            reused = chunk is not None
+            if chunk is None:
+                chunk = dset[tuple(slice(o, o + e) for o, e in zip(offset, extent, strict=True))]
+                kept = sum(c.nbytes for c in self.decoded.values()) + chunk.nbytes
+                if len(self.decoded) < self.MAX_DISTINCT and kept <= self.MAX_BYTES:
+                    self.decoded[key] = chunk
+            self.seen += 1
+            self.reused += reused
+            copies.append((offset, chunk, reused))
+        if self.seen >= self.TRIAL_CHUNKS and 2 * self.reused < self.seen:
+            logger.debug("%s: stored chunks rarely repeat; decoding all", self.name)
+            self.active = False
+            self.decoded.clear()
+        for offset, chunk, reused in copies:
+            part = [
+                (max(start, o), min(stop, o + n))
+                for (start, stop), o, n in zip(ranges, offset, chunk.shape, strict=True)
+            ]
+            src = tuple(slice(a - o, b - o) for (a, b), o in zip(part, offset, strict=True))
+            dst = [
+                slice(a - start, b - start) for (a, b), (start, _) in zip(part, ranges, strict=True)
+            ]
+            block = chunk[src]
+            if self.ndim == 4:
+                block, dst = block[:, 0], [dst[0], *dst[2:]]
+            out[tuple(dst)] = block
+            if reused:
+                stats.bytes_reused += block.nbytes
+        return True

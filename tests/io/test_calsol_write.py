@@ -1,0 +1,142 @@
+"""autocal gains written as genuine UVCal files (calh5, calfits) and read back by pyuvdata."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import autocal  # noqa: F401  (offline configuration first)
+from autocal.core.sites import EDGES, HERA
+from autocal.io.calsol_files import CalsolFormatError
+from autocal.io.calsol_read import read_reference_gains
+from autocal.io.calsol_write import write_calfits, write_calh5
+from tests.io.test_calsol import fitted_solution, make_solution
+
+
+@pytest.mark.parametrize("kind", ["calh5", "calfits"])
+def test_round_trip_through_pyuvdata(tmp_path, kind, capsys):
+    from pyuvdata import UVCal
+
+    sol = make_solution()
+    writer = write_calh5 if kind == "calh5" else write_calfits
+    path = writer(sol, tmp_path / f"gains.{kind}")
+    uvc = UVCal.from_file(str(path))  # a genuine, checked UVCal
+    assert uvc.cal_type == "gain"
+    assert uvc.gain_convention == "divide"
+    assert uvc.gain_scale == "K"
+    assert uvc.telescope.name == "HERA"
+    assert uvc.telescope.get_x_orientation_from_feeds() == "east"
+    assert list(uvc.jones_array) == [-5, -6]
+    assert uvc.Ntimes == 1 and uvc.time_array is None
+    start, stop = uvc.time_range[0]
+    assert start < sol.jds.min() and stop > sol.jds.max()
+    assert stop - start == pytest.approx(np.ptp(sol.jds) + 60 / 86400, rel=1e-6)
+    assert "autocal" in uvc.history and "gain_scale K" in uvc.history
+    gains = uvc.gain_array[:, :, 0, :].transpose(0, 2, 1)  # (A, J, F)
+    flags = uvc.flag_array[:, :, 0, :].transpose(0, 2, 1)
+    np.testing.assert_array_equal(flags, sol.flags)
+    ok = ~sol.flags
+    np.testing.assert_allclose(gains.real[ok], np.sqrt(sol.G)[ok], rtol=1e-12)
+    assert np.all(gains.imag == 0)
+    assert np.all(np.isfinite(uvc.gain_array))
+    assert np.all(gains[sol.flags] == 1.0)
+    quality = uvc.quality_array[:, :, 0, :].transpose(0, 2, 1)
+    ok_q = ok & np.isfinite(sol.sigma_abs_g)
+    np.testing.assert_allclose(quality[ok_q], sol.sigma_abs_g[ok_q])  # total 1-sigma of |g|
+    assert np.all(quality[sol.flags] == 0)
+    np.testing.assert_allclose(uvc.total_quality_array[:, 0, :][~sol.flags[0].T], 1.1)
+
+    ref = read_reference_gains(path)
+    assert ref.absolute and ref.gain_scale == "K"
+    assert ref.pols == ("ee", "nn") and ref.antennas.tolist() == [0, 23]
+    np.testing.assert_allclose(ref.jds, [0.5 * (start + stop)])
+    np.testing.assert_allclose(ref.abs_g[:, :, 0][ok], sol.abs_g[ok], rtol=1e-12)
+    assert np.all(np.isnan(ref.abs_g[:, :, 0][sol.flags]))
+    assert capsys.readouterr().out == ""
+
+
+def test_per_time_and_explicit_time_range(tmp_path):
+    from pyuvdata import UVCal
+
+    sol = fitted_solution(order=1, residuals=False)
+    path = write_calh5(sol, tmp_path / "per_time.calh5", per_time=True)
+    uvc = UVCal.from_file(str(path))
+    assert uvc.Ntimes == sol.jds.size
+    np.testing.assert_allclose(uvc.time_array, sol.jds)
+    big_g = sol.evaluate()["G"]  # (A, P, T, F)
+    ok = ~uvc.flag_array.transpose(0, 3, 2, 1)
+    np.testing.assert_allclose(
+        uvc.gain_array.real.transpose(0, 3, 2, 1)[ok], np.sqrt(big_g)[ok], rtol=1e-12
+    )
+    rng = (sol.jds.min() - 0.01, sol.jds.max() + 0.01)
+    uvc2 = UVCal.from_file(str(write_calh5(sol, tmp_path / "range.calh5", time_range=rng)))
+    np.testing.assert_allclose(uvc2.time_range[0], rng)
+    with pytest.raises(CalsolFormatError, match="increasing"):
+        write_calh5(sol, tmp_path / "bad.calh5", time_range=(rng[1], rng[0]))
+    assert not (tmp_path / "bad.calh5").exists()
+
+
+def test_non_hera_antennas_get_a_minimal_telescope(tmp_path):
+    from pyuvdata import UVCal
+
+    sol = make_solution(
+        antennas=(0, 400), pols=("ee",), config={"telescope": "EDGES-like", "site": "edges"}
+    )
+    uvc = UVCal.from_file(str(write_calh5(sol, tmp_path / "edges.calh5")))
+    assert uvc.telescope.name == "EDGES-like"
+    assert sorted(uvc.telescope.antenna_numbers.tolist()) == [0, 400]
+    lat, lon, _ = uvc.telescope.location_lat_lon_alt_degrees
+    assert lat == pytest.approx(EDGES.lat_deg, abs=1e-3) and lon == pytest.approx(
+        EDGES.lon_deg, abs=1e-3
+    )
+    assert read_reference_gains(tmp_path / "edges.calh5").antennas.tolist() == [0, 400]
+
+
+def test_refuses_overwrite_and_writes_atomically(tmp_path, monkeypatch):
+    from pyuvdata import UVCal
+
+    sol = make_solution()
+    path = write_calh5(sol, tmp_path / "g.calh5")
+    before = path.read_bytes()
+    with pytest.raises(FileExistsError, match="overwrite"):
+        write_calh5(sol, path)
+    with pytest.raises(FileExistsError):
+        write_calfits(sol, path)
+    assert path.read_bytes() == before
+
+    def broken(self, filename, **kwargs):
+        Path(filename).write_bytes(b"partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(UVCal, "write_calh5", broken)
+    with pytest.raises(OSError, match="disk full"):
+        write_calh5(make_solution(flagged=(1,)), path, overwrite=True)
+    assert path.read_bytes() == before  # untouched
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["g.calh5"]  # no temporary left
+    monkeypatch.undo()
+    write_calh5(make_solution(flagged=(1,)), path, overwrite=True)
+    assert read_reference_gains(path).flags[:, :, 0, 1].all()
+
+
+def test_pipeline_style_configuration_sets_telescope_and_history(tmp_path):
+    from dataclasses import replace
+
+    from pyuvdata import UVCal
+
+    edges = make_solution(antennas=(0, 1), pols=("ee",))
+    edges = replace(
+        edges,
+        config={
+            "calibration": {"sky": "gsm2008", "beam": "edges-low"},
+            "provenance": {"site": EDGES.describe(), "sky": {"model": "gsm2008"}},
+        },
+    )
+    uvc = UVCal.from_file(str(write_calh5(edges, tmp_path / "edges.calh5")))
+    assert uvc.telescope.name == "edges"
+    assert uvc.telescope.location_lat_lon_alt_degrees[0] == pytest.approx(EDGES.lat_deg, abs=1e-3)
+    assert '"model": "gsm2008"' in uvc.history and "edges-low" in uvc.history
+    hera = replace(edges, config={"provenance": {"site": HERA.describe()}})
+    uvc = UVCal.from_file(str(write_calh5(hera, tmp_path / "hera.calh5")))
+    assert uvc.telescope.name == "HERA" and uvc.telescope.Nants == 350
