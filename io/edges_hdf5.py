@@ -4,7 +4,7 @@
 binned) in one HDF5 file; :func:`read_edges_hdf5` reads it back.
 
 HDF5 layout (``autocal-edges-spectra-1``, :data:`HDF5_FORMAT`)
--------------------------------------------------------------
+--------------------------------------------------------------
 Datasets ``p0``, ``p1``, ``p2`` (Ntime, Nfreq; raw linear power), ``freqs`` (Nfreq; Hz,
 channel centres), ``channel_width`` (Nfreq; Hz), ``jds`` (Ntime; UTC Julian dates of the
 cycles), ``integration_time`` (Ntime; s per switch position) and optional ``aux/adcmax``,

@@ -1,7 +1,7 @@
 """The autocal solution product: one HDF5 file with every array of a fit and its provenance.
 
 Layout (format tag ``autocal-solution-1`` in the root attribute ``format``)
---------------------------------------------------------------------------
+---------------------------------------------------------------------------
 Root attributes
     ``format``, ``autocal_version``, ``created_utc``, ``config`` (JSON: the solution's
     resolved configuration), ``provenance`` (JSON: autocal and library versions, input

@@ -7,7 +7,7 @@ Commands (one module each in :mod:`autocal.cli`)
 ``autocal diagnose``
     Name the physical effects missing from the model, add them, show the gap shrink.
 ``autocal compare``
-    |g| from autos against cross-correlation (abscal or redcal/omnical) gains.
+    ``|g|`` from autos against cross-correlation (abscal or redcal/omnical) gains.
 ``autocal tsky``
     Beam-weighted sky temperature table Tsky(nu, LST) to HDF5 (and a plot).
 ``autocal simulate``

@@ -26,7 +26,7 @@ its peak, the normalisation that makes a point source of flux ``S`` at the peak 
 
 with ``Omega_A`` integrated over the *whole* sphere, exactly the denominator of autocal's
 ``Tsky`` (the ground seen below the horizon radiates too). Writing
-``J(nu) = 2 k_B Omega_A / lambda^2 * 1e26`` (Jy per K) and equating the raw power,
+``J(nu) = 2 k_B Omega_A / lambda^2 * 1e26`` (Jy per K) and equating the raw power::
 
     R = |g_ref|^2 V_Jy = |g_ref|^2 J T = |g_auto|^2 T
     =>  |g_auto|^2 = |g_ref|^2 J(nu),   |g_ref,K| = |g_ref| sqrt(J(nu)).

@@ -2,14 +2,14 @@
 
 Three caches, each in its own folder, each disabled by setting its variable to ``off``:
 
-========================  ==========================  ==========================================
-variable                  default folder              what
-========================  ==========================  ==========================================
-``AUTOCAL_CACHE_DIR``     ``~/.cache/autocal/tsky``   Tsky harmonics (:mod:`autocal.tsky.cache`)
-``AUTOCAL_KERNEL_CACHE``  ``.../autocal/fit_kernels`` compiled fit kernels (:mod:`autocal.fit.lsq`)
-``AUTOCAL_IERS_CACHE``    ``.../autocal/iers``        astropy's parsed Earth-orientation table
-                                                      (:mod:`autocal.core.offline`)
-========================  ==========================  ==========================================
+========================  ===========================  ======================================
+variable                  default folder               what
+========================  ===========================  ======================================
+``AUTOCAL_CACHE_DIR``     ``~/.cache/autocal/tsky``    Tsky harmonics (:mod:`autocal.tsky`)
+``AUTOCAL_KERNEL_CACHE``  ``.../autocal/fit_kernels``  compiled fit kernels (:mod:`autocal.fit`)
+``AUTOCAL_IERS_CACHE``    ``.../autocal/iers``         astropy's parsed Earth-orientation
+                                                       table (:mod:`autocal.core.offline`)
+========================  ===========================  ======================================
 
 ``~/.cache`` is ``$XDG_CACHE_HOME`` when that is set. Everything in them can be deleted at
 any time; it is rebuilt on first use.

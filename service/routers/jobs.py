@@ -6,7 +6,7 @@
 ``GET /jobs``                             list, filtered by state, night, antenna, kind
 ``GET /jobs/{id}``                        state, progress, timings, log tail, config...
 ``POST /jobs/{id}/cancel``                cancel (token; 202; 409 when already final)
-``GET /jobs/{id}/results``                calibrate: G, |g|, Trxr... per antenna and pol;
+``GET /jobs/{id}/results``                calibrate: G, ``|g|``, Trxr... per antenna and pol;
                                           diagnose: accepted effects, steps, gaps
 ``GET /jobs/{id}/products/{name}``        download one product file
 ========================================  ==================================================
