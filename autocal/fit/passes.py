@@ -192,7 +192,7 @@ def fit(
         Extra configuration recorded in the solution (sky, beam, inputs).
     uncertainty
         ``"total"`` (default): also compute the total uncertainty
-        (:mod:`autocal.fit.uncertainty`: block jackknife and the model with one more time
+        (:mod:`autocal.fit.total_uncertainty`: block jackknife and the model with one more time
         order), so ``sigma_*`` are total errors; ``"statistical"``: the covariance only.
     trxr_prior
         A receiver prior: an :class:`autocal.fit.priors.TrxrPrior` or ``(trxr_k, sigma_k)``
