@@ -220,11 +220,7 @@ def fit(
         one_pass, passes=passes, radiometer=is_radiometer, min_samples=min_samples
     )
     prior_fn = _prior_function(trxr_prior, obs, scale)
-    solve_from = sums
-    if prior_fn is not None:
-        solve_from = prior_fn(sums, *mean_vectors(fit_model, obs.lsts))
-    solved = solve_sums(solve_from, min_samples=min_samples, scale_covariance=scale)
-    _log_unsolved(solved)
+    solved = _solve(sums, obs.lsts, prior_fn, min_samples, scale)
     cfg = {
         "weights": weights if isinstance(weights, str) else "user",
         "passes": npass,
@@ -337,6 +333,22 @@ def _prior_function(
         return add_trxr_prior(part, pvg, pvn, ptrxr, psigma, scale_covariance=scale)
 
     return prior_fn
+
+
+def _solve(
+    sums: NormalSums,
+    lsts: np.ndarray,
+    prior_fn: Callable[[NormalSums, np.ndarray, np.ndarray], NormalSums] | None,
+    min_samples: int | None,
+    scale: bool | Literal["inflate"],
+) -> dict[str, np.ndarray]:
+    """Solve the fitted sums (with the prior, if any) and warn of unsolved channels."""
+    solve_from = sums
+    if prior_fn is not None:
+        solve_from = prior_fn(sums, *mean_vectors(sums.model, lsts))
+    solved = solve_sums(solve_from, min_samples=min_samples, scale_covariance=scale)
+    _log_unsolved(solved)
+    return solved
 
 
 def _log_unsolved(solved: dict[str, np.ndarray]) -> None:

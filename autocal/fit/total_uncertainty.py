@@ -279,11 +279,7 @@ def total_uncertainty(
     drift = _drift_model(blocks, solved, refits, theta0, c0, c0_ok, notes)
     w1, theta1, c1, good = drift.weight, drift.theta, drift.cov, drift.good
 
-    scale = np.where(np.isfinite(fjk), np.maximum(fjk, 1.0), 1.0)[..., None, None]
-    d = np.nan_to_num(theta1 - theta0)
-    w1e = w1[..., None, None]
-    ctot = scale * ((1.0 - w1e) * c0 + w1e * c1) + w1e * np.einsum("...i,...j->...ij", d, d)
-    ctot = np.where(c0_ok[..., None, None], ctot, np.nan)
+    ctot = _total_covariance(fjk, drift, theta0, c0, c0_ok)
     bad = ~c0_ok
     base_total = fitted
     contrast = sky_contrast(base_total, model, theta0)
@@ -359,6 +355,18 @@ def _half_estimates(blocks: BlockSums, refits: _Refits) -> np.ndarray:
         # determined: measured on a clean day, order 1, 23 % against 3 % off)
         halves[h] = refits.project(refits.solve(sub))[0][..., 0]
     return halves
+
+
+def _total_covariance(
+    fjk: np.ndarray, drift: _Drift, theta0: np.ndarray, c0: np.ndarray, c0_ok: np.ndarray
+) -> np.ndarray:
+    """``C_tot = max(1, f_jk) [w_0 C_0 + w_1 C_1] + w_1 d d^T`` (NaN without ``C_0``)."""
+    w1, theta1, c1 = drift.weight, drift.theta, drift.cov
+    scale = np.where(np.isfinite(fjk), np.maximum(fjk, 1.0), 1.0)[..., None, None]
+    d = np.nan_to_num(theta1 - theta0)
+    w1e = w1[..., None, None]
+    ctot = scale * ((1.0 - w1e) * c0 + w1e * c1) + w1e * np.einsum("...i,...j->...ij", d, d)
+    return np.where(c0_ok[..., None, None], ctot, np.nan)
 
 
 @dataclass(frozen=True, eq=False)
