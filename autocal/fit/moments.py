@@ -13,7 +13,8 @@ the full design ``(Nant, Npol, Ntime, Nfreq, 2 (p + 1))`` array never exists. Tw
 compute them: a fused numba kernel (:mod:`autocal.fit.kernels`: one pass over the data,
 compiled per model order and weight kind) and the numpy fallback here
 (:func:`moments_numpy`: antenna blocks, matrix products over time). Both read a
-:class:`Chunk`, which :func:`autocal.fit.sums.accumulate` builds.
+:class:`Chunk`, which :func:`autocal.fit.sums.accumulate` builds: weights laid out by
+:func:`num_array`, rows placed off each other's cache sets by :func:`offset_copy`.
 """
 
 from __future__ import annotations
