@@ -7,7 +7,7 @@ round-robin over the repeats, by
 
 - ``data.sum()`` (numpy's flat pairwise sum, single-threaded) and
   ``np.add.reduce(data, axis=2)`` (the same time-axis reduction shape as the fit);
-- :func:`autocal.fit.lsq.accumulate` for the constant and Legendre order-1/2 models with
+- :func:`autocal.fit.sums.accumulate` for the constant and Legendre order-1/2 models with
   radiometer weights (``dnu dt N`` as the pipeline passes it for uniform ``nsamples``: one
   ``(Ntime, Nfreq)`` array, which the kernel reads as one ``(Nfreq,)`` row since the
   integration time is uniform too; and ``radiometer-nsamples``: a full per-sample array, as
@@ -18,7 +18,7 @@ round-robin over the repeats, by
 - a floor (:func:`floor_kernel`): a compiled loop computing only the data moments, the
   per-sample work left even if every weight moment were shared between antennas;
 
-and :func:`autocal.fit.lsq.solve_sums` is timed separately. Rates are samples (data elements)
+and :func:`autocal.fit.solve.solve_sums` is timed separately. Rates are samples (data elements)
 per second from the best-of-N wall time; the ratios to the plain sum and to the time-axis
 reduction are the targets (>= 0.5). Usage (one command; writes JSON and markdown)::
 
@@ -45,15 +45,9 @@ for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402
 
 import autocal  # noqa: E402
-from autocal.fit.lsq import (  # noqa: E402
-    FitModel,
-    NormalSums,
-    _check_tsky,
-    accumulate,
-    design,
-    solve_sums,
-    weights_for,
-)
+from autocal.fit.model import FitModel, check_tsky, design, weights_for  # noqa: E402
+from autocal.fit.solve import solve_sums  # noqa: E402
+from autocal.fit.sums import NormalSums, accumulate  # noqa: E402
 
 MODELS = (("constant", 0), ("legendre", 1), ("legendre", 2))
 WEIGHTS = ("radiometer", "radiometer-nsamples", "identity")
@@ -104,7 +98,7 @@ def reference_accumulate(
 ) -> NormalSums:
     """The previous implementation (full design matrix, batched tiny matmuls), for 'before'."""
     nant, npol, ntime, nfreq = data.shape
-    tsky = _check_tsky(tsky, npol, ntime, nfreq)
+    tsky = check_tsky(tsky, npol, ntime, nfreq)
     usable = np.isfinite(data) & ~flags
     w = weights_for(weights, data, usable, bandwidth_time)
     used = w > 0
@@ -203,7 +197,8 @@ def floor_case(
     """Time-able call of :func:`floor_kernel` over antenna blocks, like ``accumulate``."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from autocal.fit.lsq import _antenna_blocks, _offset_copy, _time_functions
+    from autocal.fit.moments import offset_copy, time_functions
+    from autocal.fit.sums import antenna_blocks
 
     kernel = floor_kernel(order, flagged=flags is not None)
     flag_bytes = (
@@ -211,11 +206,11 @@ def floor_case(
         if flags is None
         else np.ascontiguousarray(flags, dtype=bool).view(np.uint8)
     )
-    coef, _ = _time_functions(FitModel.for_lsts(lsts, "legendre", max(order, 1)), lsts)
-    tsky = _offset_copy(np.ascontiguousarray(tsky), data)
+    coef, _ = time_functions(FitModel.for_lsts(lsts, "legendre", max(order, 1)), lsts)
+    tsky = offset_copy(np.ascontiguousarray(tsky), data)
     nant = data.shape[0]
     out = np.zeros((nant, data.shape[1], 2 * order + 3, data.shape[3]))
-    blocks = _antenna_blocks(nant, nant if threads == 1 else -(-nant // (4 * threads)))
+    blocks = antenna_blocks(nant, nant if threads == 1 else -(-nant // (4 * threads)))
 
     def run() -> None:
         if threads == 1:

@@ -29,7 +29,11 @@ from typing import Any
 import h5py
 import numpy as np
 
+from autocal.core.reprs import compact_repr
 from autocal.errors import AutocalError
+from autocal.fit.solve import solve_sums
+from autocal.fit.sums import NormalSums
+from autocal.io.products import FORMAT
 
 logger = logging.getLogger(__name__)
 
@@ -76,8 +80,6 @@ class TrxrPrior:
 
     def __repr__(self) -> str:
         """Return one line; arrays as type and shape (:func:`~autocal.core.reprs.compact_repr`)."""
-        from autocal.core.reprs import compact_repr
-
         return compact_repr(self)
 
     def __post_init__(self) -> None:
@@ -422,8 +424,6 @@ def _read_table(path: Path, label: str, sha: str, sigma_default: float) -> TrxrP
 
 def _read_solution(path: Path, label: str, sha: str) -> TrxrPrior:
     """Read ``derived/Trxr`` and ``derived/sigma_Trxr`` of an autocal solution product."""
-    from autocal.io.products import FORMAT
-
     if not h5py.is_hdf5(path):
         raise PriorError(
             f"trxr prior {label}: not an HDF5 file (truncated or corrupt?): give a "
@@ -478,13 +478,13 @@ def _read_solution(path: Path, label: str, sha: str) -> TrxrPrior:
 
 
 def add_trxr_prior(
-    sums: Any,
+    sums: NormalSums,
     vg: np.ndarray,
     vn: np.ndarray,
     trxr: np.ndarray,
     sigma: np.ndarray,
     scale_covariance: bool | str = False,
-) -> Any:
+) -> NormalSums:
     """Add a receiver prior to normal sums as one pseudo-observation per channel.
 
     The prior says ``n = G Trxr_p +- G sigma_p`` for the time-averaged ``G = vg . x`` and
@@ -497,7 +497,7 @@ def add_trxr_prior(
     Parameters
     ----------
     sums
-        :class:`autocal.fit.lsq.NormalSums` (gain coefficients first, then as many offset
+        :class:`autocal.fit.sums.NormalSums` (gain coefficients first, then as many offset
         coefficients).
     vg, vn
         ``(nparam,)`` vectors giving the time-averaged ``G`` and ``n`` from the parameters.
@@ -505,7 +505,7 @@ def add_trxr_prior(
         Prior mean and 1-sigma in K, broadcastable to ``(Nant, Npol, Nfreq)``; channels
         where either is not finite get no prior.
     scale_covariance
-        The scaling :func:`autocal.fit.lsq.solve_sums` will apply to the covariance
+        The scaling :func:`autocal.fit.solve.solve_sums` will apply to the covariance
         (``True``: ``chi^2/dof``, ``"inflate"``: ``max(1, chi^2/dof)``). The prior's weight
         is multiplied by the same factor of the prior-free fit, so that the scaling
         widens the data's information only and the prior keeps its stated sigma:
@@ -513,11 +513,9 @@ def add_trxr_prior(
 
     Returns
     -------
-    autocal.fit.lsq.NormalSums
+    autocal.fit.sums.NormalSums
         New sums with the prior added (``sums`` is not changed).
     """
-    from autocal.fit.lsq import NormalSums, solve_sums
-
     lead = sums.count.shape
     t = np.broadcast_to(np.asarray(trxr, dtype=float), lead)
     s = np.broadcast_to(np.asarray(sigma, dtype=float), lead)

@@ -9,8 +9,9 @@ import h5py
 import numpy as np
 import pytest
 
-from autocal.fit.lsq import FitModel, Solution
+from autocal.fit.model import FitModel
 from autocal.fit.priors import PriorError, TrxrPrior, parse_trxr_prior
+from autocal.fit.solution import Solution
 from autocal.io.products import write_solution
 
 DATA_FREQS = np.linspace(120e6, 180e6, 13)

@@ -1,0 +1,178 @@
+"""Solving the normal equations of every channel at once.
+
+All channels, antennas and polarisations are solved at once with batched numpy linear
+algebra (:func:`solve_sums`), in blocks that bound the temporaries. A channel with too few
+samples, a singular normal matrix or a non-positive gain is flagged with its reason
+(:data:`FLAG_REASONS`) and its values set to NaN, never filled.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+
+from autocal.fit.model import FitError
+from autocal.fit.sums import NormalSums
+
+#: Reasons a channel is flagged by the fit (``Solution.flag_reason`` codes).
+FLAG_REASONS: dict[int, str] = {
+    0: "ok",
+    1: "too few unflagged samples",
+    2: "singular normal matrix",
+    3: "non-positive gain",
+}
+#: Largest condition number of the (column-scaled) normal matrix accepted as solvable.
+MAX_CONDITION = 1e12
+
+
+#: Channel systems solved per block by :func:`solve_sums`: its temporaries (scaled normal
+#: matrices, inverses) are then a few MB per block instead of several copies of ``ata``
+#: (for a Legendre-2 fit of 350 antennas x 2 pols x 1536 channels, 310 MB each).
+SOLVE_BLOCK = 1 << 14
+
+
+def solve_sums(
+    sums: NormalSums,
+    *,
+    min_samples: int | None = None,
+    scale_covariance: bool | Literal["inflate"] = False,
+    max_condition: float = MAX_CONDITION,
+    block: int = SOLVE_BLOCK,
+    positive_gain: bool = True,
+) -> dict[str, np.ndarray]:
+    """Solve the normal equations of every channel.
+
+    Parameters
+    ----------
+    sums
+        Accumulated sums.
+    min_samples
+        Fewest used samples for a channel to be solved (default ``nparam + 1``).
+    scale_covariance
+        ``True``: multiply the covariance by ``chi^2 / dof`` (for weights that are not
+        inverse variances, e.g. identity). ``"inflate"``: multiply by ``max(1, chi^2 /
+        dof)``, so errors from inverse-variance weights also cover unmodelled structure
+        in real data without being shrunk below the noise.
+    max_condition
+        Largest condition number of the column-scaled normal matrix.
+    block
+        Channel systems solved at once (bounds the temporaries; the result does not
+        depend on it).
+    positive_gain
+        Flag (reason 3) channels whose first gain coefficient is not positive. ``False``
+        keeps such solutions (refits that only serve an error estimate).
+
+    Returns
+    -------
+    dict
+        ``coeffs`` (..., M), ``cov`` (..., M, M), ``chi2``, ``dof``, ``flag_reason``.
+    """
+    m = sums.model.nparam
+    min_samples = m + 1 if min_samples is None else int(min_samples)
+    if min_samples < m:
+        raise FitError(f"min_samples must be at least the number of parameters ({m})")
+    if block < 1:
+        raise FitError(f"block must be at least 1 channel system, got {block}")
+    lead = sums.count.shape
+    ata, aty = sums.ata.reshape(-1, m, m), sums.aty.reshape(-1, m)
+    yty, count = sums.yty.reshape(-1), sums.count.reshape(-1)
+    n = count.size
+    out = {
+        "coeffs": np.empty((n, m)),
+        "cov": np.empty((n, m, m)),
+        "chi2": np.empty(n),
+        "dof": (count - m).astype(np.float64),
+        "flag_reason": np.zeros(n, np.int8),
+    }
+    for i0 in range(0, n, block):
+        sl = slice(i0, min(i0 + block, n))
+        part = _solve_block(
+            ata[sl],
+            aty[sl],
+            yty[sl],
+            count[sl],
+            min_samples,
+            scale_covariance,
+            max_condition,
+            positive_gain,
+        )
+        for name, value in part.items():
+            out[name][sl] = value
+    return {name: value.reshape(*lead, *value.shape[1:]) for name, value in out.items()}
+
+
+def sym_eigvalsh(a: np.ndarray) -> np.ndarray:
+    """Eigenvalues of ``(..., M, M)`` symmetric matrices; closed form for ``M = 2``.
+
+    The constant model's 2 x 2 systems (a million per HERA file) take ~20 ms this way
+    against ~0.3 s through LAPACK.
+    """
+    if a.shape[-1] != 2:
+        return np.linalg.eigvalsh(a)
+    mean = (a[..., 0, 0] + a[..., 1, 1]) / 2
+    radius = np.hypot((a[..., 0, 0] - a[..., 1, 1]) / 2, a[..., 1, 0])
+    return np.stack([mean - radius, mean + radius], axis=-1)
+
+
+def sym_inv(a: np.ndarray) -> np.ndarray:
+    """Inverses of ``(..., M, M)`` symmetric matrices; closed form (adjugate) for ``M = 2``."""
+    if a.shape[-1] != 2:
+        return np.linalg.inv(a)
+    det = a[..., 0, 0] * a[..., 1, 1] - a[..., 1, 0] * a[..., 1, 0]
+    out = np.empty_like(a)
+    out[..., 0, 0] = a[..., 1, 1] / det
+    out[..., 1, 1] = a[..., 0, 0] / det
+    out[..., 0, 1] = out[..., 1, 0] = -a[..., 1, 0] / det
+    return out
+
+
+def _solve_block(
+    ata: np.ndarray,
+    aty: np.ndarray,
+    yty: np.ndarray,
+    count: np.ndarray,
+    min_samples: int,
+    scale_covariance: bool | Literal["inflate"],
+    max_condition: float,
+    positive_gain: bool = True,
+) -> dict[str, np.ndarray]:
+    """Solve ``(n, M, M)`` normal systems (see :func:`solve_sums`)."""
+    m = ata.shape[-1]
+    reason = np.zeros(count.shape, np.int8)
+    reason[count < min_samples] = 1
+    diag = np.diagonal(ata, axis1=-2, axis2=-1)
+    d = np.where(diag > 0, np.sqrt(np.where(diag > 0, diag, 1.0)), 1.0)
+    scaled = ata / (d[..., :, None] * d[..., None, :])
+    ok = (reason == 0) & np.all(diag > 0, axis=-1) & np.all(np.isfinite(scaled), axis=(-2, -1))
+    reason[(reason == 0) & ~ok] = 2
+    eye = np.eye(m)
+    scaled = np.where(ok[..., None, None], scaled, eye)
+    # 2-norm condition number of the symmetric matrix from its eigenvalues (as
+    # np.linalg.cond, but eigvalsh is several times faster than an SVD per channel)
+    ev = np.abs(sym_eigvalsh(scaled))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cond = ev.max(axis=-1) / ev.min(axis=-1)
+    singular = ok & ~(np.isfinite(cond) & (cond < max_condition))
+    reason[singular] = 2
+    ok &= ~singular
+    scaled = np.where(ok[..., None, None], scaled, eye)
+    inv = sym_inv(scaled)
+    cov = inv / (d[..., :, None] * d[..., None, :])
+    coeffs = (cov @ aty[..., None])[..., 0]
+    # a difference of large sums: rounding can make a (near-)perfect fit's chi2 negative
+    chi2 = np.maximum(yty - np.einsum("...m,...m->...", coeffs, aty), 0.0)
+    dof = (count - m).astype(np.float64)
+    if scale_covariance:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            factor = np.where(dof > 0, chi2 / dof, np.nan)
+        if scale_covariance == "inflate":
+            factor = np.maximum(np.nan_to_num(factor, nan=1.0), 1.0)
+        cov = cov * factor[..., None, None]
+    if positive_gain:
+        reason[ok & ~(coeffs[..., 0] > 0)] = 3
+    bad = reason != 0
+    coeffs = np.where(bad[..., None], np.nan, coeffs)
+    cov = np.where(bad[..., None, None], np.nan, cov)
+    chi2 = np.where(bad, np.nan, chi2)
+    return {"coeffs": coeffs, "cov": cov, "chi2": chi2, "flag_reason": reason}

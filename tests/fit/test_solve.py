@@ -1,0 +1,99 @@
+"""Solving the normal equations of every channel (autocal.fit.solve)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from autocal.fit.model import FitError, FitModel
+from autocal.fit.solve import MAX_CONDITION, solve_sums, sym_eigvalsh, sym_inv
+from autocal.fit.sums import NormalSums, accumulate
+from tests.fit.toy import LSTS, noisy, random_chunk, toy_tsky
+
+
+def test_inflate_scales_errors_only_upwards() -> None:
+    rng = np.random.default_rng(4)
+    tsky = toy_tsky()
+    clean = (tsky + 150.0)[None, None]
+    model = FitModel()
+    quiet = accumulate(model, noisy(clean, rng), tsky, LSTS, bandwidth_time=5e3)
+    loud = accumulate(model, noisy(clean, rng, 5e3 / 9), tsky, LSTS, bandwidth_time=5e3)
+    for sums, expected in ((quiet, 1.0), (loud, 9.0)):
+        plain = solve_sums(sums)
+        inflated = solve_sums(sums, scale_covariance="inflate")
+        ratio = inflated["cov"][..., 0, 0] / plain["cov"][..., 0, 0]
+        assert np.all(ratio >= 1.0)
+        assert np.median(ratio) == pytest.approx(expected, rel=0.2)
+
+
+def test_solve_flags_non_finite_normal_matrices() -> None:
+    sums = NormalSums.zeros(FitModel(), 1, 1, 2)
+    sums.ata[...] = np.array([[4.0, 1.0], [1.0, 2.0]])
+    sums.aty[...] = 1.0
+    sums.count[...] = 10
+    sums.ata[0, 0, 1, 0, 1] = sums.ata[0, 0, 1, 1, 0] = np.inf
+    out = solve_sums(sums)
+    assert out["flag_reason"][0, 0, 1] == 2 and np.isnan(out["coeffs"][0, 0, 1]).all()
+    assert out["flag_reason"][0, 0, 0] == 0
+    np.testing.assert_allclose(
+        out["coeffs"][0, 0, 0], np.linalg.solve(sums.ata[0, 0, 0], sums.aty[0, 0, 0])
+    )
+
+
+def test_two_parameter_systems_are_solved_in_closed_form_as_lapack_would() -> None:
+    """The constant model's 2 x 2 systems skip LAPACK: eigenvalues and inverses agree
+    with numpy's to rounding, conditioning included, and solve_sums flags the same
+    channels as singular (condition numbers around MAX_CONDITION, on both sides)."""
+    rng = np.random.default_rng(7)
+    n = 4000
+    a = rng.standard_normal((n, 2, 2))
+    a = a @ np.swapaxes(a, -1, -2) + np.eye(2) * rng.uniform(0, 1, (n, 1, 1))
+    # near-singular: columns almost parallel, condition numbers from 1e6 to 1e14
+    c = np.logspace(6, 14, 200)
+    eps = 2.0 / c
+    a[:200] = np.stack([np.ones(200), 1 - eps, 1 - eps, np.ones(200)], -1).reshape(200, 2, 2)
+    ev = np.linalg.eigvalsh(a)
+    np.testing.assert_allclose(sym_eigvalsh(a), ev, rtol=1e-12, atol=1e-15 * np.abs(ev).max())
+    well = np.abs(ev).max(-1) / np.abs(ev).min(-1) < 1e8
+    np.testing.assert_allclose(sym_inv(a)[well], np.linalg.inv(a[well]), rtol=1e-7)
+    # the general path is LAPACK's own
+    b = rng.standard_normal((5, 3, 3))
+    np.testing.assert_array_equal(sym_eigvalsh(b @ b.mT), np.linalg.eigvalsh(b @ b.mT))
+    np.testing.assert_array_equal(sym_inv(b), np.linalg.inv(b))
+
+    sums = NormalSums.zeros(FitModel(), 1, 1, n)
+    sums.ata[0, 0] = a * 1e6  # column scaling is undone by solve_sums
+    sums.aty[0, 0] = np.abs(rng.standard_normal((n, 2))) * 1e3
+    sums.yty[...] = 1e9
+    sums.count[...] = 100
+    out = solve_sums(sums)
+    cond = np.linalg.cond(a)
+    singular = out["flag_reason"][0, 0] == 2
+    clear = np.abs(np.log10(cond / MAX_CONDITION)) > 0.01
+    np.testing.assert_array_equal(singular[clear], (cond >= MAX_CONDITION)[clear])
+    assert singular.any() and not singular.all()
+    solved = out["flag_reason"][0, 0] != 2
+    ref = np.linalg.solve(sums.ata[0, 0][solved & well], sums.aty[0, 0][solved & well][..., None])
+    got = out["coeffs"][0, 0][solved & well]
+    keep = np.isfinite(got[:, 0])  # reason 3 (non-positive gain) is NaN in both
+    np.testing.assert_allclose(got[keep], ref[keep, :, 0], rtol=1e-7)
+
+
+def test_solve_in_blocks_gives_the_whole_solve() -> None:
+    """Channel blocks bound solve_sums' memory; every block size gives the same arrays,
+    including flagged channels of each reason at block edges."""
+    c = random_chunk(31, nant=3, ntime=20, nfreq=7)
+    model = FitModel.for_lsts(c["lsts"], "legendre", 2)
+    sums = accumulate(model, c["data"], c["tsky"], c["lsts"], flags=c["flags"], weights="identity")
+    sums.count[0, 0, 0] = 2  # too few samples
+    sums.ata[0, 1, 3] = 0.0  # singular
+    sums.aty[1, 0, 6, 0] = -1e9  # non-positive gain
+    whole = solve_sums(sums, scale_covariance=True, block=sums.count.size)
+    assert {1, 2, 3} <= set(np.unique(whole["flag_reason"]))
+    for block in (1, 5, 16):
+        part = solve_sums(sums, scale_covariance=True, block=block)
+        for name, value in whole.items():
+            np.testing.assert_array_equal(part[name], value)
+            assert part[name].shape == value.shape
+    with pytest.raises(FitError, match="block must be at least 1"):
+        solve_sums(sums, block=0)

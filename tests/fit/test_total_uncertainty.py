@@ -1,0 +1,73 @@
+"""Total uncertainties (autocal.fit.total_uncertainty): limits and behaviour on toy data.
+
+Block sums are tested in tests/fit/test_blocks.py, the separation diagnostics in
+tests/fit/test_separation.py; coverage on observations written by an independent simulator
+is in tests/fit/test_total_uncertainty_coverage.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from autocal.fit.passes import fit
+from tests.fit.toy import SHORT_FREQS as FREQS
+from tests.fit.toy import SHORT_NF as NF
+from tests.fit.toy import make_obs as day_obs
+from tests.fit.toy import noisy, short_sky, toy_tsky
+from tests.fit.toy import short_obs as make_obs
+
+
+def test_too_few_integrations_say_so_and_fall_back_to_the_statistics() -> None:
+    lsts, tsky = short_sky(6)
+    data = (tsky + 150.0)[None, None] * 1.0
+    sol = fit(make_obs(data, lsts), tsky)
+    assert sol.total is not None and sol.total.nblocks == 1
+    assert any("no jackknife" in note for note in sol.total.notes)
+    assert np.all(np.isnan(sol.total.jackknife_factor))
+
+
+def test_time_correlated_residuals_raise_the_jackknife_factor() -> None:
+    """Broadband gain wander correlated over minutes: the jackknife sees it, the
+    radiometer covariance (even inflated by chi2/dof) does not, and the total covers
+    the truth where the statistical error does not."""
+    rng = np.random.default_rng(11)
+    nt = 200
+    lsts = np.linspace(0.0, 23.9, nt)
+    tsky = (
+        250.0
+        * (1.0 + 2.5 * np.exp(-0.5 * ((lsts - 17.5) / 3.0) ** 2))[:, None]
+        * (FREQS / 150e6)[None, :] ** -2.5
+    )
+    inside, outside, ratios = [], [], []
+    for _ in range(20):
+        walk = np.cumsum(rng.standard_normal(nt)) * 2e-3  # a random-walk gain
+        walk -= walk.mean()
+        gain = (1.0 + walk)[:, None]
+        data = gain * (tsky + 150.0) * (1 + rng.standard_normal((nt, NF)) * 1e-3)
+        sol = fit(make_obs(data[None, None], lsts), tsky)
+        g_true = 1.0  # the time average of the gain
+        assert sol.total is not None
+        ratios.append(np.nanmedian(sol.total.jackknife_factor))
+        inside.append(np.abs(sol.G - g_true) < 2 * sol.sigma_G)
+        outside.append(np.abs(sol.G - g_true) < 2 * sol.sigma_G_stat)
+    assert np.median(ratios) > 3.0
+    assert np.mean(inside) > 0.85
+    assert np.mean(outside) < np.mean(inside) - 0.2
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_the_jackknife_is_judged_against_what_the_model_predicts(order: int) -> None:
+    """A Legendre fit's delete-a-block refits extrapolate at the ends of the span, so the raw
+    jackknife variance exceeds the statistical one on clean data; the factor compares it
+    with the jackknife variance the statistical model predicts instead (~1 on clean data)."""
+    rng = np.random.default_rng(12)
+    tsky = toy_tsky()
+    factors = []
+    for _ in range(10):
+        sol = fit(
+            day_obs(noisy((tsky + 150.0)[None, None], rng)), tsky, model="legendre", order=order
+        )
+        assert sol.total is not None
+        factors.append(sol.total.jackknife_factor)
+    assert 0.7 < np.nanmedian(factors) < 1.2
