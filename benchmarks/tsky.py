@@ -2,13 +2,13 @@
 
 One command measures, side by side in one process on the same machine:
 
-* the engine, :func:`autocal.tsky.engine.tsky_fft`, on the whole target table (default: HERA
+* the engine, :func:`autocal.tsky.ringfft.tsky_fft`, on the whole target table (default: HERA
   ``ee`` beam, GSM2008, HERA site, nside 128, 1024 channels over 100-200 MHz, 8640 LSTs =
   10 s cadence over 24 h). Its time includes its own beam evaluation (binding the beam to
   the grid and evaluating it at every channel), the ring FFTs and the synthesis of every
   LST; it excludes reading/upsampling the beam file and building the GSM component maps
   (reported as preparation, shared by all methods). Best and median of ``--repeat`` runs.
-* the vectorised per-LST brute force, :class:`autocal.tsky.engine.BruteForceTsky` (beam
+* the vectorised per-LST brute force, :class:`autocal.tsky.brute.BruteForceTsky` (beam
   precomputed once on the HEALPix grid, sky rotated per LST exactly along the rings, one
   BLAS matrix product per LST), in float32 and float64. Its cost is exactly linear in
   the number of LSTs, so it is timed on ``--brute-lsts`` LSTs spread over the day and
@@ -19,7 +19,7 @@ One command measures, side by side in one process on the same machine:
   times the beam evaluated once on the observer's grid. Linear in the LSTs: timed on
   ``--observer-lsts`` LSTs (all channels) and extrapolated.
 * the accuracy: max |difference| of each method from the engine on the LSTs it was run
-  on, and of the engine and the brute force from :func:`autocal.tsky.engine.tsky_brute` (the
+  on, and of the engine and the brute force from :func:`autocal.tsky.brute.tsky_brute` (the
   ground truth, beam evaluated afresh at every LST) on a few LSTs and channels.
 
 Usage::
@@ -51,9 +51,11 @@ from typing import Any
 import numpy as np
 
 from autocal.core.sites import HERA
-from autocal.sky.beams import get_beam
+from autocal.sky.beam_names import get_beam
 from autocal.sky.models import T_CMB, SkyComponents, get_sky
-from autocal.tsky.engine import T_GROUND, BruteForceTsky, tsky_brute, tsky_fft
+from autocal.tsky.brute import BruteForceTsky, tsky_brute
+from autocal.tsky.result import T_GROUND
+from autocal.tsky.ringfft import tsky_fft
 
 RESULTS = Path(__file__).resolve().parent / "results"
 TARGET_SPEEDUP = 200.0
@@ -136,7 +138,7 @@ def reset_peak_rss() -> bool:
 
 
 class _Capture(logging.Handler):
-    """Keeps the last DEBUG message of autocal.tsky.engine (the engine's stage breakdown)."""
+    """Keeps the last DEBUG message of autocal.tsky.ringfft (the engine's stage breakdown)."""
 
     def __init__(self) -> None:
         super().__init__(logging.DEBUG)
@@ -150,7 +152,7 @@ class _Capture(logging.Handler):
 def run_engine(sky: SkyComponents, beam, lsts: np.ndarray, repeat: int) -> dict[str, Any]:
     """Time the engine ``repeat`` times on the full table; peak RSS over the runs."""
     capture = _Capture()
-    log = logging.getLogger("autocal.tsky.engine")
+    log = logging.getLogger("autocal.tsky.ringfft")
     old_level = log.level
     log.setLevel(logging.DEBUG)
     log.addHandler(capture)

@@ -22,8 +22,10 @@ from typing import Any
 import h5py
 import numpy as np
 
+from autocal import __version__
 from autocal.core.files import atomic_path
 from autocal.errors import AutocalError
+from autocal.tsky.result import TskyError, TskyHarmonics, TskyResult
 
 FORMAT = "autocal-tsky-1"
 HARMONICS_FORMAT = "autocal-tsky-harmonics-1"
@@ -41,8 +43,8 @@ def _attr(value: Any) -> Any:
     return value
 
 
-def write_tsky(path: str | Path, result: Any) -> Path:
-    """Write a :class:`autocal.tsky.engine.TskyResult` to HDF5 atomically.
+def write_tsky(path: str | Path, result: TskyResult) -> Path:
+    """Write a :class:`autocal.tsky.result.TskyResult` to HDF5 atomically.
 
     Parameters
     ----------
@@ -76,8 +78,6 @@ def _write(
     meta: dict[str, Any],
 ) -> Path:
     """Write datasets (with attributes ``labels``) and root attributes ``meta`` atomically."""
-    from autocal import __version__
-
     path = Path(path)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
         h5.attrs["format"] = fmt
@@ -103,7 +103,7 @@ def _read_meta(h5: h5py.File) -> dict[str, Any]:
     return meta
 
 
-def read_tsky(path: str | Path) -> Any:
+def read_tsky(path: str | Path) -> TskyResult:
     """Read a Tsky table written by :func:`write_tsky`.
 
     Raises
@@ -111,8 +111,6 @@ def read_tsky(path: str | Path) -> Any:
     TskyFileError
         If the file is not an autocal Tsky table.
     """
-    from autocal.tsky.engine import TskyResult
-
     path = Path(path)
     try:
         with h5py.File(path, "r") as h5:
@@ -128,8 +126,8 @@ def read_tsky(path: str | Path) -> Any:
 _HARMONICS_ARRAYS = ("coef", "freqs", "sum_all", "sum_below")
 
 
-def write_harmonics(path: str | Path, harmonics: Any) -> Path:
-    """Write :class:`autocal.tsky.engine.TskyHarmonics` to HDF5 atomically.
+def write_harmonics(path: str | Path, harmonics: TskyHarmonics) -> Path:
+    """Write :class:`autocal.tsky.result.TskyHarmonics` to HDF5 atomically.
 
     Parameters
     ----------
@@ -148,7 +146,7 @@ def write_harmonics(path: str | Path, harmonics: Any) -> Path:
     return _write(path, HARMONICS_FORMAT, arrays, labels, harmonics.meta)
 
 
-def read_harmonics(path: str | Path) -> Any:
+def read_harmonics(path: str | Path) -> TskyHarmonics:
     """Read Tsky harmonics written by :func:`write_harmonics`.
 
     Raises
@@ -156,8 +154,6 @@ def read_harmonics(path: str | Path) -> Any:
     TskyFileError
         If the file is not autocal Tsky harmonics or its arrays are inconsistent.
     """
-    from autocal.tsky.engine import TskyError, TskyHarmonics
-
     path = Path(path)
     try:
         with h5py.File(path, "r") as h5:

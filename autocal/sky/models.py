@@ -22,11 +22,13 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import json
 import logging
 import re
 import threading
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
+from importlib.metadata import version
 from typing import Any
 
 import healpy as hp
@@ -38,6 +40,7 @@ from autocal.core.coords import (
     resample_galactic_to_equatorial,
 )
 from autocal.errors import AutocalError
+from autocal.io.datasets import GSM2008_FILE, ensure_pygdsm_file
 
 logger = logging.getLogger(__name__)
 
@@ -252,10 +255,8 @@ def _pygdsm_model(name: str) -> Any:
     """Instantiate (once) a pygdsm model, making its data file available offline."""
     if name in _PYGDSM_CACHE:
         return _PYGDSM_CACHE[name]
-    import pygdsm
+    import pygdsm  # optional heavy dependency, used only by the pygdsm models
     from pygdsm import component_data
-
-    from autocal.io.datasets import GSM2008_FILE, ensure_pygdsm_file
 
     cls_name, kwargs, url_attr, local = _PYGDSM[name]
     urls = getattr(component_data, url_attr)
@@ -317,8 +318,6 @@ class PygdsmSky(SkyModel):
         return basis, spectra, labels
 
     def describe(self) -> dict[str, Any]:  # noqa: D102
-        from importlib.metadata import version
-
         return {
             "model": self.model,
             "source": "pygdsm",
@@ -424,7 +423,5 @@ def get_sky(spec: str | SkyModel) -> SkyModel:
 
 def describe_hash(description: dict[str, Any]) -> str:
     """Return a short stable hash of a description dictionary."""
-    import json
-
     text = json.dumps(description, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]

@@ -1,7 +1,7 @@
 """On-disk cache of the Tsky engine's output.
 
-What is cached is the LST-free part, :class:`autocal.tsky.engine.TskyHarmonics` (Tsky's Fourier
-series in LST and the beam integrals), not tables: one entry then gives the table for
+What is cached is the LST-free part, :class:`autocal.tsky.result.TskyHarmonics` (Tsky's
+Fourier series in LST and the beam integrals), not tables: one entry then gives the table for
 any LST grid and ground temperature with one inverse FFT, so every observation of a night
 (the same sky frame, :func:`autocal.core.coords.night_epoch`) reuses the first one's. Entries
 are HDF5 (:func:`autocal.io.tskyfile.write_harmonics`; 3.2 MB per polarisation for 1536
@@ -31,6 +31,8 @@ from typing import Any
 import numpy as np
 
 from autocal.core.user_cache import user_cache_dir
+from autocal.io.tskyfile import read_harmonics, write_harmonics
+from autocal.tsky.result import TskyHarmonics
 
 logger = logging.getLogger(__name__)
 
@@ -51,10 +53,8 @@ def cache_key(meta: dict[str, Any], freqs: np.ndarray) -> str:
     return digest.hexdigest()[:32]
 
 
-def load(key: str) -> Any | None:
+def load(key: str) -> TskyHarmonics | None:
     """Return the cached harmonics for ``key``, or ``None``."""
-    from autocal.io.tskyfile import read_harmonics
-
     folder = cache_dir()
     if folder is None:
         return None
@@ -69,10 +69,8 @@ def load(key: str) -> Any | None:
         return None
 
 
-def store(key: str, harmonics: Any) -> Path | None:
+def store(key: str, harmonics: TskyHarmonics) -> Path | None:
     """Store harmonics under ``key`` (atomically); failures only log a warning."""
-    from autocal.io.tskyfile import write_harmonics
-
     folder = cache_dir()
     if folder is None:
         return None
@@ -97,7 +95,7 @@ def computing(key: str, timeout: float = LOCK_TIMEOUT_S) -> Iterator[None]:
     if handle is None:
         yield
         return
-    import fcntl
+    import fcntl  # POSIX only: _lock_file returned None where it is missing
 
     try:
         start = time.monotonic()

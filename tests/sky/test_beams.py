@@ -7,15 +7,15 @@ import warnings
 import numpy as np
 import pytest
 
-from autocal.sky.beams import (
+from autocal.sky.analytic_beams import (
     AiryBeam,
-    BeamError,
     GaussianDipoleBeam,
     PerturbedBeam,
-    get_beam,
     s1_airy,
     s1_dipole,
 )
+from autocal.sky.beam_base import BeamError
+from autocal.sky.beam_names import get_beam
 
 NORTH, EAST = 0.0, np.pi / 2
 
@@ -95,8 +95,8 @@ def test_hera_file_beam_uses_pyuvdata_azimuth_convention(data_root):
 @pytest.mark.data
 def test_hera_beam_is_upsampled_only_when_evaluated(data_root, tmp_cache, monkeypatch):
     """A Tsky cache hit names and checks the beam but never upsamples its maps."""
-    from autocal.sky import beams
-    from autocal.tsky.engine import compute_tsky
+    from autocal.sky import file_beams as beams
+    from autocal.tsky.compute import compute_tsky
 
     monkeypatch.setattr(beams, "_UPSAMPLED", {})
     beam = get_beam("hera", "nn")

@@ -7,25 +7,16 @@ import numpy as np
 import pytest
 
 from autocal.core.sites import EDGES, HERA, Site
-from autocal.sky.beams import (
-    AiryBeam,
-    FunctionBeam,
-    GaussianDipoleBeam,
-    PerturbedBeam,
-    _GriddedFileBeam,
-    get_beam,
-)
+from autocal.sky.analytic_beams import AiryBeam, FunctionBeam, GaussianDipoleBeam, PerturbedBeam
+from autocal.sky.beam_names import get_beam
+from autocal.sky.file_beams import GriddedFileBeam
 from autocal.sky.models import T_CMB, SkyComponents, UniformSky, get_sky
-from autocal.tsky.engine import (
-    BruteForceTsky,
-    TskyError,
-    _synthesise,
-    compute_tsky,
-    horizon_weight,
-    topocentric_at_lst0,
-    tsky_brute,
-    tsky_fft,
-)
+from autocal.tsky.brute import BruteForceTsky, tsky_brute
+from autocal.tsky.compute import compute_tsky
+from autocal.tsky.horizon import horizon_weight, topocentric_at_lst0
+from autocal.tsky.result import TskyError
+from autocal.tsky.ringfft import tsky_fft
+from autocal.tsky.synthesis import synthesise
 
 FREQS = np.array([100e6, 137.5e6, 175e6, 200e6])
 
@@ -234,7 +225,7 @@ def test_synthesis_paths_agree(lsts):
     lst_rad = np.mod(lsts, 24.0) * 2 * np.pi / 24
     phase = np.outer(lst_rad, np.arange(33))
     direct = np.cos(phase) @ coef.real + np.sin(phase) @ coef.imag
-    np.testing.assert_allclose(_synthesise(coef, lst_rad), direct, rtol=0, atol=1e-11)
+    np.testing.assert_allclose(synthesise(coef, lst_rad), direct, rtol=0, atol=1e-11)
 
 
 def test_vectorised_brute_force_matches_both_references(lst_day):
@@ -263,7 +254,7 @@ def test_vectorised_brute_force_matches_both_references(lst_day):
 # beam evaluation used by the engine ------------------------------------------------------
 
 
-class _TableBeam(_GriddedFileBeam):
+class _TableBeam(GriddedFileBeam):
     """A gridded beam from an in-memory table ``(Nnative, Ndir)`` (directions fixed)."""
 
     name = "table"

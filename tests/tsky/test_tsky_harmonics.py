@@ -10,13 +10,15 @@ import healpy as hp
 import numpy as np
 import pytest
 
-import autocal.tsky.engine as tsky_module
+import autocal.tsky.compute as tsky_module
 from autocal.core.coords import night_epoch
 from autocal.core.sites import EDGES, HERA
 from autocal.io.tskyfile import read_harmonics, write_harmonics
-from autocal.sky.beams import get_beam
+from autocal.sky.beam_names import get_beam
 from autocal.sky.models import SkyModel
-from autocal.tsky.engine import TskyError, TskyHarmonics, compute_tsky, tsky_fft, tsky_harmonics
+from autocal.tsky.compute import compute_tsky
+from autocal.tsky.result import TskyError, TskyHarmonics
+from autocal.tsky.ringfft import tsky_fft, tsky_harmonics
 
 FREQS = np.array([100e6, 150e6, 200e6])
 

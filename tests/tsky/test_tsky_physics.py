@@ -8,7 +8,7 @@ from scipy.optimize import minimize_scalar
 
 from autocal.io.datasets import EDGES_2018_SPECTRUM
 from autocal.sky.models import T_CMB
-from autocal.tsky.engine import compute_tsky
+from autocal.tsky.compute import compute_tsky
 
 pytestmark = pytest.mark.data
 
