@@ -1,8 +1,8 @@
 """The functions ``import autocal`` offers: one path for every caller.
 
 ``autocal.read`` -> :class:`~autocal.core.observation.Observation`, ``autocal.compute_tsky`` ->
-:class:`~autocal.tsky.engine.TskyResult`, ``autocal.calibrate`` ->
-:class:`~autocal.fit.lsq.Solution`
+:class:`~autocal.tsky.result.TskyResult`, ``autocal.calibrate`` ->
+:class:`~autocal.fit.solution.Solution`
 (the function ``autocal calibrate``, the job service and nightly runs call, with the
 defaults of :class:`~autocal.pipeline.calibrate.CalibrationConfig`), ``autocal.diagnose`` (the
 diagnosis stage, :func:`diagnose` here). The package imports them lazily
@@ -19,9 +19,11 @@ from typing import Any
 from autocal.core.observation import Observation
 from autocal.diagnosis.run import DiagnoseConfig, run_diagnosis
 from autocal.diagnosis.run import read_summary as read_diagnosis
-from autocal.fit.lsq import Solution
-from autocal.pipeline.calibrate import CalibrationConfig, calibrate, read, read_summary
-from autocal.tsky.engine import TskyResult, compute_tsky
+from autocal.fit.solution import Solution
+from autocal.pipeline.calibrate import calibrate, read, read_summary
+from autocal.pipeline.config import CalibrationConfig
+from autocal.tsky.compute import compute_tsky
+from autocal.tsky.result import TskyResult
 
 __all__ = [
     "CalibrationConfig",

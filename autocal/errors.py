@@ -2,7 +2,7 @@
 
 Every error autocal raises for bad input (an unknown sky or beam, a malformed file, a
 selection that leaves no data, an option out of range) is an :class:`AutocalError`; the
-modules keep their own subclasses (:class:`autocal.fit.lsq.FitError`,
+modules keep their own subclasses (:class:`autocal.fit.model.FitError`,
 :class:`autocal.io.uvh5.UVH5FormatError`, ...) so a caller can be as specific as it likes.
 :class:`AutocalError` is a :class:`ValueError`, so ``except ValueError`` keeps working.
 

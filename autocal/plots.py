@@ -46,7 +46,7 @@ def plot_tsky(result: Any, path: str | Path, title: str | None = None) -> Path:
     Parameters
     ----------
     result
-        A :class:`autocal.tsky.engine.TskyResult`.
+        A :class:`autocal.tsky.result.TskyResult`.
     path
         Output image.
     title
@@ -177,7 +177,7 @@ def plot_solution(solution: Any, path: str | Path, title: str | None = None) -> 
     Parameters
     ----------
     solution
-        A :class:`autocal.fit.lsq.Solution`.
+        A :class:`autocal.fit.solution.Solution`.
     path
         Output image.
     title

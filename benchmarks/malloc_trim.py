@@ -22,7 +22,7 @@ from pathlib import Path
 WORKER = """
 import sys, time
 import numpy as np
-from autocal.fit.lsq import FitModel
+from autocal.fit import FitModel
 from autocal.io.uvh5 import scan_uvh5
 from autocal.pipeline.calibrate import FileTask, PartialSpec, compute_partial
 for path in sys.argv[1:]:

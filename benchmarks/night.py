@@ -119,7 +119,7 @@ def _truth(night: Night) -> dict[str, np.ndarray]:
 def _write_file(args: tuple) -> dict:
     """Write one file of the night in parts (runs in a pool process)."""
     from autocal.core.sites import get_site
-    from autocal.io.uvh5 import UVH5AutosWriter
+    from autocal.io.uvh5_writer import UVH5AutosWriter
 
     night, index, path, jds, lsts, tsky, gain, trxr = args
     bt = night.channel_width * night.integration_time
@@ -161,7 +161,7 @@ def generate(night: Night, folder: Path, jobs: int) -> dict:
 
     from autocal.core.sites import get_site
     from autocal.simulate.mock import lsts_to_jds
-    from autocal.tsky.engine import compute_tsky
+    from autocal.tsky.compute import compute_tsky
 
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "night.json").unlink(missing_ok=True)
@@ -266,7 +266,8 @@ class _TreeSampler(threading.Thread):
 
 def calibrate_child(spec: dict) -> None:
     """Run one calibration and write its measurements (the subprocess side)."""
-    from autocal.pipeline.calibrate import CalibrationConfig, run_calibration
+    from autocal.pipeline.calibrate import run_calibration
+    from autocal.pipeline.config import CalibrationConfig
 
     os.environ["AUTOCAL_CACHE_DIR"] = spec["cache"]
     files = [Path(f) for f in spec["files"]]
@@ -412,9 +413,9 @@ def profile_file(path: str) -> dict:
     from pyinstrument import Profiler
 
     import autocal.io.uvh5_blocks as uvh5_blocks
-    from autocal.fit.lsq import FitModel
-    from autocal.io.uvh5 import scan_uvh5
-    from autocal.pipeline.calibrate import FileTask, PartialSpec, compute_partial
+    from autocal.fit.model import FitModel
+    from autocal.io.uvh5_meta import scan_uvh5
+    from autocal.pipeline.partials import FileTask, PartialSpec, compute_partial
 
     file = scan_uvh5([path])[0]
     tsky = np.full((len(file.pols), file.lsts.size, file.freqs.size), 300.0)  # any values
@@ -436,7 +437,7 @@ def profile_file(path: str) -> dict:
         "_read_rows": "HDF5 reads + decompression",
         "iter_uvh5_blocks": "block reader total (incl. HDF5)",
         "file_checksum": "SHA-256 of the file",
-        "accumulate": "autocal.fit.lsq.accumulate (normal sums)",
+        "accumulate": "autocal.fit.sums.accumulate (normal sums)",
         "bandwidth_time": "dnu dt N per sample",
         "_add_waterfall": "waterfall sums (2 antennas)",
         "_add_into": "adding block sums",

@@ -43,7 +43,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from night import compare_solutions, machine
 
-from autocal.pipeline.calibrate import CalibrationConfig, run_calibration
+from autocal.pipeline.calibrate import run_calibration
+from autocal.pipeline.config import CalibrationConfig
 
 ROOT = Path(__file__).resolve().parent
 MODES = ("computed", "cached")
@@ -61,7 +62,7 @@ def calibrate(path: Path, out: Path, cache: str) -> dict:
 
 def frame_check() -> dict:
     """Tsky in frames 6 h and 12 h from the data's time against the data's own frame."""
-    from autocal.tsky.engine import compute_tsky
+    from autocal.tsky.compute import compute_tsky
 
     freqs = np.linspace(100e6, 200e6, 64, endpoint=False)
     lsts = np.arange(8640) * 24 / 8640

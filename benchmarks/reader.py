@@ -26,9 +26,9 @@ import numpy as np
 
 import autocal.io.uvh5_blocks as uvh5_blocks
 from autocal.core.files import file_sha256 as _file_sha256
-from autocal.fit.lsq import FitModel
-from autocal.io.uvh5 import scan_uvh5
-from autocal.pipeline.calibrate import FileTask, PartialSpec, compute_partial
+from autocal.fit.model import FitModel
+from autocal.io.uvh5_meta import scan_uvh5
+from autocal.pipeline.partials import FileTask, PartialSpec, compute_partial
 
 CONFIGS = {
     "plain": {"prefetch": False, "reuse_buffers": False, "decode_repeats_once": False},

@@ -1,7 +1,7 @@
 """An autocal solution as a pyuvdata ``UVCal``: the gains, flags and qualities it holds.
 
 :func:`solution_to_uvcal` builds a genuine ``UVCal`` (``cal_type="gain"``,
-``cal_style="sky"``) from an autocal :class:`~autocal.fit.lsq.Solution`; the calh5 and
+``cal_style="sky"``) from an autocal :class:`~autocal.fit.solution.Solution`; the calh5 and
 calfits writers (:mod:`autocal.io.calsol_write`) write it:
 
 * autocal fits ``R = G (Tsky + Trxr)`` with ``G = |g|^2`` in raw units per kelvin. The
@@ -21,8 +21,8 @@ calfits writers (:mod:`autocal.io.calsol_write`) write it:
 * ``flag_array`` is the solution's channel flags (failed fits, non-positive ``G``);
   flagged gains are written as 1 (never NaN);
 * ``quality_array`` holds the total 1-sigma uncertainty of the written gain amplitude
-  ``|g|`` (:attr:`autocal.fit.lsq.Solution.sigma_abs_g`: statistical, jackknife and drift
-  terms, :mod:`autocal.fit.uncertainty`; with ``per_time=True`` the statistical error of
+  ``|g|`` (:attr:`autocal.fit.solution.Solution.sigma_abs_g`: statistical, jackknife and drift
+  terms, :mod:`autocal.fit.total_uncertainty`; with ``per_time=True`` the statistical error of
   ``|g(t)|`` scaled by the channel's total-to-statistical ratio of the time-averaged
   ``|g|``), 0 where undefined; ``total_quality_array`` the pooled ``sum chi^2 / sum dof``
   over antennas (``chi^2 / dof`` per antenna is in the HDF5 product);
@@ -55,7 +55,7 @@ from autocal.io.calsol_files import CalsolFormatError
 from autocal.io.pyuvdata_helpers import warnings_to_log
 
 if TYPE_CHECKING:
-    from autocal.fit.lsq import Solution
+    from autocal.fit.solution import Solution
 
 logger = logging.getLogger(__name__)
 
@@ -218,7 +218,7 @@ def solution_to_uvcal(
     Parameters
     ----------
     solution
-        An :class:`autocal.fit.lsq.Solution`.
+        An :class:`autocal.fit.solution.Solution`.
     time_range
         ``(start, stop)`` JD of the single solution interval (default: the fitted
         integrations, padded by half the median integration spacing at each end).

@@ -19,7 +19,7 @@ from autocal.io.calsol_uvcal import solution_to_uvcal
 from autocal.io.pyuvdata_helpers import warnings_to_log
 
 if TYPE_CHECKING:
-    from autocal.fit.lsq import Solution
+    from autocal.fit.solution import Solution
 
 logger = logging.getLogger(__name__)
 
@@ -72,7 +72,7 @@ def write_calh5(
     Parameters
     ----------
     solution
-        An :class:`autocal.fit.lsq.Solution`.
+        An :class:`autocal.fit.solution.Solution`.
     path
         Output file.
     overwrite

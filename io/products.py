@@ -11,7 +11,7 @@ Root attributes
 Group ``model`` (attributes)
     ``kind``, ``order``, ``lst_start_h``, ``lst_span_h``, ``parameters`` (names of the
     coefficients), ``description`` (text).
-Datasets (exactly what :class:`autocal.fit.lsq.Solution` holds; read back bit for bit)
+Datasets (exactly what :class:`autocal.fit.solution.Solution` holds; read back bit for bit)
     ``antennas`` (Nant,), ``antenna_names`` (Nant,), ``pols`` (Npol,), ``freqs`` (Nfreq,;
     Hz), ``lsts`` (Ntime,; hours), ``jds`` (Ntime,), ``coeffs`` (Nant, Npol, Nfreq,
     nparam), ``cov`` (Nant, Npol, Nfreq, nparam, nparam), ``chi2``, ``dof``, ``count``,
@@ -23,7 +23,7 @@ Group ``derived`` (for readers that do not use autocal; recomputed on reading)
     ``uncertainty``), ``sigma_G_stat``, ``sigma_abs_g_stat``, ``sigma_n_stat``,
     ``sigma_Trxr_stat`` (the statistical part alone), ``reduced_chi2``, ``flags`` -- all
     (Nant, Npol, Nfreq); ``G`` and ``n`` are time averages over the fitted integrations.
-Group ``uncertainty`` (when the solution has a total uncertainty; :mod:`autocal.fit.uncertainty`)
+Group ``uncertainty`` (with a total uncertainty; :mod:`autocal.fit.total_uncertainty`)
     ``cov`` (Nant, Npol, Nfreq, 2, 2) total covariance of the time-averaged ``(G, n)``;
     ``jackknife_factor``, ``drift_weight``, ``G_drift``, ``n_drift``, ``sigma_G_drift``,
     ``sky_contrast``, ``corr_G_n``, ``drift_sensitivity`` (Nant, Npol, Nfreq), ``G_halves``
@@ -37,11 +37,6 @@ The configuration is stored as JSON: a configuration made of JSON types (dicts w
 string keys, lists, strings, numbers, booleans, None) reads back identical; numpy values
 are stored as their list/number equivalents and tuples as lists. Files are written
 atomically (temporary file, then rename) and never overwritten unless asked.
-
-The solution's record types (:class:`~autocal.fit.lsq.Solution`, ``FitModel``,
-``FLAG_REASONS``, ``TotalUncertainty``) are imported where they are used, not at module
-top: :mod:`autocal.fit.lsq` leads to :mod:`autocal.fit.priors`, which reads a previous
-solution product and imports :data:`FORMAT` from here.
 """
 
 from __future__ import annotations
@@ -51,7 +46,7 @@ import logging
 import platform
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import h5py
 import numpy as np
@@ -59,9 +54,10 @@ import numpy as np
 from autocal import __version__
 from autocal.core.files import atomic_path, file_checksum
 from autocal.errors import AutocalError
-
-if TYPE_CHECKING:
-    from autocal.fit.lsq import Solution
+from autocal.fit.model import FitModel
+from autocal.fit.solution import Solution
+from autocal.fit.solve import FLAG_REASONS
+from autocal.fit.total_uncertainty import TotalUncertainty
 
 logger = logging.getLogger(__name__)
 
@@ -69,7 +65,7 @@ logger = logging.getLogger(__name__)
 FORMAT = "autocal-solution-1"
 
 _CORE = ("coeffs", "cov", "chi2", "dof", "count", "nflagged", "flag_reason")
-#: Arrays of :class:`autocal.fit.uncertainty.TotalUncertainty` in the ``uncertainty`` group.
+#: Arrays of :class:`autocal.fit.total_uncertainty.TotalUncertainty` in the ``uncertainty`` group.
 _UNCERTAINTY = {
     "cov": "total covariance of the time-averaged (G, n)",
     "jackknife_factor": "delete-a-block jackknife variance over the statistical variance",
@@ -202,7 +198,7 @@ def build_provenance(solution: Solution, extra: dict[str, Any] | None = None) ->
     Parameters
     ----------
     solution
-        The :class:`autocal.fit.lsq.Solution`.
+        The :class:`autocal.fit.solution.Solution`.
     extra
         Entries added on top (they win over derived ones).
 
@@ -261,7 +257,7 @@ def write_solution(
     Parameters
     ----------
     solution
-        An :class:`autocal.fit.lsq.Solution`.
+        An :class:`autocal.fit.solution.Solution`.
     path
         Output file (``.h5``).
     provenance
@@ -279,10 +275,6 @@ def write_solution(
     FileExistsError
         If ``path`` exists and ``overwrite`` is false.
     """
-    # not at module top: autocal.fit.lsq leads to autocal.fit.priors, which imports this
-    # module's FORMAT (see the module notes)
-    from autocal.fit.lsq import FLAG_REASONS
-
     path = Path(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
@@ -364,7 +356,7 @@ def read_solution(path: str | Path) -> Solution:
 
     Returns
     -------
-    autocal.fit.lsq.Solution
+    autocal.fit.solution.Solution
         The solution, identical to the written one (configuration via JSON).
 
     Raises
@@ -373,8 +365,6 @@ def read_solution(path: str | Path) -> Solution:
         If the file is missing, not HDF5, truncated, or not an ``autocal-solution-1``
         product.
     """
-    from autocal.fit.lsq import FitModel, Solution  # not at module top: see the module notes
-
     path = Path(path)
     _open_check(path)
     try:
@@ -399,8 +389,6 @@ def read_solution(path: str | Path) -> Solution:
             residuals = h5["residuals"][()] if "residuals" in h5 else None
             total = None
             if "uncertainty" in h5:
-                from autocal.fit.uncertainty import TotalUncertainty  # see the module notes
-
                 unc = h5["uncertainty"]
                 total = TotalUncertainty(
                     **{name: unc[name][()] for name in _UNCERTAINTY},

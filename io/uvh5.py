@@ -52,13 +52,6 @@ from autocal.io.uvh5_meta import (
 )
 from autocal.io.uvh5_uvdata import build_uvdata, file_history, header_keywords
 
-# Temporary re-exports for the layout merge.
-# isort: off
-from autocal.io.uvh5_meta import lst_mask as _lst_mask  # noqa: F401
-from autocal.io.uvh5_meta import scan_uvh5  # noqa: F401
-from autocal.io.uvh5_writer import UVH5AutosWriter  # noqa: F401
-# isort: on
-
 logger = logging.getLogger(__name__)
 
 

@@ -41,11 +41,6 @@ from autocal.io.uvh5_meta import (
     site_of,
 )
 
-# Temporary re-exports for the layout merge.
-# isort: off
-from autocal.io.uvh5_meta import file_meta_of as _meta_of  # noqa: F401
-# isort: on
-
 logger = logging.getLogger(__name__)
 
 #: Default largest number of values (antennas x pols x integrations x channels) in one

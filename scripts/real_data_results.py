@@ -20,7 +20,8 @@ import numpy as np
 
 import autocal  # noqa: F401  (offline configuration)
 from autocal.io.datasets import data_dir
-from autocal.pipeline.calibrate import CalibrationConfig, run_calibration
+from autocal.pipeline.calibrate import run_calibration
+from autocal.pipeline.config import CalibrationConfig
 from autocal.plots import band, figure, robust_ylim, save_figure
 
 NIGHTS = (2458043, 2458044, 2458045)
@@ -132,7 +133,7 @@ def hera_repeatability(root: Path, out: Path) -> dict:
     t = np.array([s.Trxr[:, 0] for s in sols])
     st = np.array([s.sigma_Trxr[:, 0] for s in sols])
     st_stat = np.array([s.sigma_Trxr_stat[:, 0] for s in sols])
-    from autocal.fit.uncertainty import separation_summary
+    from autocal.fit.separation import separation_summary
 
     seps = [{e["antenna"]: e for e in separation_summary(s)} for s in sols]
     ok = np.all(np.array([~s.flags[:, 0] for s in sols]), axis=0)
@@ -193,12 +194,10 @@ def hera_2458098(root: Path, out: Path) -> dict:
 
 def edges(out: Path) -> dict:
     """EDGES-2 lab loads calibrated against thermistors; an EDGES-like day through autocal."""
-    from autocal.edges.receiver import (
-        check_edges2_loads,
-        expected_auto_model,
-        load_receiver_solution,
-        simulate_edges_day,
-    )
+    from autocal.edges.lab_checks import check_edges2_loads
+    from autocal.edges.noise_waves import expected_auto_model
+    from autocal.edges.simulated_day import simulate_edges_day
+    from autocal.edges.solutions import load_receiver_solution
     from autocal.io.products import read_solution
 
     loads = check_edges2_loads()

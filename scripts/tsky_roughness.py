@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import autocal  # noqa: F401  (offline configuration)
 from autocal.core.coords import night_epoch
 from autocal.core.sites import get_site
-from autocal.tsky.engine import compute_tsky
+from autocal.tsky.compute import compute_tsky
 from tests.independent_sim import _apparent_lst_hours, independent_tsky, jd_at_lst
 
 

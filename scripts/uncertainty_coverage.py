@@ -26,7 +26,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import autocal  # noqa: F401  (offline configuration)
-from autocal.pipeline.calibrate import CalibrationConfig, run_calibration
+from autocal.pipeline.calibrate import run_calibration
+from autocal.pipeline.config import CalibrationConfig
 from tests.independent_sim import simulate_autos
 
 CASES = {

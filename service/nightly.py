@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from autocal.errors import AutocalError
-from autocal.pipeline.calibrate import CalibrationConfig
+from autocal.pipeline.config import CalibrationConfig
 from autocal.service.paths import InputPathError, check_under_roots, resolve_input
 from autocal.service.settings import Settings
 from autocal.service.store import JobStore

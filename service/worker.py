@@ -380,7 +380,8 @@ class Worker:
             )
             summary = read_summary(folder)
             return summary, dict(summary.get("products") or {})
-        from autocal.pipeline.calibrate import CalibrationConfig, calibrate, read_summary
+        from autocal.pipeline.calibrate import calibrate, read_summary
+        from autocal.pipeline.config import CalibrationConfig
 
         calibrate(  # autocal.calibrate: the same function as the CLI's and a notebook's
             CalibrationConfig(**config),

@@ -16,9 +16,9 @@ import pytest
 
 import autocal
 from autocal.cli.main import main
-from autocal.fit.lsq import DEFAULT_INFLATE_ERRORS, DEFAULT_PASSES, fit
+from autocal.fit.passes import DEFAULT_INFLATE_ERRORS, DEFAULT_PASSES, fit
 from autocal.io.products import read_solution
-from autocal.pipeline.calibrate import CalibrationConfig
+from autocal.pipeline.config import CalibrationConfig
 
 pytestmark = pytest.mark.data
 
@@ -119,7 +119,7 @@ def test_calibrate_takes_an_observation_a_config_and_options(notebook, hera_file
 
 
 def test_low_level_fit_agrees_with_calibrate(notebook, hera_file: Path) -> None:
-    """``autocal.fit.lsq.fit`` has CalibrationConfig's defaults and the same pass loop."""
+    """``autocal.fit.passes.fit`` has CalibrationConfig's defaults and the same pass loop."""
     defaults = CalibrationConfig.model_fields
     assert defaults["passes"].default == DEFAULT_PASSES == "auto"
     assert defaults["inflate_errors"].default is DEFAULT_INFLATE_ERRORS is True
@@ -184,8 +184,9 @@ def test_import_is_lazy_and_diagnose_is_callable() -> None:
 
 
 def test_other_records_print_shapes_not_arrays() -> None:
-    from autocal.fit.lsq import FitModel, NormalSums
+    from autocal.fit.model import FitModel
     from autocal.fit.priors import TrxrPrior
+    from autocal.fit.sums import NormalSums
 
     sums = NormalSums.zeros(FitModel.for_lsts(np.linspace(1, 2, 5)), 2, 1, 300)
     text = repr(sums)

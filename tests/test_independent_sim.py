@@ -54,7 +54,7 @@ def _autocal_tsky(
     """autocal's Tsky (hard horizon) at the truth's LSTs (or those at ``idx``)."""
     from autocal.core.coords import night_epoch
     from autocal.core.sites import get_site
-    from autocal.tsky.engine import compute_tsky
+    from autocal.tsky.compute import compute_tsky
 
     take = slice(None) if idx is None else idx
     return compute_tsky(

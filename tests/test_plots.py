@@ -40,7 +40,8 @@ def test_residual_waterfalls_cover_the_channels(freqs, kind, tmp_path, monkeypat
 
 
 def _solution(nant: int, npol: int = 2, nfreq: int = 48):
-    from autocal.fit.lsq import FitModel, Solution
+    from autocal.fit.model import FitModel
+    from autocal.fit.solution import Solution
 
     rng = np.random.default_rng(3)
     shape = (nant, npol, nfreq)

@@ -54,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
     from tqdm import tqdm
 
-    from autocal.pipeline.calibrate import CalibrationConfig, calibrate, read_summary
+    from autocal.pipeline.calibrate import calibrate, read_summary
+    from autocal.pipeline.config import CalibrationConfig
 
     settings = calibration_settings(args)
     try:

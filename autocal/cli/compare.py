@@ -57,8 +57,9 @@ def add(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
-    from autocal.compare.gains import OUTPUT_NAMES, compare, write_comparison
-    from autocal.io.calsol import read_reference_gains
+    from autocal.compare.comparison import compare
+    from autocal.compare.report import OUTPUT_NAMES, write_comparison
+    from autocal.io.calsol_read import read_reference_gains
     from autocal.io.products import read_solution
 
     if args.smooth_mhz is not None and not args.smooth_mhz > 0:

@@ -21,7 +21,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the command."""
     from autocal import __version__
     from autocal.core.offline import iers_cache_file
-    from autocal.fit.lsq import kernel_cache_dir
+    from autocal.fit.kernels import kernel_cache_dir
     from autocal.io import datasets
     from autocal.tsky.cache import cache_dir
 

@@ -25,7 +25,7 @@ from autocal.cli.args import (
 
 def _default(name: str) -> str:
     """Return the configuration's default of a field, as ``--help`` shows it."""
-    from autocal.pipeline.calibrate import CalibrationConfig
+    from autocal.pipeline.config import CalibrationConfig
 
     field = CalibrationConfig.model_fields[name]
     value = field.get_default(call_default_factory=True)
@@ -179,7 +179,7 @@ def calibration_settings(args: argparse.Namespace) -> dict[str, Any]:
     from pydantic import ValidationError
 
     from autocal.cli.args import validation_message
-    from autocal.pipeline.calibrate import CalibrationConfig
+    from autocal.pipeline.config import CalibrationConfig
 
     parsers = {
         "antennas": lambda v: parse_int_list(v, "antennas"),

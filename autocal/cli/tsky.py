@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the command."""
     from autocal.io.tskyfile import write_tsky
     from autocal.plots import plot_tsky
-    from autocal.tsky.engine import compute_tsky
+    from autocal.tsky.compute import compute_tsky
 
     if args.out.suffix.lower() not in {".h5", ".hdf5"}:
         raise CliError(f"--out {args.out}: the Tsky table is HDF5; use a .h5 file name")

@@ -16,8 +16,8 @@ import numpy as np
 from autocal.compare.errors import CompareError
 
 if TYPE_CHECKING:
-    from autocal.fit.lsq import Solution
-    from autocal.io.calsol import ReferenceGains
+    from autocal.fit.solution import Solution
+    from autocal.io.calsol_read import ReferenceGains
 
 logger = logging.getLogger(__name__)
 

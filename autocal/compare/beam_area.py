@@ -22,9 +22,11 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from autocal.compare.errors import CompareError
-from autocal.io.calsol import config_sources
+from autocal.io.calsol_uvcal import config_sources
 from autocal.io.datasets import HERA_BEAM_FILE, data_file
-from autocal.sky.beams import Beam, HealpixFileBeam, get_beam
+from autocal.sky.beam_base import Beam
+from autocal.sky.beam_names import get_beam
+from autocal.sky.file_beams import HealpixFileBeam
 
 logger = logging.getLogger(__name__)
 
@@ -74,9 +76,9 @@ def resolve_beam(beam: Any, pol: str = "ee") -> Any:
     """Resolve a beam for solid-angle integrals.
 
     ``"hera"`` and UVBeam file paths give a
-    :class:`~autocal.sky.beams.HealpixFileBeam` at the file's own resolution (no harmonic
+    :class:`~autocal.sky.file_beams.HealpixFileBeam` at the file's own resolution (no harmonic
     upsampling, whose ringing would bias the peak); other specifications go through
-    :func:`autocal.sky.beams.get_beam`.
+    :func:`autocal.sky.beam_names.get_beam`.
     """
     pol = beam_pol(pol)
     if isinstance(beam, Beam):
@@ -122,7 +124,7 @@ def beam_solid_angle(
     Parameters
     ----------
     beam
-        A :class:`~autocal.sky.beams.Beam` or a specification for :func:`resolve_beam`.
+        A :class:`~autocal.sky.beam_base.Beam` or a specification for :func:`resolve_beam`.
     freqs
         Hz.
     pol

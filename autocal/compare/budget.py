@@ -19,7 +19,7 @@ import numpy as np
 from autocal.compare.beam_area import hera_sim_omega, report_channel
 
 if TYPE_CHECKING:
-    from autocal.fit.lsq import Solution
+    from autocal.fit.solution import Solution
 
 logger = logging.getLogger(__name__)
 

@@ -149,8 +149,8 @@ from autocal.compare.summary import (
 from autocal.core.reprs import compact_repr
 
 if TYPE_CHECKING:
-    from autocal.fit.lsq import Solution
-    from autocal.io.calsol import ReferenceGains
+    from autocal.fit.solution import Solution
+    from autocal.io.calsol_read import ReferenceGains
 
 logger = logging.getLogger(__name__)
 
@@ -245,9 +245,9 @@ def compare(
     Parameters
     ----------
     solution
-        An :class:`autocal.fit.lsq.Solution`.
+        An :class:`autocal.fit.solution.Solution`.
     reference
-        :class:`autocal.io.calsol.ReferenceGains`.
+        :class:`autocal.io.calsol_read.ReferenceGains`.
     antennas, pols
         What to compare (default: everything the two have in common).
     smooth_mhz
@@ -256,7 +256,7 @@ def compare(
         ``"absolute"`` or ``"relative"`` (default: from ``reference.absolute``).
     beam
         Beam for ``Omega_A`` (absolute Jy-referenced gains): ``"hera"`` (Fagnoni
-        beamfits), a file, a name for :func:`autocal.sky.beams.get_beam` or a ``Beam``.
+        beamfits), a file, a name for :func:`autocal.sky.beam_names.get_beam` or a ``Beam``.
         Default: the beam recorded in the solution's configuration (the one its Tsky
         used), else ``"hera"``.
     nside

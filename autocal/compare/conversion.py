@@ -21,7 +21,7 @@ from autocal.compare.beam_area import beam_from_config, jy_per_kelvin, pol_solid
 from autocal.compare.errors import CompareError
 
 if TYPE_CHECKING:
-    from autocal.io.calsol import ReferenceGains
+    from autocal.io.calsol_read import ReferenceGains
 
 logger = logging.getLogger(__name__)
 

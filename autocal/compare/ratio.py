@@ -17,7 +17,7 @@ from autocal.compare.axes import MatchedAxes
 from autocal.compare.errors import CompareError
 
 if TYPE_CHECKING:
-    from autocal.fit.lsq import Solution
+    from autocal.fit.solution import Solution
 
 
 @dataclass(frozen=True, eq=False)
@@ -87,7 +87,7 @@ def auto_gains(solution: Solution, axes: MatchedAxes) -> AutoGains:
     Parameters
     ----------
     solution
-        An :class:`autocal.fit.lsq.Solution`.
+        An :class:`autocal.fit.solution.Solution`.
     axes
         The matched axes.
 

@@ -22,7 +22,7 @@ from autocal.compare.drift import fractional_end_change
 from autocal.compare.errors import CompareError
 
 if TYPE_CHECKING:
-    from autocal.io.calsol import ReferenceGains
+    from autocal.io.calsol_read import ReferenceGains
 
 logger = logging.getLogger(__name__)
 

@@ -35,8 +35,8 @@ from autocal.compare.stability import (
 )
 
 if TYPE_CHECKING:
-    from autocal.fit.lsq import Solution
-    from autocal.io.calsol import ReferenceGains
+    from autocal.fit.solution import Solution
+    from autocal.io.calsol_read import ReferenceGains
 
 #: How the reference is put onto the solution's channels.
 INTERPOLATION_NOTE = "linear in frequency inside the reference range; flagged gaps not bridged"

@@ -8,7 +8,7 @@ Conventions (used everywhere in autocal):
   ``theta`` is the colatitude (90 deg - Dec) and ``phi`` is the right ascension.
 * Topocentric directions are (azimuth, altitude) with the azimuth measured from north
   through east (astropy's convention). pyuvdata's UVBeam uses azimuth from east through
-  north; conversions are explicit in :mod:`autocal.sky.beams`.
+  north; conversions are explicit in :mod:`autocal.sky`.
 * Hour angle H = LST - RA, positive west of the meridian.
 """
 
@@ -73,7 +73,7 @@ def night_epoch(jds: np.ndarray | list[float] | float, lon_deg: float) -> float:
     The night is the one containing the data's mean time, counted from local mean noon to
     the next local mean noon at longitude ``lon_deg``; the epoch is that night's local
     mean midnight (a JD). Every observation of one night therefore gets the same epoch,
-    so their Tsky share one set of LST harmonics (:func:`autocal.tsky.engine.compute_tsky`'s
+    so their Tsky share one set of LST harmonics (:func:`autocal.tsky.compute.compute_tsky`'s
     cache), and a night is never split however its files are grouped. Data spanning more
     than :data:`NIGHT_SPAN_DAYS` (an EDGES day file, several nights) have nothing to share
     and keep their mean time, so the frame stays within half their span. For a night's

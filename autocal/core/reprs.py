@@ -1,10 +1,11 @@
 """Short representations of autocal's records: shapes, ranges and medians, never arrays.
 
-A HERA night's :class:`~autocal.fit.lsq.Solution` holds millions of values; printing it (or a
+A HERA night's :class:`~autocal.fit.solution.Solution` holds millions of values; printing it (or a
 list holding it, or a notebook cell ending with it) shows one or two lines instead.
 :func:`compact_repr` is the generic form for any dataclass record (arrays as their shape
-and type); :class:`~autocal.core.observation.Observation`, :class:`~autocal.fit.lsq.Solution` and
-:class:`~autocal.tsky.engine.TskyResult` build theirs from the helpers here.
+and type); :class:`~autocal.core.observation.Observation`,
+:class:`~autocal.fit.solution.Solution` and :class:`~autocal.tsky.result.TskyResult` build
+theirs from the helpers here.
 
 This module imports only numpy, so any module may use it.
 """

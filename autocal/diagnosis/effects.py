@@ -7,7 +7,7 @@ Each effect is a parameterised extension of the forward model
 
 with per-channel ``(G, n)`` (profiled out) and a few *global* parameters shared by all
 channels, antennas and polarisations. ``P_k`` are Legendre polynomials of ``s``, the LST
-mapped onto ``[-1, 1]`` (:class:`autocal.fit.lsq.FitModel`).
+mapped onto ``[-1, 1]`` (:class:`autocal.fit.model.FitModel`).
 
 Identifiability (constant per-channel ``G`` and ``n``):
 
@@ -41,9 +41,10 @@ import numpy as np
 from numpy.polynomial import legendre
 
 from autocal.errors import AutocalError
-from autocal.sky.beams import Beam, BeamEvaluator, get_beam
+from autocal.sky.beam_base import Beam, BeamEvaluator
+from autocal.sky.beam_names import get_beam
 from autocal.sky.models import T_CMB
-from autocal.tsky.engine import compute_tsky
+from autocal.tsky.compute import compute_tsky
 
 logger = logging.getLogger(__name__)
 
@@ -199,7 +200,7 @@ def sky_templates(
     sky
         Sky model or spec (:func:`autocal.sky.models.get_sky`).
     beam
-        Beam or spec (:func:`autocal.sky.beams.get_beam`).
+        Beam or spec (:func:`autocal.sky.beam_names.get_beam`).
     site
         Site or name.
     freqs
@@ -302,7 +303,7 @@ def sky_templates(
 
 def time_basis(lsts: np.ndarray, order: int) -> np.ndarray:
     """``(order, Ntime)`` Legendre polynomials ``P_1..P_order`` of the LST on ``[-1, 1]``."""
-    from autocal.fit.lsq import FitModel
+    from autocal.fit.model import FitModel
 
     model = FitModel.for_lsts(np.asarray(lsts), "legendre", max(order, 1))
     return legendre.legvander(model.s(lsts), order)[:, 1:].T

@@ -43,7 +43,7 @@ from autocal.simulate.mock import (
     mock_autos,
     simulate,
 )
-from autocal.tsky.engine import compute_tsky
+from autocal.tsky.compute import compute_tsky
 
 logger = logging.getLogger(__name__)
 
@@ -182,7 +182,7 @@ class HiddenGenerator:
         cfg, obs = self.config, self.base
         out = []
         for pol in cfg.pols:
-            from autocal.sky.beams import get_beam
+            from autocal.sky.beam_names import get_beam
 
             beam = ScaledBeam(base=get_beam(cfg.beam, pol), factor=1.0 + w)
             res = compute_tsky(

@@ -40,7 +40,7 @@ from pydantic import (
 
 from autocal.core.coords import night_epoch
 from autocal.diagnosis.search import ALPHA, BIC_THRESHOLD, DiagnoseError
-from autocal.pipeline.calibrate import PipelineError, check_prior_spec, check_ranges
+from autocal.pipeline.config import PipelineError, check_prior_spec, check_ranges
 
 logger = logging.getLogger(__name__)
 
@@ -68,7 +68,7 @@ class DiagnoseConfig(BaseModel):
         "gsm2008", min_length=1, description="model sky (autocal.sky.models.get_sky spec)"
     )
     beam: str = Field(
-        "hera", min_length=1, description="model beam (autocal.sky.beams.get_beam spec)"
+        "hera", min_length=1, description="model beam (autocal.sky.beam_names.get_beam spec)"
     )
     tgnd_k: float = Field(300.0, ge=0.0, description="model ground temperature")
     nside: int = Field(64, ge=1, le=8192, description="HEALPix resolution of the templates")
@@ -272,7 +272,8 @@ def read_observation(
         The observation.
     """
     from autocal.core.observation import Observation
-    from autocal.io.uvh5 import iter_uvh5, scan_uvh5
+    from autocal.io.uvh5 import iter_uvh5
+    from autocal.io.uvh5_meta import scan_uvh5
 
     files = scan_uvh5(paths)
     ntime_max = sum(f.jds.size for f in files)

@@ -75,7 +75,7 @@ from autocal.diagnosis.effects import (
     time_basis,
 )
 from autocal.errors import AutocalError
-from autocal.fit.lsq import unwrap_lsts
+from autocal.fit.model import unwrap_lsts
 
 logger = logging.getLogger(__name__)
 
@@ -1896,14 +1896,14 @@ def product_sigmas(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Return the total 1-sigma of ``G`` and ``Trxr`` of the ordinary calibration.
 
-    The constant-model fit of :func:`autocal.fit.lsq.fit` against the model Tsky, with
+    The constant-model fit of :func:`autocal.fit.passes.fit` against the model Tsky, with
     radiometer weights, errors inflated by ``max(1, chi^2/dof)``, the total uncertainty
-    (:mod:`autocal.fit.uncertainty`) and the diagnosis's receiver prior ``(trxr, sigma)`` if
+    (:mod:`autocal.fit.total_uncertainty`) and the diagnosis's receiver prior ``(trxr, sigma)`` if
     any: the yardstick of :func:`product_impact`. Every channel is fitted on its own, so a
     large observation is fitted :data:`PRODUCT_SIGMA_SAMPLES` at a time (the fit holds a
     few float64 copies of what it is given).
     """
-    from autocal.fit.lsq import fit
+    from autocal.fit.passes import fit
 
     per_antenna = math.prod(obs.shape[1:])
     chunks = antenna_chunks(obs.shape, max(1, PRODUCT_SIGMA_SAMPLES // per_antenna))

@@ -16,8 +16,9 @@ from autocal.core.coords import night_epoch
 from autocal.edges.noise_waves import AutoModelExpectation
 from autocal.edges.simulated_day import EdgesDay
 from autocal.edges.solutions import ReceiverCalError
-from autocal.fit.lsq import fit
-from autocal.io.edges import MIN_OBS_FREQ_HZ, read_edges_spectra
+from autocal.fit.passes import fit
+from autocal.io.edges_read import read_edges_spectra
+from autocal.io.edges_spectra import MIN_OBS_FREQ_HZ
 from autocal.tsky.compute import compute_tsky
 
 
@@ -28,7 +29,7 @@ class EdgesDayFit:
     Attributes
     ----------
     solution
-        The fit (:class:`autocal.fit.lsq.Solution`).
+        The fit (:class:`autocal.fit.solution.Solution`).
     expected
         What the receiver solution implies.
     pull_gain, pull_trxr
@@ -72,7 +73,7 @@ def fit_edges_day(
 ) -> EdgesDayFit:
     """Calibrate a simulated day from its raw files with the auto-correlation fit.
 
-    Reads the files (:func:`autocal.io.edges.read_edges_spectra` with the day's band and
+    Reads the files (:func:`autocal.io.edges_read.read_edges_spectra` with the day's band and
     binning), builds the ``R`` observation, computes ``Tsky`` with the same sky, beam and
     ground, fits ``R = G Tsky + n`` (constant model; inverse-variance weights from the
     propagated radiometer noise, or identity) and compares with the expectation.

@@ -29,7 +29,7 @@ from autocal.edges.solutions import (
     resolve_solution,
 )
 from autocal.io.datasets import data_dir, data_file
-from autocal.io.edges import read_acq_spectra
+from autocal.io.edges_acq import read_acq_spectra
 
 
 def _band_stats(values: np.ndarray) -> dict[str, float]:

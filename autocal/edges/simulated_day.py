@@ -28,18 +28,16 @@ from autocal.edges.noise_waves import (
     gamma_at,
 )
 from autocal.edges.solutions import ReceiverCalError, ReceiverSolution, resolve_solution
-from autocal.io.edges import (
+from autocal.io.edges_acq import write_acq
+from autocal.io.edges_hdf5 import write_edges_hdf5
+from autocal.io.edges_spectra import (
     MIN_OBS_FREQ_HZ,
     NATIVE_DF_HZ,
     EdgesSpectra,
-    acq_time_to_jd,
     channel_bins,
-    jd_to_acq_time,
-    lsts_for_jds,
     native_freqs,
-    write_acq,
-    write_edges_hdf5,
 )
+from autocal.io.edges_time import acq_time_to_jd, jd_to_acq_time, lsts_for_jds
 from autocal.simulate.mock import SIDEREAL_DAY
 from autocal.tsky.compute import compute_tsky
 
@@ -55,7 +53,7 @@ class EdgesDay:
     paths
         The written files (time order).
     freqs
-        ``(Nfreq,)`` Hz: the binned channels :func:`autocal.io.edges.read_edges` returns
+        ``(Nfreq,)`` Hz: the binned channels :func:`autocal.io.edges_read.read_edges` returns
         for ``freq_range`` and ``bin_factor``.
     jds, lsts
         ``(Ntime,)`` UTC Julian dates (whole seconds) and LSTs (hours) of the cycles.
@@ -215,7 +213,7 @@ def _write_files(
             jds=jds[part],
             channel_width=NATIVE_DF_HZ,
             integration_time=integration_time,
-            meta={"history": "simulated by autocal.edges.receiver.simulate_edges_day"},
+            meta={"history": "simulated by autocal.edges.simulated_day.simulate_edges_day"},
         )
         stamp = jd_to_acq_time(jds[part][:1])[0].replace(":", "_")
         if file_format == "acq":

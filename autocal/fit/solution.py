@@ -169,11 +169,12 @@ class Solution:
     def to_uvcal(self, **kwargs: Any) -> Any:
         """Return the gains ``|g| = sqrt(G)`` as a pyuvdata ``UVCal``.
 
-        The object the calh5/calfits products hold (:func:`autocal.io.calsol.solution_to_uvcal`;
+        The object the calh5/calfits products hold
+        (:func:`autocal.io.calsol_uvcal.solution_to_uvcal`;
         ``kwargs``: ``time_range``, ``per_time``, ``telescope``, ``site``, ``history``).
         """
         # the product writer is a later stage (and loads pyuvdata): imported on use
-        from autocal.io.calsol import solution_to_uvcal
+        from autocal.io.calsol_uvcal import solution_to_uvcal
 
         return solution_to_uvcal(self, **kwargs)
 
@@ -205,7 +206,7 @@ class Solution:
             Product name -> path.
         """
         # the product writers are a later stage: imported on use
-        from autocal.pipeline.calibrate import write_solution_products
+        from autocal.pipeline.products import write_solution_products
 
         return write_solution_products(self, out, products, overwrite=overwrite)
 

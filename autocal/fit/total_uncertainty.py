@@ -58,7 +58,7 @@ the jackknife under-estimates); an unmodelled drift is smooth enough over the sp
 more Legendre order to represent it; the BIC weights assume the residual scatter is the same
 in both models up to the factor ``phi``. Errors with no time signature (a sky model's
 spectrum, a flux scale) are not covered: they belong to a systematics budget
-(:mod:`autocal.compare.gains`).
+(:mod:`autocal.compare.comparison`).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The calibration stage: files to a :class:`~autocal.fit.lsq.Solution` and products.
+"""The calibration stage: files to a :class:`~autocal.fit.solution.Solution` and products.
 
 :func:`autocal.pipeline.calibrate.calibrate` is the one function the CLI, the job service
 and nightly runs call. Its steps, in order: :mod:`.config` (the settings),

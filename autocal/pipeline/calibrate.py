@@ -34,14 +34,14 @@ from autocal import __version__
 from autocal.core.coords import night_epoch
 from autocal.core.observation import Observation
 from autocal.core.reprs import compact_repr
-from autocal.fit.lsq import FitModel, NormalSums, Solution, covariance_scaling, solve_sums
+from autocal.fit.model import FitModel, mean_vectors
+from autocal.fit.passes import covariance_scaling
 from autocal.fit.priors import TrxrPrior, add_trxr_prior, parse_trxr_prior
-from autocal.fit.uncertainty import (
-    TotalUncertainty,
-    mean_vectors,
-    separation_summary,
-    total_uncertainty,
-)
+from autocal.fit.separation import separation_summary
+from autocal.fit.solution import Solution
+from autocal.fit.solve import solve_sums
+from autocal.fit.sums import NormalSums
+from autocal.fit.total_uncertainty import TotalUncertainty, total_uncertainty
 from autocal.io.miriad import read_miriad
 from autocal.io.uvh5 import read_uvh5
 from autocal.pipeline.config import CalibrationConfig, PipelineError, Progress, read_selection
@@ -503,10 +503,3 @@ def read(
     if kind == "miriad":
         return read_miriad(files, **sel)
     return read_uvh5(files, **sel)
-
-
-# Temporary re-exports for the layout merge.
-# ruff: noqa: E402
-from autocal.pipeline.config import check_prior_spec, check_ranges  # noqa: F401
-from autocal.pipeline.partials import FileTask, PartialSpec, compute_partial  # noqa: F401
-from autocal.pipeline.products import write_solution_products  # noqa: F401

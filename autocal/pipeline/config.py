@@ -14,7 +14,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from autocal.errors import AutocalError
-from autocal.fit.lsq import DEFAULT_INFLATE_ERRORS, DEFAULT_PASSES, Passes
+from autocal.fit.passes import DEFAULT_INFLATE_ERRORS, DEFAULT_PASSES, Passes
 
 ProductName = Literal["calh5", "calfits", "hdf5", "png"]
 Progress = Callable[[float, str], None]
@@ -42,7 +42,7 @@ class CalibrationConfig(BaseModel):
     )
     edges_bin: int = Field(64, ge=1, description="EDGES: native channels averaged per bin")
     sky: str = Field("gsm2008", description="sky model (autocal.sky.models.get_sky spec)")
-    beam: str = Field("hera", description="beam (autocal.sky.beams.get_beam spec)")
+    beam: str = Field("hera", description="beam (autocal.sky.beam_names.get_beam spec)")
     tgnd_k: float = Field(300.0, ge=0.0, description="ground temperature")
     nside: int = Field(64, ge=2, description="HEALPix resolution of Tsky (a power of two)")
     model: Literal["constant", "legendre"] = "constant"

@@ -2,7 +2,7 @@
 
 :func:`compute_partial` reads one file block by block
 (:func:`autocal.io.uvh5_blocks.iter_uvh5_blocks`), turns each block into normal-equation sums
-(:func:`autocal.fit.lsq.accumulate`) added in order into the file's sums, and drops it, so
+(:func:`autocal.fit.sums.accumulate`) added in order into the file's sums, and drops it, so
 memory is bounded by the block. It also keeps, per waterfall row, the weighted sums of the
 shown antennas that give the residual waterfall once solved. :func:`fold` adds the files'
 partials in file order: the serial run and the Dask run (:mod:`autocal.pipeline.scaleout`)
@@ -19,9 +19,11 @@ from typing import Any
 import numpy as np
 
 from autocal.core.observation import Observation
-from autocal.fit.lsq import FitModel, NormalSums, accumulate, design, weights_for
-from autocal.fit.uncertainty import base_sums, extended_model
-from autocal.io.uvh5_blocks import ReadStats, iter_uvh5_blocks
+from autocal.fit.blocks import base_sums, extended_model
+from autocal.fit.model import FitModel, design, weights_for
+from autocal.fit.sums import NormalSums, accumulate
+from autocal.io.uvh5_blocks import iter_uvh5_blocks
+from autocal.io.uvh5_chunks import ReadStats
 from autocal.pipeline.config import PipelineError
 
 
@@ -49,9 +51,9 @@ class PartialSpec:
         weights then use its model instead of the data (``None`` in the first pass).
     edges
         Integration indices (of the whole observation) that split it into the time
-        blocks of the total uncertainty (:func:`autocal.fit.uncertainty.block_edges`): the
+        blocks of the total uncertainty (:func:`autocal.fit.blocks.block_edges`): the
         partial then holds one set of sums of the extended model
-        (:func:`autocal.fit.uncertainty.extended_model`) per block it overlaps. ``None``:
+        (:func:`autocal.fit.blocks.extended_model`) per block it overlaps. ``None``:
         one set of sums of ``model``.
     """
 
@@ -111,7 +113,7 @@ class FilePartial:
         blocks the file overlaps; else ``None``.
     extended
         With ``PartialSpec.edges``: the file's sums of the extended model
-        (:func:`autocal.fit.uncertainty.extended_model`); else ``None``.
+        (:func:`autocal.fit.blocks.extended_model`); else ``None``.
     waterfall
         ``(Nshow, Npol, Nbins_file, Nfreq, nparam + 2)`` per waterfall row: the sums
         over its integrations of ``w R``, ``w`` and ``w a_m`` (``a`` the design columns).

@@ -1,9 +1,9 @@
 """The passes over the data: every file's partial sums, added in file order, per pass.
 
 Radiometer weights built from the data bias ``G`` by ``-2 / (dnu dt N)`` relative; when
-that exceeds :data:`autocal.fit.lsq.REWEIGHT_THRESHOLD` (simulations with the paper's
+that exceeds :data:`autocal.fit.passes.REWEIGHT_THRESHOLD` (simulations with the paper's
 ``dnu dt = 5000``) a second pass weights by the first pass's model, otherwise (HERA data:
-``dnu dt >~ 2e5``) the data are read once (:func:`autocal.fit.lsq.run_passes` decides). The
+``dnu dt >~ 2e5``) the data are read once (:func:`autocal.fit.passes.run_passes` decides). The
 files' partials (:func:`autocal.pipeline.partials.compute_partial`) are computed in this
 process or mapped over a Dask cluster (:mod:`autocal.pipeline.scaleout`), and added in file
 order either way, so the two give the same result bit for bit.
@@ -23,8 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from autocal.fit.lsq import FitModel, NormalSums, Solution, run_passes
-from autocal.fit.uncertainty import BlockSums, block_edges, extended_model, sums_nbytes
+from autocal.fit.blocks import BlockSums, block_edges, extended_model, sums_nbytes
+from autocal.fit.model import FitModel
+from autocal.fit.passes import run_passes
+from autocal.fit.solution import Solution
+from autocal.fit.sums import NormalSums
 from autocal.pipeline.config import CalibrationConfig, PipelineError, Progress, read_selection
 from autocal.pipeline.partials import FilePartial, FileTask, PartialSpec, compute_partial, fold
 from autocal.pipeline.sources import Source

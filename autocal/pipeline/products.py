@@ -3,7 +3,7 @@
 Products are written to a staging folder inside ``out`` and moved into place only when
 all of them succeeded (:func:`write_products`), so a failed run never leaves a half-written
 product set. :func:`write_solution_products` is also the writer of
-:meth:`autocal.fit.lsq.Solution.write`.
+:meth:`autocal.fit.solution.Solution.write`.
 """
 
 from __future__ import annotations
@@ -18,10 +18,12 @@ from typing import Any
 
 import numpy as np
 
-from autocal.compare.gains import compare, write_comparison
+from autocal.compare.comparison import compare
+from autocal.compare.report import write_comparison
 from autocal.core.files import atomic_path
-from autocal.fit.lsq import Solution
-from autocal.io.calsol import read_reference_gains, write_calfits, write_calh5
+from autocal.fit.solution import Solution
+from autocal.io.calsol_read import read_reference_gains
+from autocal.io.calsol_write import write_calfits, write_calh5
 from autocal.io.products import write_solution
 from autocal.pipeline.config import CalibrationConfig, PipelineError
 from autocal.pipeline.passes import PassesResult
@@ -48,8 +50,8 @@ def write_solution_products(
 ) -> dict[str, str]:
     """Write a solution's products into ``out`` (:data:`PRODUCT_FILES`; each atomically).
 
-    The writers of ``autocal calibrate`` and :meth:`autocal.fit.lsq.Solution.write`:
-    calh5/calfits through pyuvdata ``UVCal`` (:mod:`autocal.io.calsol`), the HDF5 product
+    The writers of ``autocal calibrate`` and :meth:`autocal.fit.solution.Solution.write`:
+    calh5/calfits through pyuvdata ``UVCal`` (:mod:`autocal.io.calsol_uvcal`), the HDF5 product
     (:func:`autocal.io.products.write_solution`) and the solution plot.
 
     Parameters

@@ -18,13 +18,12 @@ import numpy as np
 
 from autocal.core.observation import Observation
 from autocal.core.sites import EDGES
-from autocal.io.edges import read_edges_spectra
+from autocal.io.edges_read import read_edges_spectra
 from autocal.io.miriad import is_miriad, read_miriad
-from autocal.io.uvh5 import _lst_mask, scan_uvh5
-from autocal.io.uvh5_blocks import _meta_of
+from autocal.io.uvh5_meta import file_meta_of, lst_mask, scan_uvh5
 from autocal.pipeline.config import CalibrationConfig, PipelineError, read_selection
 from autocal.pipeline.partials import FileTask
-from autocal.tsky.engine import compute_tsky
+from autocal.tsky.compute import compute_tsky
 
 logger = logging.getLogger(__name__)
 
@@ -51,7 +50,7 @@ class Source:
             return [int(a) for a in antennas]
         if self.observation is not None:
             return [int(a) for a in self.observation.antennas]
-        return [int(a) for a in _meta_of(self.scanned[0]).auto_ants] if self.scanned else []
+        return [int(a) for a in file_meta_of(self.scanned[0]).auto_ants] if self.scanned else []
 
     def tasks(self, tsky_all: np.ndarray) -> list[FileTask]:
         """One task per file (uvh5) or one for the whole in-memory observation."""
@@ -150,10 +149,10 @@ def _warn_edges_options(config: CalibrationConfig, kind: str) -> None:
 def _open_uvh5(paths: list[Path], config: CalibrationConfig, sel: dict[str, Any]) -> Source:
     """Scan UVH5 files: the ones with integrations in the LST range, their selected axes."""
     files = scan_uvh5(paths)
-    kept = [f for f in files if np.any(_lst_mask(f.lsts, sel["lst_range"]))]
+    kept = [f for f in files if np.any(lst_mask(f.lsts, sel["lst_range"]))]
     if not kept:
         raise PipelineError(f"no integrations in LST range {config.lst_range_h} h")
-    masks = [_lst_mask(f.lsts, sel["lst_range"]) for f in kept]
+    masks = [lst_mask(f.lsts, sel["lst_range"]) for f in kept]
     freqs = kept[0].freqs
     if sel["freq_range"] is not None:
         lo, hi = sel["freq_range"]

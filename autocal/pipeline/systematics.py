@@ -1,6 +1,6 @@
 """Inputs of the reference comparison's systematics budget, from the calibration's data.
 
-With reference gains the comparison (:func:`autocal.compare.gains.compare`) reports the
+With reference gains the comparison (:func:`autocal.compare.comparison.compare`) reports the
 spread of the gain ratio over other sky models (:func:`alternative_solutions`, one more pass
 over the data each) and the raw autos' trend over the span, taken from the time blocks'
 sums the main fit already holds (:func:`block_trend`).
@@ -13,9 +13,11 @@ from typing import Any
 
 import numpy as np
 
-from autocal.compare.gains import auto_trend
-from autocal.fit.lsq import FitModel, NormalSums, Solution, solve_sums
-from autocal.fit.uncertainty import mean_vectors
+from autocal.compare.drift import auto_trend
+from autocal.fit.model import FitModel, mean_vectors
+from autocal.fit.solution import Solution
+from autocal.fit.solve import solve_sums
+from autocal.fit.sums import NormalSums
 from autocal.pipeline.config import CalibrationConfig
 from autocal.pipeline.passes import PassesResult, solution_of, sum_passes
 from autocal.pipeline.sources import Source, tsky_per_pol
@@ -69,7 +71,7 @@ def block_trend(
     """Return the raw autos' trend over the span from the time blocks' sums.
 
     A block's weighted mean power is its sums' ``sum w R / sum w``; the first and the last
-    block are the ends of :func:`autocal.compare.gains.auto_trend` (10 blocks: 10 % each).
+    block are the ends of :func:`autocal.compare.drift.auto_trend` (10 blocks: 10 % each).
     """
     blocks = run.blocks
     if blocks is None or blocks.nblocks < 2:

@@ -10,7 +10,7 @@ with ``dnu = 5 kHz`` and ``dt = 1 s``. Gain drifts (t = LST in hours):
 
 with ``A = 0.1``. The truth can use a different sky or beam from the one a later fit
 assumes (model-incompleteness scenarios), including the beam error model
-(:class:`autocal.sky.beams.PerturbedBeam`).
+(:class:`autocal.sky.analytic_beams.PerturbedBeam`).
 
 The noise the data carry is recorded honestly in the written UVH5 file: the file's
 ``channel_width`` and ``integration_time`` describe the sampling grid, and
@@ -31,10 +31,12 @@ from autocal.core.coords import night_epoch
 from autocal.core.observation import Observation
 from autocal.core.sites import get_site
 from autocal.errors import AutocalError
-from autocal.fit.lsq import unwrap_lsts
+from autocal.fit.model import unwrap_lsts
 from autocal.io.datasets import data_file
-from autocal.sky.beams import Beam, PerturbedBeam, get_beam, s1_airy, s1_dipole
-from autocal.tsky.engine import compute_tsky
+from autocal.sky.analytic_beams import PerturbedBeam, s1_airy, s1_dipole
+from autocal.sky.beam_base import Beam
+from autocal.sky.beam_names import get_beam
+from autocal.tsky.compute import compute_tsky
 
 logger = logging.getLogger(__name__)
 
@@ -150,7 +152,7 @@ class SimulationConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     sky: str = Field("gsm2008", description="true sky model (autocal.sky.models.get_sky spec)")
-    beam: str = Field("hera", description="true beam (autocal.sky.beams.get_beam spec)")
+    beam: str = Field("hera", description="true beam (autocal.sky.beam_names.get_beam spec)")
     beam_error: bool = Field(False, description="apply the paper's beam error model to the beam")
     beam_error_kind: Literal["auto", "airy", "dipole"] = Field(
         "auto", description="s1 of the beam error model: airy (dishes) or dipole"

@@ -1,7 +1,7 @@
 """The simulation scenarios of Gehlot et al. (2021), run for several beams.
 
 Each scenario simulates a day of mock autos (:mod:`autocal.simulate.mock`, the paper's
-reference setup) and fits them (:mod:`autocal.fit.lsq`) with a model that may differ from the
+reference setup) and fits them (:mod:`autocal.fit`) with a model that may differ from the
 truth: a gain drift fitted with a constant gain or with the order-1 time model, a sky
 model extrapolated from GSM2008's 200 MHz map with ``beta = -2.4`` while the truth is
 GSM2008 itself (GSM2016, the paper's truth, is not available offline), or a true beam
@@ -26,7 +26,8 @@ from autocal.core.coords import night_epoch
 from autocal.core.files import atomic_path
 from autocal.core.observation import Observation
 from autocal.core.sites import get_site
-from autocal.fit.lsq import Solution, fit
+from autocal.fit.passes import fit
+from autocal.fit.solution import Solution
 from autocal.simulate import paper_figures as plots
 from autocal.simulate.mock import (
     SIDEREAL_DAY,
@@ -36,8 +37,8 @@ from autocal.simulate.mock import (
     mock_autos,
     perturbed,
 )
-from autocal.sky.beams import get_beam
-from autocal.tsky.engine import compute_tsky
+from autocal.sky.beam_names import get_beam
+from autocal.tsky.compute import compute_tsky
 
 logger = logging.getLogger(__name__)
 
@@ -173,7 +174,7 @@ class PaperRun:
     Parameters
     ----------
     beam
-        Beam name (``hera``, ``dipole``, ``airy`` or any :func:`autocal.sky.beams.get_beam`
+        Beam name (``hera``, ``dipole``, ``airy`` or any :func:`autocal.sky.beam_names.get_beam`
         spec).
     config
         Sampling and noise settings (its ``sky``, ``beam``, ``gain`` fields are

@@ -11,7 +11,7 @@ from typing import Any
 from fastapi import Request
 from pydantic import ValidationError
 
-from autocal.pipeline.calibrate import CalibrationConfig
+from autocal.pipeline.config import CalibrationConfig
 from autocal.service.nightly import NightlyError
 from autocal.service.paths import InputPathError
 from autocal.service.schemas import ApiError

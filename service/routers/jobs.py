@@ -35,8 +35,8 @@ from pydantic import ValidationError
 from autocal.diagnosis.run import DiagnoseConfig
 from autocal.diagnosis.search import DiagnoseError
 from autocal.fit.priors import PriorError
-from autocal.fit.uncertainty import separation_summary
-from autocal.pipeline.calibrate import PipelineError
+from autocal.fit.separation import separation_summary
+from autocal.pipeline.config import PipelineError
 from autocal.service.auth import app_settings, require_token
 from autocal.service.nightly import (
     NightlyError,

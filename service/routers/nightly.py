@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter, Depends
 from pydantic import ValidationError
 
-from autocal.pipeline.calibrate import PipelineError
+from autocal.pipeline.config import PipelineError
 from autocal.service.auth import app_settings, require_token
 from autocal.service.nightly import NightlyError, submit_nightly
 from autocal.service.paths import InputPathError

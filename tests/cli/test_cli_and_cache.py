@@ -8,10 +8,12 @@ import h5py
 import numpy as np
 import pytest
 
-from autocal.cli.main import main, parse_range
+from autocal.cli.args import parse_range
+from autocal.cli.main import main
 from autocal.io.tskyfile import read_tsky, write_tsky
 from autocal.tsky import cache as tsky_cache
-from autocal.tsky.engine import TskyError, compute_tsky
+from autocal.tsky.compute import compute_tsky
+from autocal.tsky.result import TskyError
 
 
 def test_parse_range():
@@ -104,7 +106,7 @@ def test_empty_grids_are_refused():
 
 
 def test_cache_hit_and_key(tmp_cache, monkeypatch):
-    import autocal.tsky.engine as tsky_module
+    import autocal.tsky.compute as tsky_module
 
     freqs = [1e8, 1.5e8]
     first = compute_tsky("uniform:100", "dipole", "hera", freqs, [0.0, 12.0], nside=8)

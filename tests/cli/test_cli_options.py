@@ -9,7 +9,7 @@ import pytest
 from autocal.cli.args import CliError
 from autocal.cli.main import build_parser
 from autocal.cli.options import calibration_dests, calibration_settings
-from autocal.pipeline.calibrate import CalibrationConfig
+from autocal.pipeline.config import CalibrationConfig
 
 SETTINGS = set(CalibrationConfig.model_fields) - {"inputs"}
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from autocal.cli.main import main
-from autocal.fit.lsq import fit
+from autocal.fit.passes import fit
 from autocal.io.simtruth import read_truth
 from autocal.io.uvh5 import read_uvh5
 

@@ -7,8 +7,8 @@ from dataclasses import replace
 import numpy as np
 
 import autocal  # noqa: F401
-from autocal.io.calsol import ReferenceGains
-from autocal.sky.beams import FunctionBeam
+from autocal.io.calsol_read import ReferenceGains
+from autocal.sky.analytic_beams import FunctionBeam
 
 BEAM_FILE = "hera/beams/HERA_NF_dipole_power.beamfits"
 

@@ -17,8 +17,8 @@ from autocal.compare.beam_area import (
     uvbeam_solid_angle,
 )
 from autocal.compare.comparison import compare
-from autocal.io.calsol import read_reference_gains
-from autocal.sky.beams import FunctionBeam
+from autocal.io.calsol_read import read_reference_gains
+from autocal.sky.analytic_beams import FunctionBeam
 from tests.compare.helpers import BEAM_FILE, exp_beam, reference_for
 from tests.io.test_calsol import H1C_ABS, REF, make_solution
 
@@ -46,7 +46,7 @@ def test_solid_angle_of_analytic_beams(s):
 
 
 def test_gaussian_dipole_solid_angle_is_close_to_small_angle_formula():
-    from autocal.sky.beams import GaussianDipoleBeam
+    from autocal.sky.analytic_beams import GaussianDipoleBeam
 
     # Narrow FWHM 10 deg: the azimuth factor is ~1 and Omega ~ pi theta0^2 (Gaussian in za).
     beam = GaussianDipoleBeam(fwhm_ref_deg=10.0, nu_ref=150e6)

@@ -14,7 +14,7 @@ from autocal.compare.beam_area import (
     jy_per_kelvin,
 )
 from autocal.compare.comparison import compare
-from autocal.io.calsol import read_reference_gains
+from autocal.io.calsol_read import read_reference_gains
 from tests.compare.helpers import reference_for
 from tests.io.test_calsol import H1C_ABS, REF, make_solution
 

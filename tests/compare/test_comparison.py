@@ -15,7 +15,7 @@ from autocal.compare.beam_area import (
 from autocal.compare.comparison import compare
 from autocal.compare.errors import CompareError
 from autocal.compare.reference import interpolate_frequency
-from autocal.io.calsol import read_reference_gains
+from autocal.io.calsol_read import read_reference_gains
 from tests.compare.helpers import exp_beam, reference_for
 from tests.io.test_calsol import H1C_ABS, REF, make_solution
 

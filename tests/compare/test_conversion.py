@@ -8,11 +8,8 @@ import pytest
 import autocal  # noqa: F401
 from autocal.compare.beam_area import jy_per_kelvin
 from autocal.compare.comparison import compare
-from autocal.io.calsol import (
-    ReferenceGains,
-    read_reference_gains,
-    solution_to_uvcal,
-)
+from autocal.io.calsol_read import ReferenceGains, read_reference_gains
+from autocal.io.calsol_uvcal import solution_to_uvcal
 from tests.compare.helpers import end_change
 from tests.io.test_calsol import make_solution
 

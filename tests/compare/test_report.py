@@ -17,7 +17,7 @@ from autocal.compare.drift import auto_trend
 from autocal.compare.errors import CompareError
 from autocal.compare.report import write_comparison
 from autocal.compare.stability import REFERENCE_DRIFT_FACTOR
-from autocal.io.calsol import write_calh5
+from autocal.io.calsol_write import write_calh5
 from autocal.io.products import write_solution
 from tests.compare.helpers import drifting, reference_for
 from tests.io.test_calsol import make_solution

@@ -275,7 +275,7 @@ def test_projected_normal_equations_equal_the_dense_projected_jacobian(with_prio
 def test_beam_width_templates_come_from_the_tsky_cache(tmp_cache, monkeypatch) -> None:
     """The four widened beams of the beam_width template are cached Tsky harmonics: a
     second diagnosis of the night computes none of them again (same templates)."""
-    import autocal.tsky.engine
+    import autocal.tsky.compute
     from autocal.core.sites import HERA
     from autocal.diagnosis.effects import sky_templates
 
@@ -284,13 +284,13 @@ def test_beam_width_templates_come_from_the_tsky_cache(tmp_cache, monkeypatch) -
     kw = {"pols": ("ee",), "nside": 16, "epoch": 2458116.0}
     first = sky_templates("uniform:300", "dipole", HERA, freqs, lsts, **kw)
     assert len(list(tmp_cache.rglob("*.h5"))) >= 4
-    real = autocal.tsky.engine.tsky_harmonics
+    real = autocal.tsky.ringfft.tsky_harmonics
 
     def no_widened_beams(sky, beam, *args, **kwargs):
         assert "scaled" not in str(beam.describe()), "a widened beam was computed again"
         return real(sky, beam, *args, **kwargs)
 
-    monkeypatch.setattr(autocal.tsky.engine, "tsky_harmonics", no_widened_beams)
+    monkeypatch.setattr(autocal.tsky.compute, "tsky_harmonics", no_widened_beams)
     second = sky_templates("uniform:300", "dipole", HERA, freqs, lsts, **kw)
     np.testing.assert_allclose(second.beam_width_poly, first.beam_width_poly, rtol=1e-12)
 
@@ -298,7 +298,7 @@ def test_beam_width_templates_come_from_the_tsky_cache(tmp_cache, monkeypatch) -
 def test_timing_offset(setup):
     """Data whose clock runs 90 s ahead (the sky seen at LST + 90 s): named timing_offset,
     its dt recovered; computed from Tsky at shifted LSTs, not from the template."""
-    from autocal.tsky.engine import compute_tsky
+    from autocal.tsky.compute import compute_tsky
 
     obs, tpl = setup
     dt = 90.0

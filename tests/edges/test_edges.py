@@ -1,4 +1,4 @@
-"""EDGES raw spectra (ACQ, HDF5): reading, writing and refusing bad files (autocal.io.edges)."""
+"""EDGES raw spectra (ACQ, HDF5): reading, writing and refusing bad files (autocal.io.edges_*)."""
 
 from __future__ import annotations
 
@@ -13,22 +13,18 @@ import read_acq
 
 from autocal.core.files import file_checksum
 from autocal.core.sites import EDGES
-from autocal.io.edges import (
-    ACQ_FLOOR,
+from autocal.io.edges_acq import ACQ_FLOOR, read_acq_spectra, write_acq
+from autocal.io.edges_hdf5 import read_edges_hdf5, write_edges_hdf5
+from autocal.io.edges_read import read_edges
+from autocal.io.edges_spectra import (
     NATIVE_DF_HZ,
     NATIVE_NCHAN,
     EdgesFormatError,
     EdgesSpectra,
-    acq_time_to_jd,
     channel_bins,
-    jd_to_acq_time,
     native_freqs,
-    read_acq_spectra,
-    read_edges,
-    read_edges_hdf5,
-    write_acq,
-    write_edges_hdf5,
 )
+from autocal.io.edges_time import acq_time_to_jd, jd_to_acq_time
 
 ACQ_DIR = "edges/acq"
 RECEIVER01 = "edges/acq/Receiver01_25C_2019_11_26_040_to_200MHz"

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from autocal.pipeline.calibrate import CalibrationConfig, run_calibration
+from autocal.pipeline.calibrate import run_calibration
+from autocal.pipeline.config import CalibrationConfig
 from tests.independent_sim import Truth, simulate_autos
 
 pytestmark = [pytest.mark.data, pytest.mark.slow]

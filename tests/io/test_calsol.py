@@ -12,7 +12,9 @@ from astropy.time import Time
 import autocal  # noqa: F401  (offline configuration first)
 from autocal.core.observation import Observation
 from autocal.core.sites import HERA
-from autocal.fit.lsq import FitModel, Solution, fit
+from autocal.fit.model import FitModel
+from autocal.fit.passes import fit
+from autocal.fit.solution import Solution
 
 REF = "hera/reference_gains"
 H1C_ABS = [f"zen.2458116.{t}.HH.flagged_abs.calfits" for t in (30448, 31193, 31939)]
@@ -95,7 +97,7 @@ def make_solution(
 
 
 def fitted_solution(order: int = 1, residuals: bool = True) -> Solution:
-    """A solution from autocal.fit.lsq on a small noisy synthetic observation."""
+    """A solution from autocal.fit on a small noisy synthetic observation."""
     rng = np.random.default_rng(3)
     ntime, nfreq = 24, 16
     jds = 2458098.30 + np.arange(ntime) * 300.0 / 86400.0

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import autocal
-from autocal.fit.lsq import FLAG_REASONS, Solution
+from autocal.fit.solution import Solution
+from autocal.fit.solve import FLAG_REASONS
 from autocal.io import products
 from autocal.io.products import (
     FORMAT,

@@ -11,12 +11,12 @@ from pydantic import ValidationError
 
 from autocal.cli.main import main
 from autocal.core.coords import night_epoch
-from autocal.fit.lsq import fit
+from autocal.fit.passes import fit
 from autocal.io.uvh5 import read_uvh5, write_uvh5
 from autocal.pipeline.calibrate import run_calibration
 from autocal.pipeline.config import CalibrationConfig, PipelineError
 from autocal.simulate.mock import SimulationConfig, simulate
-from autocal.tsky.engine import compute_tsky
+from autocal.tsky.compute import compute_tsky
 
 SIM = SimulationConfig(
     beam="dipole",
@@ -196,11 +196,9 @@ def test_miriad_input(data_root, tmp_path) -> None:
 @pytest.mark.slow
 def test_edges_raw_files_calibrate_to_the_receiver_solution(data_root, tmp_path) -> None:
     """An EDGES-like day written as raw ACQ switch powers, calibrated by the pipeline."""
-    from autocal.edges.receiver import (
-        expected_auto_model,
-        load_receiver_solution,
-        simulate_edges_day,
-    )
+    from autocal.edges.noise_waves import expected_auto_model
+    from autocal.edges.simulated_day import simulate_edges_day
+    from autocal.edges.solutions import load_receiver_solution
 
     receiver = load_receiver_solution("edges2-lowband-2015")
     day = simulate_edges_day(tmp_path / "raw", solution=receiver, n_times=48, seed=5)
@@ -225,7 +223,7 @@ def test_edges_raw_files_calibrate_to_the_receiver_solution(data_root, tmp_path)
 
 def test_cli_calibrates_edges_p0_with_a_chosen_binning(data_root, tmp_path, capsys) -> None:
     """``--format edges --edges-r p0 --edges-bin N``: the raw power, N native channels a bin."""
-    from autocal.edges.receiver import simulate_edges_day
+    from autocal.edges.simulated_day import simulate_edges_day
     from autocal.io.products import read_solution
 
     day = simulate_edges_day(
@@ -281,7 +279,7 @@ def test_edges_options_on_uvh5_input_are_reported(night, tmp_path, caplog) -> No
 
 def test_observations_of_one_night_share_the_tsky_cache(night, tmp_path, monkeypatch) -> None:
     """The night's second observation takes its Tsky from the first one's cache entries."""
-    import autocal.tsky.engine as tsky_module
+    import autocal.tsky.compute as tsky_module
 
     monkeypatch.setenv("AUTOCAL_CACHE_DIR", str(tmp_path / "cache"))
     config = {"beam": "dipole", "products": ["hdf5"], "passes": 1}

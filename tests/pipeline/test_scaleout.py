@@ -17,9 +17,12 @@ import autocal.pipeline.passes
 import autocal.pipeline.scaleout
 from autocal.cli.main import main
 from autocal.core.coords import night_epoch
-from autocal.fit.lsq import fit
-from autocal.io.uvh5 import UVH5AutosWriter, read_uvh5, scan_uvh5
-from autocal.io.uvh5_blocks import ReadStats, iter_uvh5_blocks
+from autocal.fit.passes import fit
+from autocal.io.uvh5 import read_uvh5
+from autocal.io.uvh5_blocks import iter_uvh5_blocks
+from autocal.io.uvh5_chunks import ReadStats
+from autocal.io.uvh5_meta import scan_uvh5
+from autocal.io.uvh5_writer import UVH5AutosWriter
 from autocal.pipeline.calibrate import run_calibration
 from autocal.pipeline.config import CalibrationConfig, PipelineError, read_selection
 from autocal.pipeline.partials import PartialSpec, compute_partial
@@ -27,7 +30,7 @@ from autocal.pipeline.passes import PassesResult
 from autocal.pipeline.products import waterfall_residuals
 from autocal.pipeline.sources import open_source
 from autocal.simulate.mock import SimulationConfig, simulate
-from autocal.tsky.engine import compute_tsky
+from autocal.tsky.compute import compute_tsky
 
 #: dnu dt of the noise = 1e6: data-derived weights bias G by 2e-6, so one pass.
 SIM = SimulationConfig(

@@ -498,7 +498,8 @@ def test_results_and_products_of_a_completed_job(
     client: TestClient, store: JobStore, settings: Settings, data: Path, data_root: Path
 ) -> None:
     from autocal.io.uvh5 import write_uvh5
-    from autocal.pipeline.calibrate import CalibrationConfig, run_calibration
+    from autocal.pipeline.calibrate import run_calibration
+    from autocal.pipeline.config import CalibrationConfig
     from autocal.simulate.mock import SimulationConfig, simulate
 
     obs, _ = simulate(

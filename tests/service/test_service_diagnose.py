@@ -330,7 +330,7 @@ def test_run_diagnosis_publishes_all_or_nothing(
         return real(diag, out_dir, obs)
 
     monkeypatch.setattr(autocal.diagnosis.search, "write_diagnosis", write_then_cancel)
-    from autocal.pipeline.calibrate import PipelineError
+    from autocal.pipeline.config import PipelineError
 
     with pytest.raises(PipelineError, match="cancelled"):
         run_diagnosis(config, out, should_stop=lambda: bool(calls))

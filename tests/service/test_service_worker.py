@@ -24,7 +24,7 @@ from typing import Any
 import pytest
 
 from autocal.cli.main import main
-from autocal.pipeline.calibrate import CalibrationConfig
+from autocal.pipeline.config import CalibrationConfig
 from autocal.service.settings import Settings
 from autocal.service.store import JobStore
 from autocal.service.worker import Worker, describe_error, jsonable
