@@ -4,7 +4,7 @@
 :class:`~autocal.tsky.result.TskyResult`, ``autocal.calibrate`` ->
 :class:`~autocal.fit.solution.Solution`
 (the function ``autocal calibrate``, the job service and nightly runs call, with the
-defaults of :class:`~autocal.pipeline.calibrate.CalibrationConfig`), ``autocal.diagnose`` (the
+defaults of :class:`~autocal.pipeline.config.CalibrationConfig`), ``autocal.diagnose`` (the
 diagnosis stage, :func:`diagnose` here). The package imports them lazily
 (``autocal.__getattr__``), so ``import autocal`` stays fast.
 """

@@ -2,7 +2,7 @@
 
 Dask's nanny starts every worker with ``MALLOC_TRIM_THRESHOLD_=65536``, which also fixes
 glibc's mmap threshold at 128 kB, so every array above that is mapped and faulted in
-afresh. This runs :func:`autocal.pipeline.calibrate.compute_partial` on files of the night written
+afresh. This runs :func:`autocal.pipeline.partials.compute_partial` on files of the night written
 by ``benchmarks/night.py``, in two processes side by side (as two Dask workers on this
 2-core machine), once with the variable and once without, and prints the seconds per file.
 Usage::

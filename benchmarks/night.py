@@ -688,7 +688,7 @@ def markdown(report: dict) -> str:
         "From Python (e.g. the service worker with `AUTOCAL_DASK_SCHEDULER`): "
         "`run_calibration(config, out, progress=..., should_stop=..., "
         "dask_scheduler=settings.dask_scheduler or None)`. Each file is one task "
-        "(`autocal.pipeline.calibrate.compute_partial`: the file read block by block); at most two "
+        "(`autocal.pipeline.partials.compute_partial`: the file read block by block); at most two "
         "files per worker are in flight and the partial sums come back and are added in "
         "file order, so the result is the same as the in-process run, bit for bit. An "
         "unreachable scheduler fails after 10 s with a message, a scheduler without "

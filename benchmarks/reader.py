@@ -1,6 +1,6 @@
 """Benchmark: one night file through the pipeline's per-file work, reader features on and off.
 
-:func:`autocal.pipeline.calibrate.compute_partial` (read block by block, normal sums of every block)
+:func:`autocal.pipeline.partials.compute_partial` (read block by block, normal sums of every block)
 on one file of the night written by ``benchmarks/night.py`` (in the page cache, so the
 decoding is timed, not the disk), with the block reader's speed-ups switched on one after
 the other, interleaved over the repeats (best and median of N):

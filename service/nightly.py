@@ -1,7 +1,7 @@
 """Submitting calibrations: one observation (``POST /jobs``) or a whole night (``POST /nightly``).
 
 Both go through :func:`submit_calibration`, which validates the options as a
-:class:`~autocal.pipeline.calibrate.CalibrationConfig`, resolves every path under the allowed roots
+:class:`~autocal.pipeline.config.CalibrationConfig`, resolves every path under the allowed roots
 (:mod:`autocal.service.paths`) and queues the job idempotently: the deduplication key is
 the SHA-256 of the job kind, the sorted resolved inputs and the rest of the configuration,
 so the same observation with the same settings is not calibrated twice unless forced.
@@ -92,8 +92,7 @@ def checked_options(
         opts["beam"] = str(resolve_input(str(beam), settings, what="beam"))
     prior = opts.get("trxr_prior")
     if isinstance(prior, str):  # a table or solution under the roots, read and checked now
-        from autocal.cli.options import prior_value
-        from autocal.fit.priors import parse_trxr_prior
+        from autocal.fit.priors import parse_trxr_prior, prior_value
 
         value = prior_value(prior)
         if isinstance(value, str):

@@ -5,7 +5,7 @@ rather than a silently ignored setting. Responses carry JSON-safe values only: N
 infinities from the solutions become ``null`` (:func:`json_safe`).
 
 Two job kinds share ``POST /jobs`` (:class:`JobCreate`): ``calibrate`` (the default;
-options of :class:`~autocal.pipeline.calibrate.CalibrationConfig`) and ``diagnose`` (options of
+options of :class:`~autocal.pipeline.config.CalibrationConfig`) and ``diagnose`` (options of
 :class:`~autocal.diagnosis.run.DiagnoseConfig`). The body is one flat object; the options
 that only one kind accepts (:data:`CALIBRATE_ONLY`, :data:`DIAGNOSE_ONLY`) are refused
 with a 422 naming them when sent with the other kind. ``GET /jobs/{id}/results`` answers

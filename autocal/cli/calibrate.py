@@ -21,7 +21,7 @@ def add(sub: argparse._SubParsersAction) -> None:
         "polarisation and channel, streaming the files, and write solution.calh5 / "
         "solution.calfits (pyuvdata UVCal), solution.h5 (every array, configuration and "
         "provenance), PNG plots and summary.json to --out. Options not given take the "
-        "defaults shown (those of autocal.pipeline.calibrate.CalibrationConfig and the REST API).",
+        "defaults shown (those of autocal.pipeline.config.CalibrationConfig and the REST API).",
     )
     p.add_argument(
         "inputs", nargs="+", type=Path, help="UVH5 files, Miriad folders or EDGES ACQ / HDF5 files"

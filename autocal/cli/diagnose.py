@@ -13,7 +13,6 @@ from autocal.cli.args import (
     parse_str_list,
     validation_message,
 )
-from autocal.cli.options import prior_value
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -75,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from autocal.diagnosis.run import DiagnoseConfig, run_diagnosis
+    from autocal.fit.priors import prior_value
 
     optional: dict[str, Any] = {
         "bic_threshold": args.bic_threshold,

@@ -1,6 +1,6 @@
 """Calibration options shared by ``autocal calibrate`` and ``autocal nightly``.
 
-Every field of :class:`autocal.pipeline.calibrate.CalibrationConfig` except ``inputs`` has
+Every field of :class:`autocal.pipeline.config.CalibrationConfig` except ``inputs`` has
 exactly one option here, and the defaults shown in ``--help`` are read from the configuration
 itself, so the command line, the REST API (``service.schemas.CalibrationOptions``) and the Python
 configuration cannot drift apart (``tests/cli/test_cli_options.py`` checks the coverage).
@@ -168,7 +168,7 @@ def calibration_settings(args: argparse.Namespace) -> dict[str, Any]:
     Returns
     -------
     dict
-        :class:`~autocal.pipeline.calibrate.CalibrationConfig` fields (without ``inputs``); options
+        :class:`~autocal.pipeline.config.CalibrationConfig` fields (without ``inputs``); options
         not given are left out, so the configuration's defaults apply.
 
     Raises
@@ -179,6 +179,7 @@ def calibration_settings(args: argparse.Namespace) -> dict[str, Any]:
     from pydantic import ValidationError
 
     from autocal.cli.args import validation_message
+    from autocal.fit.priors import prior_value
     from autocal.pipeline.config import CalibrationConfig
 
     parsers = {
@@ -203,18 +204,10 @@ def calibration_settings(args: argparse.Namespace) -> dict[str, Any]:
     return settings
 
 
-def prior_value(text: str) -> float | str:
-    """Return a ``--trxr-prior`` value: a number in K as a float, else the path as given."""
-    try:
-        return float(text)
-    except ValueError:
-        return text
-
-
 def calibration_dests() -> list[str]:
     """Return the ``dest`` of every option :func:`add_calibration_arguments` adds, in order.
 
-    Each is the name of the :class:`~autocal.pipeline.calibrate.CalibrationConfig` field it sets.
+    Each is the name of the :class:`~autocal.pipeline.config.CalibrationConfig` field it sets.
     """
     parser = argparse.ArgumentParser(add_help=False)
     add_calibration_arguments(parser)

@@ -373,7 +373,7 @@ def run_diagnosis(
         Called with (fraction done, message) at each stage.
     should_stop
         Polled between stages and before every model fit of the search; returning
-        ``True`` aborts with :class:`autocal.pipeline.calibrate.PipelineError` ``"cancelled"`` (the
+        ``True`` aborts with :class:`autocal.pipeline.config.PipelineError` ``"cancelled"`` (the
         service's cancellation) and publishes nothing.
 
     Returns
@@ -386,7 +386,7 @@ def run_diagnosis(
     autocal.diagnosis.search.DiagnoseError
         Missing inputs, folders instead of UVH5 files, polarisations without a beam, or
         data the diagnosis cannot fit.
-    autocal.pipeline.calibrate.PipelineError
+    autocal.pipeline.config.PipelineError
         When cancelled.
     """
     from autocal import __version__

@@ -36,11 +36,11 @@ Passes = Literal["auto", 1, 2]
 #: Relative bias ``2 / (dnu dt N)`` of data-derived radiometer weights above which
 #: ``passes="auto"`` makes a second, model-weighted pass.
 REWEIGHT_THRESHOLD = 1e-5
-#: Default passes of every calibration (:class:`autocal.pipeline.calibrate.CalibrationConfig` and
+#: Default passes of every calibration (:class:`autocal.pipeline.config.CalibrationConfig` and
 #: :func:`fit` both use it).
 DEFAULT_PASSES: Passes = "auto"
 #: Default: radiometer-weighted covariances are multiplied by ``max(1, chi^2/dof)`` so the
-#: errors cover unmodelled structure (:class:`autocal.pipeline.calibrate.CalibrationConfig` and
+#: errors cover unmodelled structure (:class:`autocal.pipeline.config.CalibrationConfig` and
 #: :func:`fit` both use it).
 DEFAULT_INFLATE_ERRORS = True
 
@@ -154,7 +154,7 @@ def fit(
     """Fit gain and receiver noise to an observation and a Tsky array held in memory.
 
     The low-level fit: no files, no Tsky computation, no products. Its defaults (passes,
-    error inflation) are those of :class:`autocal.pipeline.calibrate.CalibrationConfig`
+    error inflation) are those of :class:`autocal.pipeline.config.CalibrationConfig`
     (:data:`DEFAULT_PASSES`, :data:`DEFAULT_INFLATE_ERRORS`) and its passes run through
     :func:`run_passes`, like :func:`autocal.calibrate`; to calibrate files (or an
     observation, Tsky computed for you) call :func:`autocal.calibrate`.

@@ -554,3 +554,11 @@ def add_trxr_prior(
         sums.lst_max,
         {**sums.info, "trxr_prior": True},
     )
+
+
+def prior_value(text: str) -> float | str:
+    """Return a ``--trxr-prior`` value: a number in K as a float, else the path as given."""
+    try:
+        return float(text)
+    except ValueError:
+        return text

@@ -188,7 +188,7 @@ class Solution:
         """Write products of this solution into the folder ``out`` (created).
 
         The files and writers of ``autocal calibrate``
-        (:func:`autocal.pipeline.calibrate.write_solution_products`): ``solution.calh5``,
+        (:func:`autocal.pipeline.products.write_solution_products`): ``solution.calh5``,
         ``solution.calfits``, ``solution.h5``, ``solution.png``.
 
         Parameters
