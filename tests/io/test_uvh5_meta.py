@@ -28,7 +28,7 @@ def test_pyuvdata_compiled_helpers_are_cached_on_disk(data_root, tmp_path) -> No
     import sys
 
     path = data_root / AUTOS / XRAA[0]
-    code = "import sys; from autocal.io.uvh5 import scan_uvh5; scan_uvh5([sys.argv[1]])"
+    code = "import sys; from autocal.io.uvh5_meta import scan_uvh5; scan_uvh5([sys.argv[1]])"
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
     subprocess.run([sys.executable, "-c", code, str(path)], env=env, check=True, timeout=300)
     assert list(tmp_path.rglob("bls_numba._antnums_to_baseline-*.nbi"))
