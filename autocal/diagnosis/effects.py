@@ -24,7 +24,7 @@ Identifiability (constant per-channel ``G`` and ``n``):
   identifiable from the data alone.
 - ``cable_reflection`` (a bandpass ripple) is absorbed exactly by the per-channel ``G``;
   it is detected in the bandpass domain, on the fitted ``G(nu)``, against a smooth
-  bandpass (see :func:`autocal.diagnosis.search.fit_cable_reflection`).
+  bandpass (see :func:`autocal.diagnosis.bandpass.fit_cable_reflection`).
 
 The diagnosis measures identifiability numerically (the fraction of each template's
 Fisher information left after projecting out ``(G, n)``) and skips effects below a
@@ -34,13 +34,14 @@ threshold, so none is ever "found" through round-off.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
 from numpy.polynomial import legendre
 
 from autocal.errors import AutocalError
+from autocal.fit.lsq import FitModel
 from autocal.sky.beams import Beam, BeamEvaluator, get_beam
 from autocal.sky.models import T_CMB
 from autocal.tsky.engine import compute_tsky
@@ -176,6 +177,18 @@ class SkyTemplates:
         if self.lst_derivative is not None and self.lst_derivative.shape != shape:
             raise EffectError("template lst_derivative has the wrong shape")
 
+    def subset(self, pols: slice = slice(None), channels: slice = slice(None)) -> SkyTemplates:
+        """Return the templates of some polarisations and channels."""
+        fields: dict[str, Any] = {"freqs": self.freqs[channels]}
+        for name in ("total", "galactic", "cmb", "ground", "beam_dwidth", "lst_derivative"):
+            arr = getattr(self, name)
+            fields[name] = None if arr is None else arr[pols, :, channels]
+        for name in ("f_above", "f_below"):
+            fields[name] = getattr(self, name)[pols, channels]
+        if self.beam_width_poly is not None:
+            fields["beam_width_poly"] = self.beam_width_poly[:, pols, :, channels]
+        return replace(self, **fields)
+
 
 def sky_templates(
     sky: Any,
@@ -302,8 +315,6 @@ def sky_templates(
 
 def time_basis(lsts: np.ndarray, order: int) -> np.ndarray:
     """``(order, Ntime)`` Legendre polynomials ``P_1..P_order`` of the LST on ``[-1, 1]``."""
-    from autocal.fit.lsq import FitModel
-
     model = FitModel.for_lsts(np.asarray(lsts), "legendre", max(order, 1))
     return legendre.legvander(model.s(lsts), order)[:, 1:].T
 
@@ -329,7 +340,7 @@ class Effect:
         ``"tsky"`` (additive change of Tsky), ``"gain"`` (relative achromatic gain
         drift), ``"noise"`` (relative achromatic noise drift), ``"bandpass"`` or
         ``"feed_gain"`` (one gain series per antenna-pol, fitted feed by feed:
-        :func:`autocal.diagnosis.search.fit_feed_gains`).
+        :func:`autocal.diagnosis.feeds.fit_feed_gains`).
     params
         Parameter names.
     units
@@ -366,6 +377,11 @@ class Effect:
                 )
             return np.eye(len(lsts))[1:]
         return time_basis(lsts, self.order)
+
+    @property
+    def label(self) -> str:
+        """``name/basis order``: the candidate's key among a diagnosis's failed candidates."""
+        return f"{self.name}/{self.basis}{self.order}"
 
     @property
     def nfree(self) -> int:

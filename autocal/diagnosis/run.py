@@ -6,10 +6,10 @@ The shared entry point of ``autocal diagnose`` and the service's ``diagnose`` jo
 (:mod:`autocal.service.worker`). :func:`run_diagnosis` reads the autos
 (:func:`read_observation`, a block of integrations at a time), computes the model Tsky and
 the templates of the candidate effects (:func:`autocal.diagnosis.effects.sky_templates`), runs the
-discrepancy workflow (:func:`autocal.diagnosis.search.diagnose`, DESIGN.md section 5) and writes
-its products: ``diagnosis.json``, ``summary.txt``, the residual plots
-(:func:`autocal.diagnosis.search.write_diagnosis`) and ``summary.json`` (accepted effects, final
-gap, provenance, timings).
+discrepancy workflow (:func:`autocal.diagnosis.stepwise.diagnose`, DESIGN.md section 5) and
+writes its products: ``diagnosis.json``, ``summary.txt``, the residual plots
+(:func:`autocal.diagnosis.report.write_diagnosis`) and ``summary.json`` (accepted effects,
+final gap, provenance, timings).
 
 As in :mod:`autocal.pipeline.calibrate`, products are written to a staging folder inside ``out``
 and moved into place only when all of them succeeded (``summary.json`` last), so a failed
@@ -38,8 +38,15 @@ from pydantic import (
     model_validator,
 )
 
+from autocal import __version__
 from autocal.core.coords import night_epoch
-from autocal.diagnosis.search import ALPHA, BIC_THRESHOLD, DiagnoseError
+from autocal.core.observation import Observation
+from autocal.diagnosis import effects, report
+from autocal.diagnosis.errors import DiagnoseError
+from autocal.diagnosis.stepwise import diagnose
+from autocal.diagnosis.trials import ALPHA, BIC_THRESHOLD
+from autocal.fit.priors import parse_trxr_prior
+from autocal.io.uvh5 import iter_uvh5, scan_uvh5
 from autocal.pipeline.calibrate import PipelineError, check_prior_spec, check_ranges
 
 logger = logging.getLogger(__name__)
@@ -56,7 +63,7 @@ class DiagnoseConfig(BaseModel):
 
     Frequencies in MHz, LSTs in hours, temperatures in kelvin. The statistic settings
     (``bic_threshold``, ``alpha``, ``max_steps``) default to those of
-    :func:`autocal.diagnosis.search.diagnose`.
+    :func:`autocal.diagnosis.stepwise.diagnose`.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
@@ -179,9 +186,10 @@ def _beam_pols(pols: tuple[str, ...]) -> tuple[str, ...]:
 #: pol x channel x integration), measured with ``benchmarks/diagnose_scale.py`` (``autocal
 #: diagnose`` on the first file of the HERA-size night, 192 integrations x 1536 channels x 2
 #: pols; README, "Diagnosing", **Size.**): 1.83 GB for 30 antennas (17.7 M samples), 6.33 GB
-#: for all 350 (206 M). The fit streams antennas in chunks (:func:`autocal.diagnosis.search.
-#: fit_extended`), so what grows with the samples is the observation (float64 data, flags),
-#: the float32 weights and, while outliers are flagged, their high-passed residuals.
+#: for all 350 (206 M). The fit streams antennas in chunks
+#: (:func:`autocal.diagnosis.extended_fit.fit_extended`), so what grows with the samples is the
+#: observation (float64 data, flags), the float32 weights and, while outliers are flagged,
+#: their high-passed residuals.
 BASE_BYTES = 1.5e9
 #: See :data:`BASE_BYTES` (the slope between those two runs, 23.8 bytes, rounded up).
 BYTES_PER_SAMPLE = 26.0
@@ -220,7 +228,7 @@ def check_memory(shape: tuple[int, ...]) -> None:
 
     Raises
     ------
-    autocal.diagnosis.search.DiagnoseError
+    autocal.diagnosis.errors.DiagnoseError
         When the estimate (:data:`BASE_BYTES` + :data:`BYTES_PER_SAMPLE` per sample) exceeds
         :func:`available_memory`.
     """
@@ -246,7 +254,7 @@ def read_observation(
     freq_range: tuple[float, float] | None = None,
     lst_range: tuple[float, float] | None = None,
     check: Callable[[tuple[int, int, int, int]], None] | None = None,
-) -> Any:
+) -> Observation:
     """Read the autos of UVH5 files into one observation, a block of integrations at a time.
 
     The values are those :func:`autocal.io.uvh5.read_uvh5` returns for the same selections,
@@ -271,9 +279,6 @@ def read_observation(
     autocal.core.observation.Observation
         The observation.
     """
-    from autocal.core.observation import Observation
-    from autocal.io.uvh5 import iter_uvh5, scan_uvh5
-
     files = scan_uvh5(paths)
     ntime_max = sum(f.jds.size for f in files)
     data = flags = nsamples = None
@@ -382,22 +387,19 @@ def run_diagnosis(
 
     Raises
     ------
-    autocal.diagnosis.search.DiagnoseError
+    autocal.diagnosis.errors.DiagnoseError
         Missing inputs, folders instead of UVH5 files, polarisations without a beam, or
         data the diagnosis cannot fit.
     autocal.pipeline.calibrate.PipelineError
         When cancelled.
     """
-    from autocal import __version__
-    from autocal.diagnosis.effects import sky_templates
-    from autocal.diagnosis.search import diagnose, write_diagnosis
 
     def check_stop() -> None:
         if should_stop is not None and should_stop():
             logger.info("diagnosis cancelled")
             raise PipelineError("cancelled")
 
-    def report(fraction: float, message: str) -> None:
+    def advance(fraction: float, message: str) -> None:
         logger.info("%3.0f%% %s", 100 * fraction, message)
         if progress is not None:
             progress(fraction, message)
@@ -409,10 +411,8 @@ def run_diagnosis(
     paths = _input_paths(config)
     prior = None
     if config.trxr_prior is not None:  # a malformed prior fails before any reading
-        from autocal.fit.priors import parse_trxr_prior
-
         prior = parse_trxr_prior(config.trxr_prior, sigma_k=config.trxr_prior_sigma_k)
-    report(0.0, f"reading {len(paths)} UVH5 file(s)")
+    advance(0.0, f"reading {len(paths)} UVH5 file(s)")
     mhz = config.freq_range_mhz
     obs = read_observation(
         paths,
@@ -429,12 +429,12 @@ def run_diagnosis(
 
     beam_pols = _beam_pols(tuple(p.lower() for p in obs.pols))
     epoch = night_epoch(obs.jds, obs.site.lon_deg)
-    report(
+    advance(
         0.15,
         f"sky templates for {len(beam_pols)} pol(s), {obs.nfreq} channels, {obs.ntime} LSTs",
     )
     t1 = time.perf_counter()
-    templates = sky_templates(
+    templates = effects.sky_templates(
         config.sky,
         config.beam,
         obs.site,
@@ -447,7 +447,7 @@ def run_diagnosis(
     )
     timings["templates_s"] = time.perf_counter() - t1
 
-    report(
+    advance(
         0.5,
         f"diagnosing {len(obs.antennas)} antenna(s) x {len(obs.pols)} pol(s): fitting the "
         "model and the candidate effects",
@@ -461,12 +461,12 @@ def run_diagnosis(
         bic_threshold=config.bic_threshold,
         alpha=config.alpha,
         max_steps=config.max_steps,
-        progress=lambda fraction, message: report(0.5 + 0.4 * fraction, message),
+        progress=lambda fraction, message: advance(0.5 + 0.4 * fraction, message),
     )
     timings["diagnose_s"] = time.perf_counter() - t2
     logger.info("accepted effects: %s", ", ".join(diag.effects) or "none")
 
-    report(0.9, "writing products")
+    advance(0.9, "writing products")
     t3 = time.perf_counter()
     tsky_meta = templates.meta.get("tsky", {})
     provenance = {
@@ -505,7 +505,7 @@ def run_diagnosis(
     }
 
     def write(staging: Path) -> None:
-        write_diagnosis(diag, staging, obs)
+        report.write_diagnosis(diag, staging, obs)
 
     products = _publish(out, write, summary, timings, t0, t3, check_stop)
     logger.info("wrote %d products to %s", len(products), out)
