@@ -40,7 +40,7 @@ SUPERSEDES = {
 
 @dataclass(frozen=True)
 class AcceptedStep:
-    """What accepting a candidate gives the step's record in :attr:`Diagnosis.steps`.
+    """What accepting a candidate gives its step's record (:attr:`.Diagnosis.steps`).
 
     Attributes
     ----------

@@ -266,31 +266,11 @@ def sky_templates(
         fb.append(res.f_below)
         meta = res.meta
         if timing:
-            # Tsky one LST step either side (cached harmonics, any LST grid): per second
-            # of time, a sidereal second being 1/1.0027379 of a solar one
-            ahead, behind = (
-                compute_tsky(sky, b, site, freqs, (lsts + d) % 24.0, **kw).tsky
-                for d in (LST_STEP_H, -LST_STEP_H)
-            )
-            per_hour = (ahead - behind) / (2 * LST_STEP_H)
-            parts["dt"].append(per_hour * SIDEREAL_RATE / 3600.0)
+            parts["dt"].append(_lst_derivative(sky, b, site, freqs, lsts, kw))
         if beam_width_step:
-            nodes = beam_width_step * np.array([-1.0, -0.5, 0.5, 1.0])
-            deltas = np.stack(
-                [
-                    # the widened beams' harmonics come from the Tsky cache (every
-                    # diagnosis of the night and the calibration share them)
-                    compute_tsky(
-                        sky, ScaledBeam(base=b, factor=1 + w), site, freqs, lsts, **kw
-                    ).tsky
-                    - res.tsky
-                    for w in nodes
-                ]
+            parts["bw"].append(
+                _beam_width_poly(sky, b, site, freqs, lsts, kw, beam_width_step, res.tsky)
             )
-            # solve sum_k c_k w_j^k = delta_j for c_1..c_4 (exact through the 5 nodes)
-            vander = nodes[:, None] ** np.arange(1, nodes.size + 1)[None, :]
-            coef = np.tensordot(np.linalg.inv(vander), deltas, axes=([1], [0]))
-            parts["bw"].append(coef)
     if nu0 is None:
         nu0 = float(meta.get("sky", {}).get("nu0_Hz") or 0.5 * (freqs[0] + freqs[-1]))
     return SkyTemplates(
@@ -308,6 +288,57 @@ def sky_templates(
         nu0=nu0,
         meta={"tsky": meta, "tgnd_K": tgnd, "beam_width_step": beam_width_step},
     )
+
+
+def _lst_derivative(
+    sky: Any,
+    beam: Beam,
+    site: Any,
+    freqs: np.ndarray,
+    lsts: np.ndarray,
+    kw: dict[str, Any],
+) -> np.ndarray:
+    """Return ``dTsky / dt`` in kelvin per second of time (the ``timing_offset`` template).
+
+    Tsky one LST step either side (cached harmonics, any LST grid): per second of time, a
+    sidereal second being 1/1.0027379 of a solar one.
+    """
+    ahead, behind = (
+        compute_tsky(sky, beam, site, freqs, (lsts + d) % 24.0, **kw).tsky
+        for d in (LST_STEP_H, -LST_STEP_H)
+    )
+    per_hour = (ahead - behind) / (2 * LST_STEP_H)
+    return per_hour * SIDEREAL_RATE / 3600.0
+
+
+def _beam_width_poly(
+    sky: Any,
+    beam: Beam,
+    site: Any,
+    freqs: np.ndarray,
+    lsts: np.ndarray,
+    kw: dict[str, Any],
+    step: float,
+    tsky: np.ndarray,
+) -> np.ndarray:
+    """Return the coefficients ``c_1..c_4`` of ``Tsky(w) - Tsky(0) = sum_k c_k w^k``.
+
+    Tsky with the beam width scaled by ``1 + w`` at the nodes ``w = +-step/2, +-step``; the
+    quartic passes exactly through them and ``w = 0`` (``tsky``).
+    """
+    nodes = step * np.array([-1.0, -0.5, 0.5, 1.0])
+    deltas = np.stack(
+        [
+            # the widened beams' harmonics come from the Tsky cache (every
+            # diagnosis of the night and the calibration share them)
+            compute_tsky(sky, ScaledBeam(base=beam, factor=1 + w), site, freqs, lsts, **kw).tsky
+            - tsky
+            for w in nodes
+        ]
+    )
+    # solve sum_k c_k w_j^k = delta_j for c_1..c_4 (exact through the 5 nodes)
+    vander = nodes[:, None] ** np.arange(1, nodes.size + 1)[None, :]
+    return np.tensordot(np.linalg.inv(vander), deltas, axes=([1], [0]))
 
 
 # effects --------------------------------------------------------------------------------
@@ -476,6 +507,16 @@ def catalogue(
         ``ntime`` >= 3) ``antenna_gain_jitter``, every antenna-pol its own ``gain_jitter``
         series (tested against a common series once ``gain_jitter`` is in the model).
     """
+    return [
+        *_jitter_entries(ntime, nfeeds),
+        *_drift_entries(max_drift_order, nfeeds),
+        *_diurnal_entries(span_h),
+        *_tsky_entries(include_timing, include_beam_width),
+    ]
+
+
+def _jitter_entries(ntime: int | None, nfeeds: int | None) -> list[Effect]:
+    """Return ``gain_jitter`` and ``antenna_gain_jitter`` (:func:`catalogue`)."""
     out: list[Effect] = []
     if ntime is not None and ntime >= 3:
         out.append(
@@ -504,6 +545,12 @@ def catalogue(
                     basis="feed_integration",
                 )
             )
+    return out
+
+
+def _drift_entries(max_drift_order: int, nfeeds: int | None) -> list[Effect]:
+    """Return the Legendre drifts of every order: per antenna-pol, gain, noise."""
+    out: list[Effect] = []
     for order in range(1, max_drift_order + 1):
         names = tuple(f"d_{k}" for k in range(1, order + 1))
         if nfeeds is not None and nfeeds >= 2:
@@ -541,6 +588,12 @@ def catalogue(
                 signature="n(t) = n (1 + sum_k e_k P_k(s)), achromatic",
             )
         )
+    return out
+
+
+def _diurnal_entries(span_h: float | None) -> list[Effect]:
+    """Return the diurnal (sidereal-day harmonic) drifts of the gain and the noise."""
+    out: list[Effect] = []
     diurnal = ("gain", "gain_drift", "d"), ("noise", "noise_drift", "e")
     if span_h is not None and span_h < DIURNAL_MIN_SPAN_H:
         diurnal = ()
@@ -557,7 +610,12 @@ def catalogue(
                 basis="diurnal",
             )
         )
-    out += [
+    return out
+
+
+def _tsky_entries(include_timing: bool, include_beam_width: bool) -> list[Effect]:
+    """Return the Tsky entries and ``cable_reflection``."""
+    out = [
         Effect("sky_scale", "tsky", ("s",), ("1",), signature="S -> (1 + s) S"),
         Effect("sky_offset", "tsky", ("T_offset",), ("K",), signature="+ T_offset f_above"),
         Effect(

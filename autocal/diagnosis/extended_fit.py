@@ -90,7 +90,8 @@ class ExtendedFit:
         Per-channel plus free global parameters.
     identifiable
         ``{effect name: fraction of Fisher information left after the (G, n) projection}``
-        (0 below :data:`IDENTIFIABLE_RESOLUTION`: degenerate with ``(G, n)``).
+        (0 below :data:`~autocal.diagnosis.normal_equations.IDENTIFIABLE_RESOLUTION`:
+        degenerate with ``(G, n)``).
     iterations
         Gauss-Newton iterations used.
     gain_factor, noise_factor
@@ -184,7 +185,7 @@ def radiometer_weights(
         ``(Nant, Npol, Ntime, Nfreq)`` reference autos, or a fit whose model is the
         reference (computed a chunk of antennas at a time).
     dtype
-        Of the result (default :func:`weights_dtype`).
+        Of the result (default :func:`~autocal.diagnosis.chunks.weights_dtype`).
     """
     out = np.empty(obs.shape, weights_dtype(obs.shape) if dtype is None else dtype)
     width = obs.channel_width[None, None, None, :]
@@ -231,10 +232,11 @@ def fit_extended(
 ) -> ExtendedFit:
     """Fit per-channel ``(G, n)`` and the global parameters of ``effects``.
 
-    Antennas are streamed through the fit in chunks (:func:`antenna_chunks`): each
-    channel's ``(G, n)`` is solved within its chunk and the global normal equations and
-    chi^2 are summed over chunks, so memory holds the observation, the weights and a
-    chunk's working arrays; the result does not depend on the chunking (up to rounding).
+    Antennas are streamed through the fit in chunks
+    (:func:`~autocal.diagnosis.chunks.antenna_chunks`): each channel's ``(G, n)`` is solved
+    within its chunk and the global normal equations and chi^2 are summed over chunks, so
+    memory holds the observation, the weights and a chunk's working arrays; the result does
+    not depend on the chunking (up to rounding).
 
     Parameters
     ----------
@@ -260,7 +262,7 @@ def fit_extended(
         ``{effect name: values}`` to start Gauss-Newton from (default zero: no effect);
         entries whose length does not match the effect's free parameters are ignored.
     chunk_antennas
-        Antennas per chunk (default :data:`CHUNK_SAMPLES`).
+        Antennas per chunk (default :data:`~autocal.diagnosis.chunks.CHUNK_SAMPLES`).
 
     Returns
     -------

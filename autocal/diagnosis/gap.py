@@ -30,8 +30,9 @@ def gap_metrics(
 ) -> dict[str, Any]:
     """Measure the disagreement between a fit and the data.
 
-    One pass over the residuals, a chunk of antennas at a time (:meth:`ExtendedFit.
-    residual_chunks`): every metric is a sum over antennas.
+    One pass over the residuals, a chunk of antennas at a time
+    (:meth:`~autocal.diagnosis.extended_fit.ExtendedFit.residual_chunks`): every metric is a
+    sum over antennas.
 
     Returns
     -------

@@ -85,9 +85,10 @@ def jitter_is_significant(
     derivative), and over 6 h or more :data:`JITTER_DIURNAL_HARMONICS` sidereal-day
     harmonics, the remainder pays for its extra parameters as any candidate must: its
     chi-square over the overdispersion, less ``ln N`` per parameter beyond the smooth part,
-    exceeds :data:`BIC_THRESHOLD`. Fluctuations correlated from one integration to the
-    next (red gain noise) pass when they are large; what a smooth function of time or of the
-    sky explains does not, and goes to a smooth effect or stays unexplained.
+    exceeds :data:`~autocal.diagnosis.trials.BIC_THRESHOLD`. Fluctuations correlated from
+    one integration to the next (red gain noise) pass when they are large; what a smooth
+    function of time or of the sky explains does not, and goes to a smooth effect or stays
+    unexplained.
 
     Parameters
     ----------

@@ -84,14 +84,15 @@ def flag_outliers(
     (1.4826 x the median absolute deviation over all samples). A channel (integration)
     that loses more than ``max_fraction`` of its samples is flagged entirely. The
     residuals are filtered a chunk of antennas at a time; the high-passed values of a
-    large observation (:func:`is_large`) are kept in float32 for the median over all.
+    large observation (:func:`~autocal.diagnosis.chunks.is_large`) are kept in float32 for
+    the median over all.
 
     Parameters
     ----------
     obs
         The observation the fit was made to.
     fit
-        A fit of it (:func:`fit_extended`).
+        A fit of it (:func:`~autocal.diagnosis.extended_fit.fit_extended`).
     threshold
         Robust sigmas beyond which a sample is an outlier.
     window

@@ -26,7 +26,7 @@ logger = logging.getLogger(__name__)
 
 @dataclass
 class Diagnosis:
-    """Result of :func:`diagnose`.
+    """Result of :func:`~autocal.diagnosis.stepwise.diagnose`.
 
     Attributes
     ----------
@@ -40,22 +40,25 @@ class Diagnosis:
         Gap metrics of the starting and final models.
     identifiability
         ``{effect: fraction of Fisher information not absorbed by (G, n)}`` at the start
-        (0: below :data:`IDENTIFIABLE_RESOLUTION`, degenerate with ``(G, n)``).
+        (0: below :data:`~autocal.diagnosis.normal_equations.IDENTIFIABLE_RESOLUTION`,
+        degenerate with ``(G, n)``).
     config
         Statistic, threshold, prior and settings.
     residual_snapshots
         ``[(label, (Ntime, Nfreq) normalised residuals of antenna 0, pol 0)]``.
     product_change
         How the calibration products change from the starting model to the diagnosed one
-        (:func:`product_impact`); each step has its own under ``product_impact``.
+        (:func:`~autocal.diagnosis.impact.product_impact`); each step has its own under
+        ``product_impact``.
     unexplained
         ``None`` when the final model fits to within the noise; else what remains and its
-        structure (:func:`describe_unexplained`): no catalogue entry explains it.
+        structure (:func:`~autocal.diagnosis.gap.describe_unexplained`): no catalogue entry
+        explains it.
     negligible
         Effects detected (significant by the same test, kept in the fitted model) whose
-        impact on ``G`` and ``Trxr`` is negligible (:func:`is_negligible`): reported as
-        "detected, negligible", not named among :attr:`effects`; their steps say
-        ``negligible: true``.
+        impact on ``G`` and ``Trxr`` is negligible
+        (:func:`~autocal.diagnosis.impact.is_negligible`): reported as "detected,
+        negligible", not named among :attr:`effects`; their steps say ``negligible: true``.
     """
 
     steps: list[dict[str, Any]] = field(default_factory=list)
@@ -165,7 +168,7 @@ def summary_text(diag: Diagnosis) -> str:
 
 
 def _impact_text(impact: dict[str, Any]) -> str:
-    """One line on how G and Trxr moved (see :func:`product_impact`)."""
+    """One line on how G and Trxr moved (see :func:`~autocal.diagnosis.impact.product_impact`)."""
     g, t = impact.get("G", {}), impact.get("Trxr", {})
     nan = float("nan")
     if "median_change_over_sigma" not in g:
@@ -181,7 +184,10 @@ def _impact_text(impact: dict[str, Any]) -> str:
 
 
 def _time_change_text(impact: dict[str, Any]) -> str:
-    """How the products' variation in time changed, when it did (see :func:`is_negligible`)."""
+    """How the products' variation in time changed, when it did.
+
+    See :func:`~autocal.diagnosis.impact.is_negligible`.
+    """
     gt, tt = impact.get("G_time", {}), impact.get("Trxr_time", {})
     parts = []
     if gt.get("max_abs_relative_change", 0.0) >= NEGLIGIBLE_G_FRACTION:

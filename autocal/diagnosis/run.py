@@ -25,6 +25,7 @@ import os
 import shutil
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -42,7 +43,9 @@ from autocal import __version__
 from autocal.core.coords import night_epoch
 from autocal.core.observation import Observation
 from autocal.diagnosis import effects, report
+from autocal.diagnosis.effects import SkyTemplates
 from autocal.diagnosis.errors import DiagnoseError
+from autocal.diagnosis.report import Diagnosis
 from autocal.diagnosis.stepwise import diagnose
 from autocal.diagnosis.trials import ALPHA, BIC_THRESHOLD
 from autocal.fit.priors import parse_trxr_prior
@@ -280,12 +283,7 @@ def read_observation(
         The observation.
     """
     files = scan_uvh5(paths)
-    ntime_max = sum(f.jds.size for f in files)
-    data = flags = nsamples = None
-    uniform: float | None = None
-    first: Any = None
-    lsts, jds, tint, sha, used = [], [], [], {}, []
-    t = 0
+    arrays = _ObservationArrays(ntime_max=sum(f.jds.size for f in files), check=check)
     for block in iter_uvh5(
         paths,
         antennas=antennas,
@@ -294,64 +292,98 @@ def read_observation(
         lst_range=lst_range,
         block_size=0,
     ):
-        nant, npol, nt, nfreq = block.data.shape
-        if first is None:
-            first = block
-            if check is not None:
-                check((nant, npol, ntime_max, nfreq))
-            data = np.empty((nant, npol, ntime_max, nfreq))
-            flags = np.empty(data.shape, bool)
-            uniform = float(block.nsamples.flat[0])
-        assert data is not None and flags is not None
-        data[:, :, t : t + nt] = block.data
-        flags[:, :, t : t + nt] = block.flags
-        if nsamples is None and not np.all(block.nsamples == uniform):
-            nsamples = np.empty(data.shape)
-            nsamples[:, :, :t] = uniform
-        if nsamples is not None:
-            nsamples[:, :, t : t + nt] = block.nsamples
-        lsts.append(block.lsts)
-        jds.append(block.jds)
-        tint.append(block.integration_time)
-        sha.update(block.meta.get("sha256", {}))
-        used += [f for f in block.meta.get("files", []) if f not in used]
-        t += nt
-    if first is None or data is None or flags is None:
+        arrays.add(block)
+    if arrays.first is None:
         raise DiagnoseError(f"no integrations in LST range {lst_range} h in {paths}")
-    if t < ntime_max:  # an LST selection: keep only what was read
-        data = np.ascontiguousarray(data[:, :, :t])
-        flags = np.ascontiguousarray(flags[:, :, :t])
-        nsamples = None if nsamples is None else np.ascontiguousarray(nsamples[:, :, :t])
-    obs = Observation(
-        data=data,
-        freqs=first.freqs,
-        lsts=np.concatenate(lsts),
-        jds=np.concatenate(jds),
-        antennas=first.antennas,
-        pols=first.pols,
-        site=first.site,
-        flags=flags,
-        channel_width=first.channel_width,
-        integration_time=np.concatenate(tint),
-        nsamples=uniform if nsamples is None else nsamples,
-        antenna_names=first.antenna_names,
-        telescope_name=first.telescope_name,
-        meta={
-            "source": "uvh5",
-            "files": used,
-            "sha256": sha,
-            **{k: first.meta[k] for k in ("x_orientation", "vis_units") if k in first.meta},
-        },
-    )
+    obs = arrays.observation()
     logger.info(
         "read %d file(s): %d antennas, pols %s, %d times, %d channels",
-        len(used),
+        len(arrays.used),
         obs.nant,
         ",".join(obs.pols),
         obs.ntime,
         obs.nfreq,
     )
     return obs
+
+
+@dataclass(eq=False)
+class _ObservationArrays:
+    """The observation's arrays, filled a block of integrations at a time.
+
+    Allocated for every integration of the files (``ntime_max``) when the first block is
+    read (after ``check``); ``nsamples`` stays one number while it is uniform.
+    """
+
+    ntime_max: int
+    check: Callable[[tuple[int, int, int, int]], None] | None = None
+    first: Any = None
+    data: np.ndarray | None = None
+    flags: np.ndarray | None = None
+    nsamples: np.ndarray | None = None
+    uniform: float | None = None
+    lsts: list[np.ndarray] = field(default_factory=list)
+    jds: list[np.ndarray] = field(default_factory=list)
+    tint: list[np.ndarray] = field(default_factory=list)
+    sha: dict[str, str] = field(default_factory=dict)
+    used: list[str] = field(default_factory=list)
+    t: int = 0
+
+    def add(self, block: Any) -> None:
+        """Copy a block (:func:`autocal.io.uvh5.iter_uvh5`) into the arrays."""
+        nant, npol, nt, nfreq = block.data.shape
+        t = self.t
+        if self.first is None:
+            self.first = block
+            if self.check is not None:
+                self.check((nant, npol, self.ntime_max, nfreq))
+            self.data = np.empty((nant, npol, self.ntime_max, nfreq))
+            self.flags = np.empty(self.data.shape, bool)
+            self.uniform = float(block.nsamples.flat[0])
+        assert self.data is not None and self.flags is not None
+        self.data[:, :, t : t + nt] = block.data
+        self.flags[:, :, t : t + nt] = block.flags
+        if self.nsamples is None and not np.all(block.nsamples == self.uniform):
+            self.nsamples = np.empty(self.data.shape)
+            self.nsamples[:, :, :t] = self.uniform
+        if self.nsamples is not None:
+            self.nsamples[:, :, t : t + nt] = block.nsamples
+        self.lsts.append(block.lsts)
+        self.jds.append(block.jds)
+        self.tint.append(block.integration_time)
+        self.sha.update(block.meta.get("sha256", {}))
+        self.used += [f for f in block.meta.get("files", []) if f not in self.used]
+        self.t = t + nt
+
+    def observation(self) -> Observation:
+        """Return the observation of the blocks added (only the integrations read)."""
+        first, data, flags, nsamples, t = self.first, self.data, self.flags, self.nsamples, self.t
+        assert first is not None and data is not None and flags is not None
+        if t < self.ntime_max:  # an LST selection: keep only what was read
+            data = np.ascontiguousarray(data[:, :, :t])
+            flags = np.ascontiguousarray(flags[:, :, :t])
+            nsamples = None if nsamples is None else np.ascontiguousarray(nsamples[:, :, :t])
+        return Observation(
+            data=data,
+            freqs=first.freqs,
+            lsts=np.concatenate(self.lsts),
+            jds=np.concatenate(self.jds),
+            antennas=first.antennas,
+            pols=first.pols,
+            site=first.site,
+            flags=flags,
+            channel_width=first.channel_width,
+            integration_time=np.concatenate(self.tint),
+            nsamples=self.uniform if nsamples is None else nsamples,
+            antenna_names=first.antenna_names,
+            telescope_name=first.telescope_name,
+            meta={
+                "source": "uvh5",
+                "files": self.used,
+                "sha256": self.sha,
+                **{k: first.meta[k] for k in ("x_orientation", "vis_units") if k in first.meta},
+            },
+        )
 
 
 def run_diagnosis(
@@ -434,17 +466,7 @@ def run_diagnosis(
         f"sky templates for {len(beam_pols)} pol(s), {obs.nfreq} channels, {obs.ntime} LSTs",
     )
     t1 = time.perf_counter()
-    templates = effects.sky_templates(
-        config.sky,
-        config.beam,
-        obs.site,
-        obs.freqs,
-        obs.lsts,
-        pols=beam_pols,
-        tgnd=config.tgnd_k,
-        nside=config.nside,
-        epoch=epoch,
-    )
+    templates = _templates(config, obs, beam_pols, epoch)
     timings["templates_s"] = time.perf_counter() - t1
 
     advance(
@@ -468,6 +490,44 @@ def run_diagnosis(
 
     advance(0.9, "writing products")
     t3 = time.perf_counter()
+    summary = _summary(config, obs, paths, templates, epoch, diag)
+
+    def write(staging: Path) -> None:
+        report.write_diagnosis(diag, staging, obs)
+
+    products = _publish(out, write, summary, timings, t0, t3, check_stop)
+    logger.info("wrote %d products to %s", len(products), out)
+    if progress is not None:  # the products are in place: too late to cancel
+        progress(1.0, f"done: {', '.join(diag.effects) or 'no significant effect'}")
+    return out
+
+
+def _templates(
+    config: DiagnoseConfig, obs: Observation, beam_pols: tuple[str, ...], epoch: float
+) -> SkyTemplates:
+    """Compute the model Tsky and the candidates' templates on the observation's grid."""
+    return effects.sky_templates(
+        config.sky,
+        config.beam,
+        obs.site,
+        obs.freqs,
+        obs.lsts,
+        pols=beam_pols,
+        tgnd=config.tgnd_k,
+        nside=config.nside,
+        epoch=epoch,
+    )
+
+
+def _summary(
+    config: DiagnoseConfig,
+    obs: Observation,
+    paths: list[Path],
+    templates: SkyTemplates,
+    epoch: float,
+    diag: Diagnosis,
+) -> dict[str, Any]:
+    """Return ``summary.json`` without its products and timings (:func:`_publish` adds them)."""
     tsky_meta = templates.meta.get("tsky", {})
     provenance = {
         "autocal_version": __version__,
@@ -485,7 +545,7 @@ def run_diagnosis(
         "created_unix": time.time(),
     }
     doc = diag.to_dict()
-    summary: dict[str, Any] = {
+    return {
         "kind": "diagnose",
         "effects": list(diag.effects),
         "steps": [
@@ -503,15 +563,6 @@ def run_diagnosis(
         "config": config.model_dump(mode="json"),
         "provenance": provenance,
     }
-
-    def write(staging: Path) -> None:
-        report.write_diagnosis(diag, staging, obs)
-
-    products = _publish(out, write, summary, timings, t0, t3, check_stop)
-    logger.info("wrote %d products to %s", len(products), out)
-    if progress is not None:  # the products are in place: too late to cancel
-        progress(1.0, f"done: {', '.join(diag.effects) or 'no significant effect'}")
-    return out
 
 
 def _publish(

@@ -54,8 +54,8 @@ class Screening:
         model with the candidate (its parameters from zero, the accepted effects' from
         their fitted values): the score (Lagrange-multiplier) statistic.
     identifiable
-        Fraction of the candidate's Fisher information left after the ``(G, n)``
-        projection (as :attr:`ExtendedFit.identifiable`, at the current model).
+        Fraction of the candidate's Fisher information left after the ``(G, n)`` projection (as
+        :attr:`~autocal.diagnosis.extended_fit.ExtendedFit.identifiable`, at the current model).
     """
 
     delta_chi2: float
@@ -88,7 +88,7 @@ def screen_candidates(
     Parameters
     ----------
     obs, tpl, weights, trxr_prior, trxr_prior_sigma
-        As for :func:`fit_extended` (the weights of ``current``).
+        As for :func:`~autocal.diagnosis.extended_fit.fit_extended` (the weights of ``current``).
     active
         The accepted effects.
     current

@@ -57,9 +57,10 @@ class SearchContext:
     settings
         The statistic's settings.
     prior_kw
-        The receiver prior's keywords of every fit (:func:`autocal.diagnosis.extended_fit.
-        fit_extended`: ``trxr_prior``, ``trxr_prior_sigma`` and, with a prior, ``gain_ref``,
-        the starting model's gain, so that the chi^2 of every fit compare).
+        The receiver prior's keywords of every fit
+        (:func:`~autocal.diagnosis.extended_fit.fit_extended`: ``trxr_prior``,
+        ``trxr_prior_sigma`` and, with a prior, ``gain_ref``, the starting model's gain, so
+        that the chi^2 of every fit compare).
     sigma_g, sigma_t
         Total 1-sigma of ``G`` and ``Trxr`` of the ordinary calibration
         (:func:`autocal.diagnosis.impact.product_sigmas`).
