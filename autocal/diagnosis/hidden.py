@@ -34,7 +34,8 @@ import numpy as np
 
 from autocal.core.coords import night_epoch
 from autocal.core.observation import Observation
-from autocal.diagnosis.effects import Effect, ScaledBeam, SkyTemplates, catalogue, sky_templates
+from autocal.diagnosis.catalogue import catalogue
+from autocal.diagnosis.effects import Effect, ScaledBeam, SkyTemplates, sky_templates
 from autocal.diagnosis.stepwise import diagnose
 from autocal.errors import AutocalError
 from autocal.io.uvh5 import read_uvh5, write_uvh5

@@ -57,9 +57,10 @@ from autocal.diagnosis.acceptance import (
 )
 from autocal.diagnosis.bandpass import auto_smooth_order, fit_cable_reflection
 from autocal.diagnosis.candidate_fits import MAX_RESTARTS, escape_local_minimum, try_candidates
+from autocal.diagnosis.catalogue import catalogue
 from autocal.diagnosis.chunks import antenna_chunks, is_large
 from autocal.diagnosis.consistency import BandCheck, band_consistency, consistent_with_partner
-from autocal.diagnosis.effects import Effect, SkyTemplates, catalogue
+from autocal.diagnosis.effects import Effect, SkyTemplates
 from autocal.diagnosis.errors import DiagnoseError
 from autocal.diagnosis.extended_fit import ExtendedFit, fit_extended, radiometer_weights
 from autocal.diagnosis.gap import describe_unexplained, gap_metrics
@@ -105,7 +106,7 @@ def diagnose(
         Model Tsky and templates (:func:`autocal.diagnosis.effects.sky_templates`) on the
         observation's LSTs and frequencies.
     candidates
-        Candidate effects (default :func:`autocal.diagnosis.effects.catalogue`).
+        Candidate effects (default :func:`autocal.diagnosis.catalogue.catalogue`).
     trxr_prior, trxr_prior_sigma
         Known receiver temperature (K) and its 1-sigma; makes time-constant Tsky effects
         identifiable. ``None``: no prior (those effects are reported not identifiable).

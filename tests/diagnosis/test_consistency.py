@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from autocal.diagnosis.catalogue import catalogue
 from autocal.diagnosis.consistency import band_consistency
-from autocal.diagnosis.effects import catalogue
 from autocal.diagnosis.extended_fit import fit_extended, radiometer_weights
 from tests.diagnosis.simulated import PRIOR_SIGMA, hidden, s_of
 

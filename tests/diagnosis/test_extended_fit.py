@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from autocal.diagnosis.catalogue import catalogue
 from autocal.diagnosis.chunks import antenna_chunks
-from autocal.diagnosis.effects import catalogue
 from autocal.diagnosis.errors import DiagnoseError
 from autocal.diagnosis.extended_fit import fit_extended, radiometer_weights
 from tests.diagnosis.simulated import PRIOR_SIGMA, hidden, s_of

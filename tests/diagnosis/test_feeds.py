@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from autocal.diagnosis.effects import catalogue
+from autocal.diagnosis.catalogue import catalogue
 from autocal.diagnosis.errors import DiagnoseError
 from autocal.diagnosis.extended_fit import fit_extended, radiometer_weights
 from autocal.diagnosis.feeds import fit_feed_gains

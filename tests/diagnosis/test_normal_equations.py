@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from autocal.diagnosis.effects import catalogue
+from autocal.diagnosis.catalogue import catalogue
 from autocal.diagnosis.extended_fit import radiometer_weights
 from autocal.diagnosis.normal_equations import (
     FitProblem,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from autocal.diagnosis import chunks
-from autocal.diagnosis.effects import catalogue
+from autocal.diagnosis.catalogue import catalogue
 from autocal.diagnosis.extended_fit import fit_extended, radiometer_weights
 from autocal.diagnosis.normal_equations import (
     MIN_IDENTIFIABLE,
