@@ -1,4 +1,4 @@
-"""Catalogue of candidate physical effects for the discrepancy workflow (DESIGN.md section 5).
+"""Candidate physical effects for the discrepancy workflow (DESIGN.md section 5).
 
 Each effect is a parameterised extension of the forward model
 
@@ -6,8 +6,9 @@ Each effect is a parameterised extension of the forward model
                + Trxr(nu) [1 + sum_k e_k P_k(s)]}   (n = G Trxr)
 
 with per-channel ``(G, n)`` (profiled out) and a few *global* parameters shared by all
-channels, antennas and polarisations. ``P_k`` are Legendre polynomials of ``s``, the LST
-mapped onto ``[-1, 1]`` (:class:`autocal.fit.model.FitModel`).
+channels, antennas and polarisations. The entries a search tries are listed by
+:func:`autocal.diagnosis.catalogue.catalogue`. ``P_k`` are Legendre polynomials of ``s``,
+the LST mapped onto ``[-1, 1]`` (:class:`autocal.fit.lsq.FitModel`).
 
 Identifiability (constant per-channel ``G`` and ``n``):
 
@@ -24,7 +25,7 @@ Identifiability (constant per-channel ``G`` and ``n``):
   identifiable from the data alone.
 - ``cable_reflection`` (a bandpass ripple) is absorbed exactly by the per-channel ``G``;
   it is detected in the bandpass domain, on the fitted ``G(nu)``, against a smooth
-  bandpass (see :func:`autocal.diagnosis.search.fit_cable_reflection`).
+  bandpass (see :func:`autocal.diagnosis.bandpass.fit_cable_reflection`).
 
 The diagnosis measures identifiability numerically (the fraction of each template's
 Fisher information left after projecting out ``(G, n)``) and skips effects below a
@@ -34,17 +35,17 @@ threshold, so none is ever "found" through round-off.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
 from numpy.polynomial import legendre
 
 from autocal.errors import AutocalError
-from autocal.sky.beam_base import Beam, BeamEvaluator
-from autocal.sky.beam_names import get_beam
+from autocal.fit.lsq import FitModel
+from autocal.sky.beams import Beam, BeamEvaluator, get_beam
 from autocal.sky.models import T_CMB
-from autocal.tsky.compute import compute_tsky
+from autocal.tsky.engine import compute_tsky
 
 logger = logging.getLogger(__name__)
 
@@ -177,6 +178,18 @@ class SkyTemplates:
         if self.lst_derivative is not None and self.lst_derivative.shape != shape:
             raise EffectError("template lst_derivative has the wrong shape")
 
+    def subset(self, pols: slice = slice(None), channels: slice = slice(None)) -> SkyTemplates:
+        """Return the templates of some polarisations and channels."""
+        fields: dict[str, Any] = {"freqs": self.freqs[channels]}
+        for name in ("total", "galactic", "cmb", "ground", "beam_dwidth", "lst_derivative"):
+            arr = getattr(self, name)
+            fields[name] = None if arr is None else arr[pols, :, channels]
+        for name in ("f_above", "f_below"):
+            fields[name] = getattr(self, name)[pols, channels]
+        if self.beam_width_poly is not None:
+            fields["beam_width_poly"] = self.beam_width_poly[:, pols, :, channels]
+        return replace(self, **fields)
+
 
 def sky_templates(
     sky: Any,
@@ -200,7 +213,7 @@ def sky_templates(
     sky
         Sky model or spec (:func:`autocal.sky.models.get_sky`).
     beam
-        Beam or spec (:func:`autocal.sky.beam_names.get_beam`).
+        Beam or spec (:func:`autocal.sky.beams.get_beam`).
     site
         Site or name.
     freqs
@@ -254,31 +267,11 @@ def sky_templates(
         fb.append(res.f_below)
         meta = res.meta
         if timing:
-            # Tsky one LST step either side (cached harmonics, any LST grid): per second
-            # of time, a sidereal second being 1/1.0027379 of a solar one
-            ahead, behind = (
-                compute_tsky(sky, b, site, freqs, (lsts + d) % 24.0, **kw).tsky
-                for d in (LST_STEP_H, -LST_STEP_H)
-            )
-            per_hour = (ahead - behind) / (2 * LST_STEP_H)
-            parts["dt"].append(per_hour * SIDEREAL_RATE / 3600.0)
+            parts["dt"].append(_lst_derivative(sky, b, site, freqs, lsts, kw))
         if beam_width_step:
-            nodes = beam_width_step * np.array([-1.0, -0.5, 0.5, 1.0])
-            deltas = np.stack(
-                [
-                    # the widened beams' harmonics come from the Tsky cache (every
-                    # diagnosis of the night and the calibration share them)
-                    compute_tsky(
-                        sky, ScaledBeam(base=b, factor=1 + w), site, freqs, lsts, **kw
-                    ).tsky
-                    - res.tsky
-                    for w in nodes
-                ]
+            parts["bw"].append(
+                _beam_width_poly(sky, b, site, freqs, lsts, kw, beam_width_step, res.tsky)
             )
-            # solve sum_k c_k w_j^k = delta_j for c_1..c_4 (exact through the 5 nodes)
-            vander = nodes[:, None] ** np.arange(1, nodes.size + 1)[None, :]
-            coef = np.tensordot(np.linalg.inv(vander), deltas, axes=([1], [0]))
-            parts["bw"].append(coef)
     if nu0 is None:
         nu0 = float(meta.get("sky", {}).get("nu0_Hz") or 0.5 * (freqs[0] + freqs[-1]))
     return SkyTemplates(
@@ -298,13 +291,62 @@ def sky_templates(
     )
 
 
+def _lst_derivative(
+    sky: Any,
+    beam: Beam,
+    site: Any,
+    freqs: np.ndarray,
+    lsts: np.ndarray,
+    kw: dict[str, Any],
+) -> np.ndarray:
+    """Return ``dTsky / dt`` in kelvin per second of time (the ``timing_offset`` template).
+
+    Tsky one LST step either side (cached harmonics, any LST grid): per second of time, a
+    sidereal second being 1/1.0027379 of a solar one.
+    """
+    ahead, behind = (
+        compute_tsky(sky, beam, site, freqs, (lsts + d) % 24.0, **kw).tsky
+        for d in (LST_STEP_H, -LST_STEP_H)
+    )
+    per_hour = (ahead - behind) / (2 * LST_STEP_H)
+    return per_hour * SIDEREAL_RATE / 3600.0
+
+
+def _beam_width_poly(
+    sky: Any,
+    beam: Beam,
+    site: Any,
+    freqs: np.ndarray,
+    lsts: np.ndarray,
+    kw: dict[str, Any],
+    step: float,
+    tsky: np.ndarray,
+) -> np.ndarray:
+    """Return the coefficients ``c_1..c_4`` of ``Tsky(w) - Tsky(0) = sum_k c_k w^k``.
+
+    Tsky with the beam width scaled by ``1 + w`` at the nodes ``w = +-step/2, +-step``; the
+    quartic passes exactly through them and ``w = 0`` (``tsky``).
+    """
+    nodes = step * np.array([-1.0, -0.5, 0.5, 1.0])
+    deltas = np.stack(
+        [
+            # the widened beams' harmonics come from the Tsky cache (every
+            # diagnosis of the night and the calibration share them)
+            compute_tsky(sky, ScaledBeam(base=beam, factor=1 + w), site, freqs, lsts, **kw).tsky
+            - tsky
+            for w in nodes
+        ]
+    )
+    # solve sum_k c_k w_j^k = delta_j for c_1..c_4 (exact through the 5 nodes)
+    vander = nodes[:, None] ** np.arange(1, nodes.size + 1)[None, :]
+    return np.tensordot(np.linalg.inv(vander), deltas, axes=([1], [0]))
+
+
 # effects --------------------------------------------------------------------------------
 
 
 def time_basis(lsts: np.ndarray, order: int) -> np.ndarray:
     """``(order, Ntime)`` Legendre polynomials ``P_1..P_order`` of the LST on ``[-1, 1]``."""
-    from autocal.fit.model import FitModel
-
     model = FitModel.for_lsts(np.asarray(lsts), "legendre", max(order, 1))
     return legendre.legvander(model.s(lsts), order)[:, 1:].T
 
@@ -330,7 +372,7 @@ class Effect:
         ``"tsky"`` (additive change of Tsky), ``"gain"`` (relative achromatic gain
         drift), ``"noise"`` (relative achromatic noise drift), ``"bandpass"`` or
         ``"feed_gain"`` (one gain series per antenna-pol, fitted feed by feed:
-        :func:`autocal.diagnosis.search.fit_feed_gains`).
+        :func:`autocal.diagnosis.feeds.fit_feed_gains`).
     params
         Parameter names.
     units
@@ -367,6 +409,11 @@ class Effect:
                 )
             return np.eye(len(lsts))[1:]
         return time_basis(lsts, self.order)
+
+    @property
+    def label(self) -> str:
+        """``name/basis order``: the candidate's key among a diagnosis's failed candidates."""
+        return f"{self.name}/{self.basis}{self.order}"
 
     @property
     def nfree(self) -> int:
@@ -428,165 +475,3 @@ class Effect:
             "signature": self.signature,
             "basis": self.basis,
         }
-
-
-def catalogue(
-    max_drift_order: int = 2,
-    include_beam_width: bool = True,
-    ntime: int | None = None,
-    include_timing: bool = False,
-    span_h: float | None = None,
-    nfeeds: int | None = None,
-) -> list[Effect]:
-    """Return the candidate effects (drifts in every order ``1..max_drift_order``).
-
-    Parameters
-    ----------
-    max_drift_order
-        Highest Legendre order of ``gain_drift`` and ``noise_drift``.
-    include_beam_width
-        Include ``beam_width`` (needs :attr:`SkyTemplates.beam_dwidth`).
-    include_timing
-        Include ``timing_offset`` (needs :attr:`SkyTemplates.lst_derivative`).
-    span_h
-        LST span of the data (hours): the diurnal drift variants only when it is at least
-        :data:`DIURNAL_MIN_SPAN_H` (over a shorter span a sidereal-day sine and cosine are
-        nearly collinear with a constant and a linear drift).
-    ntime
-        Number of integrations: with 3 or more, include ``gain_jitter`` (one broadband
-        gain factor per integration, the first one the reference).
-    nfeeds
-        Number of antenna-pols: with 2 or more, include ``antenna_gain_drift`` (every
-        antenna-pol its own Legendre drift, orders ``1..max_drift_order``) and (with
-        ``ntime`` >= 3) ``antenna_gain_jitter``, every antenna-pol its own ``gain_jitter``
-        series (tested against a common series once ``gain_jitter`` is in the model).
-    """
-    out: list[Effect] = []
-    if ntime is not None and ntime >= 3:
-        out.append(
-            Effect(
-                "gain_jitter",
-                "gain",
-                tuple(f"eps_{t}" for t in range(1, ntime)),
-                ("1",) * (ntime - 1),
-                1,
-                signature="G(t_i) = G (1 + eps_i), every integration its own achromatic "
-                "gain factor (broadband gain fluctuations)",
-                basis="integration",
-            )
-        )
-        if nfeeds is not None and nfeeds >= 2:
-            out.append(
-                Effect(
-                    "antenna_gain_jitter",
-                    "feed_gain",
-                    ("rms",),
-                    ("1",),
-                    1,
-                    signature="G_a(t_i) = G_a (1 + eps_a,i), every antenna-pol its own "
-                    "per-integration gain series (gain fluctuations in each signal chain, "
-                    "not common to the array)",
-                    basis="feed_integration",
-                )
-            )
-    for order in range(1, max_drift_order + 1):
-        names = tuple(f"d_{k}" for k in range(1, order + 1))
-        if nfeeds is not None and nfeeds >= 2:
-            out.append(
-                Effect(
-                    "antenna_gain_drift",
-                    "feed_gain",
-                    names,
-                    ("1",) * order,
-                    order,
-                    signature="G_a(t) = G_a (1 + sum_k d_a,k P_k(s)), every antenna-pol its "
-                    "own achromatic drift (one signal chain's gain changing against the "
-                    "others')",
-                    basis="feed_legendre",
-                )
-            )
-        out.append(
-            Effect(
-                "gain_drift",
-                "gain",
-                names,
-                ("1",) * order,
-                order,
-                signature="G(t) = G (1 + sum_k d_k P_k(s)), achromatic",
-            )
-        )
-        names = tuple(f"e_{k}" for k in range(1, order + 1))
-        out.append(
-            Effect(
-                "noise_drift",
-                "noise",
-                names,
-                ("1",) * order,
-                order,
-                signature="n(t) = n (1 + sum_k e_k P_k(s)), achromatic",
-            )
-        )
-    diurnal = ("gain", "gain_drift", "d"), ("noise", "noise_drift", "e")
-    if span_h is not None and span_h < DIURNAL_MIN_SPAN_H:
-        diurnal = ()
-    for kind, name, letter in diurnal:
-        out.append(
-            Effect(
-                name,
-                kind,  # type: ignore[arg-type]
-                (f"{letter}_sin", f"{letter}_cos"),
-                ("1", "1"),
-                1,
-                signature=f"{'G' if kind == 'gain' else 'n'}(t) x (1 + {letter}_sin sin(2 pi "
-                f"L / 24 h) + {letter}_cos cos(2 pi L / 24 h)), diurnal, achromatic",
-                basis="diurnal",
-            )
-        )
-    out += [
-        Effect("sky_scale", "tsky", ("s",), ("1",), signature="S -> (1 + s) S"),
-        Effect("sky_offset", "tsky", ("T_offset",), ("K",), signature="+ T_offset f_above"),
-        Effect(
-            "sky_spectral_index",
-            "tsky",
-            ("dbeta",),
-            ("1",),
-            signature="S -> S (nu / nu0)^dbeta",
-        ),
-        Effect("ground_temperature", "tsky", ("dT_gnd",), ("K",), signature="+ dT f_below"),
-        Effect(
-            "missing_cmb",
-            "tsky",
-            ("cmb_factor",),
-            ("1",),
-            signature="+ m 2.725 K f_above, m = -1 (no CMB in data) or +1 (CMB missed)",
-        ),
-        Effect(
-            "cable_reflection",
-            "bandpass",
-            ("a", "tau_ns", "phi"),
-            ("1", "ns", "rad"),
-            signature="G(nu) smooth x (1 + a cos(2 pi nu tau + phi))",
-        ),
-    ]
-    if include_timing:
-        out.append(
-            Effect(
-                "timing_offset",
-                "tsky",
-                ("dt_s",),
-                ("s",),
-                signature="Tsky(t + dt): a clock or LST error, or a sky in a frame rotated in "
-                "right ascension (e.g. J2000 instead of the frame of date)",
-            )
-        )
-    if include_beam_width:
-        out.append(
-            Effect(
-                "beam_width",
-                "tsky",
-                ("w",),
-                ("1",),
-                signature="beam width x (1 + w): + sum_k c_k w^k (quartic via Tsky at 4 widths)",
-            )
-        )
-    return out

@@ -34,8 +34,11 @@ import numpy as np
 
 from autocal.core.coords import night_epoch
 from autocal.core.observation import Observation
-from autocal.diagnosis.effects import Effect, ScaledBeam, SkyTemplates, catalogue, sky_templates
+from autocal.diagnosis.catalogue import catalogue
+from autocal.diagnosis.effects import Effect, ScaledBeam, SkyTemplates, sky_templates
+from autocal.diagnosis.stepwise import diagnose
 from autocal.errors import AutocalError
+from autocal.io.uvh5 import read_uvh5, write_uvh5
 from autocal.simulate.mock import (
     SimulationConfig,
     gain_profile,
@@ -43,7 +46,8 @@ from autocal.simulate.mock import (
     mock_autos,
     simulate,
 )
-from autocal.tsky.compute import compute_tsky
+from autocal.sky.beams import get_beam
+from autocal.tsky.engine import compute_tsky
 
 logger = logging.getLogger(__name__)
 
@@ -182,8 +186,6 @@ class HiddenGenerator:
         cfg, obs = self.config, self.base
         out = []
         for pol in cfg.pols:
-            from autocal.sky.beam_names import get_beam
-
             beam = ScaledBeam(base=get_beam(cfg.beam, pol), factor=1.0 + w)
             res = compute_tsky(
                 cfg.sky,
@@ -246,8 +248,6 @@ class HiddenGenerator:
 
     def write(self, case: HiddenCase, path: str | Path) -> Path:
         """Write the case as UVH5 at ``path`` and its truth as ``<path>.truth.json``."""
-        from autocal.io.uvh5 import write_uvh5
-
         path = Path(path)
         write_uvh5(
             self.observation(case),
@@ -383,9 +383,6 @@ def run_case(
     The diagnosis gets the true receiver temperature as a prior (``trxr_prior_sigma``
     kelvin), which the time-constant effects need (:data:`NEEDS_PRIOR`).
     """
-    from autocal.diagnosis.search import diagnose
-    from autocal.io.uvh5 import read_uvh5
-
     path = generator.write(case, Path(workdir) / f"hidden_{case.seed}.uvh5")
     obs = read_uvh5(path)
     diag = diagnose(

@@ -4,12 +4,13 @@
 
 The shared entry point of ``autocal diagnose`` and the service's ``diagnose`` jobs
 (:mod:`autocal.service.worker`). :func:`run_diagnosis` reads the autos
-(:func:`read_observation`, a block of integrations at a time), computes the model Tsky and
-the templates of the candidate effects (:func:`autocal.diagnosis.effects.sky_templates`), runs the
-discrepancy workflow (:func:`autocal.diagnosis.search.diagnose`, DESIGN.md section 5) and writes
-its products: ``diagnosis.json``, ``summary.txt``, the residual plots
-(:func:`autocal.diagnosis.search.write_diagnosis`) and ``summary.json`` (accepted effects, final
-gap, provenance, timings).
+(:func:`autocal.diagnosis.reading.read_observation`, a block of integrations at a time),
+computes the model Tsky and the templates of the candidate effects
+(:func:`autocal.diagnosis.effects.sky_templates`), runs the discrepancy workflow
+(:func:`autocal.diagnosis.stepwise.diagnose`, DESIGN.md section 5) and writes its products:
+``diagnosis.json``, ``summary.txt``, the residual plots
+(:func:`autocal.diagnosis.report.write_diagnosis`) and ``summary.json`` (accepted effects,
+final gap, provenance, timings).
 
 As in :mod:`autocal.pipeline.calibrate`, products are written to a staging folder inside ``out``
 and moved into place only when all of them succeeded (``summary.json`` last), so a failed
@@ -38,9 +39,18 @@ from pydantic import (
     model_validator,
 )
 
+from autocal import __version__
 from autocal.core.coords import night_epoch
-from autocal.diagnosis.search import ALPHA, BIC_THRESHOLD, DiagnoseError
-from autocal.pipeline.config import PipelineError, check_prior_spec, check_ranges
+from autocal.core.observation import Observation
+from autocal.diagnosis import effects, report
+from autocal.diagnosis.effects import SkyTemplates
+from autocal.diagnosis.errors import DiagnoseError
+from autocal.diagnosis.reading import read_observation
+from autocal.diagnosis.report import Diagnosis
+from autocal.diagnosis.stepwise import diagnose
+from autocal.diagnosis.trials import ALPHA, BIC_THRESHOLD
+from autocal.fit.priors import parse_trxr_prior
+from autocal.pipeline.calibrate import PipelineError, check_prior_spec, check_ranges
 
 logger = logging.getLogger(__name__)
 
@@ -56,7 +66,7 @@ class DiagnoseConfig(BaseModel):
 
     Frequencies in MHz, LSTs in hours, temperatures in kelvin. The statistic settings
     (``bic_threshold``, ``alpha``, ``max_steps``) default to those of
-    :func:`autocal.diagnosis.search.diagnose`.
+    :func:`autocal.diagnosis.stepwise.diagnose`.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
@@ -68,7 +78,7 @@ class DiagnoseConfig(BaseModel):
         "gsm2008", min_length=1, description="model sky (autocal.sky.models.get_sky spec)"
     )
     beam: str = Field(
-        "hera", min_length=1, description="model beam (autocal.sky.beam_names.get_beam spec)"
+        "hera", min_length=1, description="model beam (autocal.sky.beams.get_beam spec)"
     )
     tgnd_k: float = Field(300.0, ge=0.0, description="model ground temperature")
     nside: int = Field(64, ge=1, le=8192, description="HEALPix resolution of the templates")
@@ -179,9 +189,10 @@ def _beam_pols(pols: tuple[str, ...]) -> tuple[str, ...]:
 #: pol x channel x integration), measured with ``benchmarks/diagnose_scale.py`` (``autocal
 #: diagnose`` on the first file of the HERA-size night, 192 integrations x 1536 channels x 2
 #: pols; README, "Diagnosing", **Size.**): 1.83 GB for 30 antennas (17.7 M samples), 6.33 GB
-#: for all 350 (206 M). The fit streams antennas in chunks (:func:`autocal.diagnosis.search.
-#: fit_extended`), so what grows with the samples is the observation (float64 data, flags),
-#: the float32 weights and, while outliers are flagged, their high-passed residuals.
+#: for all 350 (206 M). The fit streams antennas in chunks
+#: (:func:`autocal.diagnosis.extended_fit.fit_extended`), so what grows with the samples is the
+#: observation (float64 data, flags), the float32 weights and, while outliers are flagged,
+#: their high-passed residuals.
 BASE_BYTES = 1.5e9
 #: See :data:`BASE_BYTES` (the slope between those two runs, 23.8 bytes, rounded up).
 BYTES_PER_SAMPLE = 26.0
@@ -220,7 +231,7 @@ def check_memory(shape: tuple[int, ...]) -> None:
 
     Raises
     ------
-    autocal.diagnosis.search.DiagnoseError
+    autocal.diagnosis.errors.DiagnoseError
         When the estimate (:data:`BASE_BYTES` + :data:`BYTES_PER_SAMPLE` per sample) exceeds
         :func:`available_memory`.
     """
@@ -236,118 +247,6 @@ def check_memory(shape: tuple[int, ...]) -> None:
             "API 'antennas'), channels (--freq-range) or LSTs (--lst-range)"
         )
     logger.debug("diagnosis of %d samples: about %.1f GB", nsamples, need / 1e9)
-
-
-def read_observation(
-    paths: list[Path],
-    *,
-    antennas: list[int] | None = None,
-    pols: list[str] | None = None,
-    freq_range: tuple[float, float] | None = None,
-    lst_range: tuple[float, float] | None = None,
-    check: Callable[[tuple[int, int, int, int]], None] | None = None,
-) -> Any:
-    """Read the autos of UVH5 files into one observation, a block of integrations at a time.
-
-    The values are those :func:`autocal.io.uvh5.read_uvh5` returns for the same selections,
-    but the blocks (:func:`autocal.io.uvh5.iter_uvh5`) are copied straight into the
-    observation's arrays: :func:`~autocal.io.uvh5.read_uvh5` holds several copies of the
-    data while it joins them (a peak of 8.0 GB for a whole HERA file, whose observation is
-    1.9 GB). ``nsamples`` uniform over the observation are kept as one number.
-
-    Parameters
-    ----------
-    paths
-        The UVH5 files.
-    antennas, pols, freq_range, lst_range
-        As for :func:`~autocal.io.uvh5.read_uvh5` (``freq_range`` in Hz).
-    check
-        Called with ``(Nant, Npol, Ntime, Nfreq)`` (``Ntime``: every integration of the
-        files, before the LST selection) once the first block is read, before the
-        observation's arrays are allocated (:func:`check_memory`).
-
-    Returns
-    -------
-    autocal.core.observation.Observation
-        The observation.
-    """
-    from autocal.core.observation import Observation
-    from autocal.io.uvh5 import iter_uvh5
-    from autocal.io.uvh5_meta import scan_uvh5
-
-    files = scan_uvh5(paths)
-    ntime_max = sum(f.jds.size for f in files)
-    data = flags = nsamples = None
-    uniform: float | None = None
-    first: Any = None
-    lsts, jds, tint, sha, used = [], [], [], {}, []
-    t = 0
-    for block in iter_uvh5(
-        paths,
-        antennas=antennas,
-        pols=pols,
-        freq_range=freq_range,
-        lst_range=lst_range,
-        block_size=0,
-    ):
-        nant, npol, nt, nfreq = block.data.shape
-        if first is None:
-            first = block
-            if check is not None:
-                check((nant, npol, ntime_max, nfreq))
-            data = np.empty((nant, npol, ntime_max, nfreq))
-            flags = np.empty(data.shape, bool)
-            uniform = float(block.nsamples.flat[0])
-        assert data is not None and flags is not None
-        data[:, :, t : t + nt] = block.data
-        flags[:, :, t : t + nt] = block.flags
-        if nsamples is None and not np.all(block.nsamples == uniform):
-            nsamples = np.empty(data.shape)
-            nsamples[:, :, :t] = uniform
-        if nsamples is not None:
-            nsamples[:, :, t : t + nt] = block.nsamples
-        lsts.append(block.lsts)
-        jds.append(block.jds)
-        tint.append(block.integration_time)
-        sha.update(block.meta.get("sha256", {}))
-        used += [f for f in block.meta.get("files", []) if f not in used]
-        t += nt
-    if first is None or data is None or flags is None:
-        raise DiagnoseError(f"no integrations in LST range {lst_range} h in {paths}")
-    if t < ntime_max:  # an LST selection: keep only what was read
-        data = np.ascontiguousarray(data[:, :, :t])
-        flags = np.ascontiguousarray(flags[:, :, :t])
-        nsamples = None if nsamples is None else np.ascontiguousarray(nsamples[:, :, :t])
-    obs = Observation(
-        data=data,
-        freqs=first.freqs,
-        lsts=np.concatenate(lsts),
-        jds=np.concatenate(jds),
-        antennas=first.antennas,
-        pols=first.pols,
-        site=first.site,
-        flags=flags,
-        channel_width=first.channel_width,
-        integration_time=np.concatenate(tint),
-        nsamples=uniform if nsamples is None else nsamples,
-        antenna_names=first.antenna_names,
-        telescope_name=first.telescope_name,
-        meta={
-            "source": "uvh5",
-            "files": used,
-            "sha256": sha,
-            **{k: first.meta[k] for k in ("x_orientation", "vis_units") if k in first.meta},
-        },
-    )
-    logger.info(
-        "read %d file(s): %d antennas, pols %s, %d times, %d channels",
-        len(used),
-        obs.nant,
-        ",".join(obs.pols),
-        obs.ntime,
-        obs.nfreq,
-    )
-    return obs
 
 
 def run_diagnosis(
@@ -373,7 +272,7 @@ def run_diagnosis(
         Called with (fraction done, message) at each stage.
     should_stop
         Polled between stages and before every model fit of the search; returning
-        ``True`` aborts with :class:`autocal.pipeline.config.PipelineError` ``"cancelled"`` (the
+        ``True`` aborts with :class:`autocal.pipeline.calibrate.PipelineError` ``"cancelled"`` (the
         service's cancellation) and publishes nothing.
 
     Returns
@@ -383,22 +282,19 @@ def run_diagnosis(
 
     Raises
     ------
-    autocal.diagnosis.search.DiagnoseError
+    autocal.diagnosis.errors.DiagnoseError
         Missing inputs, folders instead of UVH5 files, polarisations without a beam, or
         data the diagnosis cannot fit.
-    autocal.pipeline.config.PipelineError
+    autocal.pipeline.calibrate.PipelineError
         When cancelled.
     """
-    from autocal import __version__
-    from autocal.diagnosis.effects import sky_templates
-    from autocal.diagnosis.search import diagnose, write_diagnosis
 
     def check_stop() -> None:
         if should_stop is not None and should_stop():
             logger.info("diagnosis cancelled")
             raise PipelineError("cancelled")
 
-    def report(fraction: float, message: str) -> None:
+    def advance(fraction: float, message: str) -> None:
         logger.info("%3.0f%% %s", 100 * fraction, message)
         if progress is not None:
             progress(fraction, message)
@@ -410,10 +306,8 @@ def run_diagnosis(
     paths = _input_paths(config)
     prior = None
     if config.trxr_prior is not None:  # a malformed prior fails before any reading
-        from autocal.fit.priors import parse_trxr_prior
-
         prior = parse_trxr_prior(config.trxr_prior, sigma_k=config.trxr_prior_sigma_k)
-    report(0.0, f"reading {len(paths)} UVH5 file(s)")
+    advance(0.0, f"reading {len(paths)} UVH5 file(s)")
     mhz = config.freq_range_mhz
     obs = read_observation(
         paths,
@@ -430,25 +324,15 @@ def run_diagnosis(
 
     beam_pols = _beam_pols(tuple(p.lower() for p in obs.pols))
     epoch = night_epoch(obs.jds, obs.site.lon_deg)
-    report(
+    advance(
         0.15,
         f"sky templates for {len(beam_pols)} pol(s), {obs.nfreq} channels, {obs.ntime} LSTs",
     )
     t1 = time.perf_counter()
-    templates = sky_templates(
-        config.sky,
-        config.beam,
-        obs.site,
-        obs.freqs,
-        obs.lsts,
-        pols=beam_pols,
-        tgnd=config.tgnd_k,
-        nside=config.nside,
-        epoch=epoch,
-    )
+    templates = _templates(config, obs, beam_pols, epoch)
     timings["templates_s"] = time.perf_counter() - t1
 
-    report(
+    advance(
         0.5,
         f"diagnosing {len(obs.antennas)} antenna(s) x {len(obs.pols)} pol(s): fitting the "
         "model and the candidate effects",
@@ -462,13 +346,51 @@ def run_diagnosis(
         bic_threshold=config.bic_threshold,
         alpha=config.alpha,
         max_steps=config.max_steps,
-        progress=lambda fraction, message: report(0.5 + 0.4 * fraction, message),
+        progress=lambda fraction, message: advance(0.5 + 0.4 * fraction, message),
     )
     timings["diagnose_s"] = time.perf_counter() - t2
     logger.info("accepted effects: %s", ", ".join(diag.effects) or "none")
 
-    report(0.9, "writing products")
+    advance(0.9, "writing products")
     t3 = time.perf_counter()
+    summary = _summary(config, obs, paths, templates, epoch, diag)
+
+    def write(staging: Path) -> None:
+        report.write_diagnosis(diag, staging, obs)
+
+    products = _publish(out, write, summary, timings, t0, t3, check_stop)
+    logger.info("wrote %d products to %s", len(products), out)
+    if progress is not None:  # the products are in place: too late to cancel
+        progress(1.0, f"done: {', '.join(diag.effects) or 'no significant effect'}")
+    return out
+
+
+def _templates(
+    config: DiagnoseConfig, obs: Observation, beam_pols: tuple[str, ...], epoch: float
+) -> SkyTemplates:
+    """Compute the model Tsky and the candidates' templates on the observation's grid."""
+    return effects.sky_templates(
+        config.sky,
+        config.beam,
+        obs.site,
+        obs.freqs,
+        obs.lsts,
+        pols=beam_pols,
+        tgnd=config.tgnd_k,
+        nside=config.nside,
+        epoch=epoch,
+    )
+
+
+def _summary(
+    config: DiagnoseConfig,
+    obs: Observation,
+    paths: list[Path],
+    templates: SkyTemplates,
+    epoch: float,
+    diag: Diagnosis,
+) -> dict[str, Any]:
+    """Return ``summary.json`` without its products and timings (:func:`_publish` adds them)."""
     tsky_meta = templates.meta.get("tsky", {})
     provenance = {
         "autocal_version": __version__,
@@ -486,7 +408,7 @@ def run_diagnosis(
         "created_unix": time.time(),
     }
     doc = diag.to_dict()
-    summary: dict[str, Any] = {
+    return {
         "kind": "diagnose",
         "effects": list(diag.effects),
         "steps": [
@@ -504,15 +426,6 @@ def run_diagnosis(
         "config": config.model_dump(mode="json"),
         "provenance": provenance,
     }
-
-    def write(staging: Path) -> None:
-        write_diagnosis(diag, staging, obs)
-
-    products = _publish(out, write, summary, timings, t0, t3, check_stop)
-    logger.info("wrote %d products to %s", len(products), out)
-    if progress is not None:  # the products are in place: too late to cancel
-        progress(1.0, f"done: {', '.join(diag.effects) or 'no significant effect'}")
-    return out
 
 
 def _publish(

@@ -26,6 +26,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from autocal.fit.priors import parse_trxr_prior
+from autocal.io.uvh5 import read_uvh5
 from tests import independent_effects as ie
 from tests import independent_sim as sim
 
@@ -157,8 +159,6 @@ def test_simulation_kwargs_inject_the_catalogue_effects() -> None:
 
 def test_trxr_prior_table_reads_back(tmp_path: Path) -> None:
     """The per-channel CSV prior is what autocal's prior reader gives on the channels."""
-    from autocal.fit.priors import parse_trxr_prior
-
     freqs = sim.default_freqs()
     trxr = ie.receiver_temperature(freqs)
     path = ie.write_trxr_prior(tmp_path / "p.csv", freqs, trxr, 1.0)
@@ -221,8 +221,6 @@ def test_beam_width_changes_the_beam(data_root: Path) -> None:
 @pytest.mark.data
 def test_noise_drift_is_in_the_file(tmp_path: Path, data_root: Path) -> None:
     """Trxr (1 + e_1 s), s from -1 to +1, is what the file holds (noise made negligible)."""
-    from autocal.io.uvh5 import read_uvh5
-
     freqs = sim.default_freqs()[::10]
     truth = sim.simulate_autos(
         tmp_path / "nd.uvh5",

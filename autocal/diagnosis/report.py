@@ -1,0 +1,247 @@
+"""The diagnosis's result and its products: diagnosis.json, summary.txt and plots.
+
+:class:`Diagnosis` is what a search (:func:`autocal.diagnosis.stepwise.diagnose`) finds;
+:func:`write_diagnosis` writes it (:func:`summary_text` is the human-readable summary).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from autocal.core.observation import Observation
+from autocal.diagnosis.extended_fit import ExtendedFit
+from autocal.diagnosis.impact import NEGLIGIBLE_G_FRACTION, NEGLIGIBLE_TRXR_K
+from autocal.diagnosis.normal_equations import IDENTIFIABLE_RESOLUTION, MIN_IDENTIFIABLE
+from autocal.plots import plot_gain_series, plot_residuals
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class Diagnosis:
+    """Result of :func:`~autocal.diagnosis.stepwise.diagnose`.
+
+    Attributes
+    ----------
+    steps
+        One dict per accepted step: ``name``, ``parameters`` ``{p: {value, sigma}}``,
+        ``statistic`` (Delta BIC), ``delta`` (Delta chi^2), ``gap_before``,
+        ``gap_after``, ``candidates`` (every candidate's Delta BIC).
+    effects
+        Names of the accepted effects, in order.
+    initial_gap, final_gap
+        Gap metrics of the starting and final models.
+    identifiability
+        ``{effect: fraction of Fisher information not absorbed by (G, n)}`` at the start
+        (0: below :data:`~autocal.diagnosis.normal_equations.IDENTIFIABLE_RESOLUTION`,
+        degenerate with ``(G, n)``).
+    config
+        Statistic, threshold, prior and settings.
+    residual_snapshots
+        ``[(label, (Ntime, Nfreq) normalised residuals of antenna 0, pol 0)]``.
+    product_change
+        How the calibration products change from the starting model to the diagnosed one
+        (:func:`~autocal.diagnosis.impact.product_impact`); each step has its own under
+        ``product_impact``.
+    unexplained
+        ``None`` when the final model fits to within the noise; else what remains and its
+        structure (:func:`~autocal.diagnosis.gap.describe_unexplained`): no catalogue entry
+        explains it.
+    negligible
+        Effects detected (significant by the same test, kept in the fitted model) whose
+        impact on ``G`` and ``Trxr`` is negligible
+        (:func:`~autocal.diagnosis.impact.is_negligible`): reported as "detected,
+        negligible", not named among :attr:`effects`; their steps say ``negligible: true``.
+    """
+
+    steps: list[dict[str, Any]] = field(default_factory=list)
+    effects: list[str] = field(default_factory=list)
+    initial_gap: dict[str, Any] = field(default_factory=dict)
+    final_gap: dict[str, Any] = field(default_factory=dict)
+    identifiability: dict[str, float] = field(default_factory=dict)
+    config: dict[str, Any] = field(default_factory=dict)
+    residual_snapshots: list[tuple[str, np.ndarray]] = field(default_factory=list, repr=False)
+    final_fit: ExtendedFit | None = field(default=None, repr=False)
+    final_parameters: dict[str, dict[str, Any]] = field(default_factory=dict)
+    product_change: dict[str, Any] = field(default_factory=dict)
+    unexplained: dict[str, Any] | None = None
+    negligible: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serialisable form (without residual arrays)."""
+        return {
+            "effects": self.effects,
+            "negligible": self.negligible,
+            "unexplained": self.unexplained,
+            "steps": self.steps,
+            "initial_gap": self.initial_gap,
+            "final_gap": self.final_gap,
+            "identifiability": self.identifiability,
+            "final_parameters": self.final_parameters,
+            "product_change": self.product_change,
+            "config": self.config,
+        }
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def summary_text(diag: Diagnosis) -> str:
+    """Human-readable summary of a diagnosis."""
+    g0 = diag.initial_gap
+    lines = [
+        "autocal diagnose",
+        f"statistic: {diag.config.get('statistic')}",
+        f"threshold: Delta BIC > {diag.config.get('bic_threshold')} and "
+        f"p < {diag.config.get('alpha')}",
+        f"initial gap: chi2/dof = {g0.get('reduced_chi2', float('nan')):.4f}, "
+        f"rms residual = {g0.get('rms_normalised_residual', float('nan')):.3f}",
+        "",
+    ]
+    if not diag.steps and not diag.unexplained:
+        lines.append("no significant effect found: the model is consistent with the data")
+    elif not diag.steps:
+        lines.append("no catalogue entry explains the gap (see 'unexplained' below)")
+    for i, st in enumerate(diag.steps, 1):
+        pars = ", ".join(
+            f"{k} = {v['value']:.5g} +- {v['sigma']:.2g}" for k, v in st["parameters"].items()
+        )
+        marks = " [negligible]" if st.get("negligible") else ""
+        if st.get("superseded_by"):
+            marks += f" [superseded by {st['superseded_by']}]"
+        if st.get("dropped_in_backward_pass"):
+            marks += f" [dropped at {st['dropped_in_backward_pass'].get('at', 'a re-test')}]"
+        lines.append(
+            f"step {i}: {st['name']}{marks} ({pars}); "
+            f"Delta BIC = {st['statistic']:.1f}, "
+            f"Delta chi2 = {st['delta']:.1f}; chi2/dof {st['gap_before']['reduced_chi2']:.4f} "
+            f"-> {st['gap_after']['reduced_chi2']:.4f}"
+        )
+        if st.get("product_impact"):
+            lines.append("  " + _impact_text(st["product_impact"]))
+    if diag.negligible:
+        lines.append(
+            "detected, negligible for the calibration products (kept in the fit, not named): "
+            + ", ".join(diag.negligible)
+        )
+    rej = diag.config.get("last_rejected")
+    if rej:
+        lines.append(
+            f"best remaining candidate {rej['name']}: Delta BIC = {rej['statistic']:.1f} "
+            f"({rej.get('reason') or 'not significant'})"
+        )
+    lines.append("")
+    lines.append("not identifiable from these data (Fisher fraction after (G, n) projection):")
+    for name, frac in sorted(diag.identifiability.items()):
+        if frac < MIN_IDENTIFIABLE:
+            shown = f"{frac:.2e}" if frac > 0 else f"< {IDENTIFIABLE_RESOLUTION:.0e} (degenerate)"
+            lines.append(f"  {name}: {shown}")
+    fg = diag.final_gap
+    lines.append(
+        f"final gap: chi2/dof = {fg.get('reduced_chi2', float('nan')):.4f}, "
+        f"rms residual = {fg.get('rms_normalised_residual', float('nan')):.3f}"
+    )
+    if diag.unexplained:
+        lines.append(diag.unexplained["message"])
+    if diag.steps and diag.product_change:
+        lines.append("calibration products, starting model -> diagnosed model: ")
+        lines.append("  " + _impact_text(diag.product_change))
+    return "\n".join(lines) + "\n"
+
+
+def _impact_text(impact: dict[str, Any]) -> str:
+    """One line on how G and Trxr moved (see :func:`~autocal.diagnosis.impact.product_impact`)."""
+    g, t = impact.get("G", {}), impact.get("Trxr", {})
+    nan = float("nan")
+    if "median_change_over_sigma" not in g:
+        return "no channel to compare"
+    verdict = "significant" if impact.get("significant") else "within the errors"
+    return (
+        f"G changes by {100 * g['median_relative_change']:+.2g} % (median; "
+        f"{g['median_change_over_sigma']:.2g} total sigma, worst channel "
+        f"{g['max_change_over_sigma']:.2g}); Trxr by {t.get('median_change_K', nan):+.3g} K "
+        f"({t.get('median_change_over_sigma', nan):.2g} sigma, worst "
+        f"{t.get('max_change_over_sigma', nan):.2g}): {verdict}" + _time_change_text(impact)
+    )
+
+
+def _time_change_text(impact: dict[str, Any]) -> str:
+    """How the products' variation in time changed, when it did.
+
+    See :func:`~autocal.diagnosis.impact.is_negligible`.
+    """
+    gt, tt = impact.get("G_time", {}), impact.get("Trxr_time", {})
+    parts = []
+    if gt.get("max_abs_relative_change", 0.0) >= NEGLIGIBLE_G_FRACTION:
+        parts.append(
+            f"G(t) {100 * gt['rms_relative_change']:.2g} % rms over time (largest "
+            f"{100 * gt['max_abs_relative_change']:.2g} %)"
+        )
+    if tt.get("max_abs_change_K", 0.0) >= NEGLIGIBLE_TRXR_K:
+        parts.append(
+            f"Trxr(t) up to {tt['median_max_abs_change_K']:.3g} K (median channel; largest "
+            f"{tt['max_abs_change_K']:.3g} K)"
+        )
+    return f"; in time: {', '.join(parts)}" if parts else ""
+
+
+def write_diagnosis(diag: Diagnosis, out_dir: str | Path, obs: Observation | None = None) -> Path:
+    """Write ``diagnosis.json``, ``summary.txt`` and plots.
+
+    The plots: residual waterfalls before/after each step, and ``gain_series.png`` (the
+    per-integration gain series of ``gain_jitter`` / ``antenna_gain_jitter`` steps).
+
+    Parameters
+    ----------
+    diag
+        The diagnosis.
+    out_dir
+        Output folder (created).
+    obs
+        The observation (axes of the residual plots); without it the plots use indices.
+
+    Returns
+    -------
+    Path
+        The folder.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "diagnosis.json").write_text(json.dumps(_jsonable(diag.to_dict()), indent=2))
+    (out / "summary.txt").write_text(summary_text(diag))
+    snaps = diag.residual_snapshots
+    for i in range(1, len(snaps)):
+        before, after = snaps[i - 1], snaps[i]
+        nt, nf = after[1].shape
+        freqs = obs.freqs if obs is not None else np.arange(nf) * 1e6
+        lsts = obs.lsts if obs is not None else np.arange(nt, dtype=float)
+        plot_residuals(
+            [before[0], after[0]],
+            np.stack([before[1], after[1]]),
+            freqs,
+            lsts,
+            out / f"residuals_step{i}.png",
+        )
+    if len(snaps) == 1 and obs is not None:
+        plot_residuals([snaps[0][0]], snaps[0][1][None], obs.freqs, obs.lsts, out / "residuals.png")
+    plot_gain_series(diag.steps, out / "gain_series.png")
+    logger.info("wrote diagnosis to %s", out)
+    return out

@@ -1,0 +1,28 @@
+"""The effects' templates."""
+
+from __future__ import annotations
+
+import numpy as np
+
+import autocal.tsky.engine
+from autocal.core.sites import HERA
+from autocal.diagnosis.effects import sky_templates
+
+
+def test_beam_width_templates_come_from_the_tsky_cache(tmp_cache, monkeypatch) -> None:
+    """The four widened beams of the beam_width template are cached Tsky harmonics: a
+    second diagnosis of the night computes none of them again (same templates)."""
+    freqs = np.linspace(120e6, 180e6, 4)
+    lsts = np.linspace(0.0, 23.0, 24)
+    kw = {"pols": ("ee",), "nside": 16, "epoch": 2458116.0}
+    first = sky_templates("uniform:300", "dipole", HERA, freqs, lsts, **kw)
+    assert len(list(tmp_cache.rglob("*.h5"))) >= 4
+    real = autocal.tsky.engine.tsky_harmonics
+
+    def no_widened_beams(sky, beam, *args, **kwargs):
+        assert "scaled" not in str(beam.describe()), "a widened beam was computed again"
+        return real(sky, beam, *args, **kwargs)
+
+    monkeypatch.setattr(autocal.tsky.engine, "tsky_harmonics", no_widened_beams)
+    second = sky_templates("uniform:300", "dipole", HERA, freqs, lsts, **kw)
+    np.testing.assert_allclose(second.beam_width_poly, first.beam_width_poly, rtol=1e-12)

@@ -1,0 +1,54 @@
+"""An effect's impact on the calibration products, and negligibility."""
+
+from __future__ import annotations
+
+from autocal.diagnosis.impact import is_negligible
+
+
+def test_negligible_needs_a_verdict_on_most_channels() -> None:
+
+    tiny = {
+        "channels": 161,
+        "of": 161,
+        "median_change_over_sigma": 0.01,
+        "max_change_over_sigma": 0.05,
+    }
+    impact = {
+        "G": {**tiny, "median_relative_change": 1e-5, "median_abs_relative_change": 1e-5},
+        "Trxr": {**tiny, "median_change_K": 0.01, "median_abs_change_K": 0.01},
+    }
+    impact["G"]["max_abs_relative_change"] = 2e-5
+    impact["Trxr"]["max_abs_change_K"] = 0.02
+    assert is_negligible(impact)
+    # the yardstick calibration failed in 158 of 161 channels: no verdict, not negligible
+    few = {name: {**entry, "channels": 3} for name, entry in impact.items()}
+    assert not is_negligible(few)
+    # tiny in absolute terms (below the sky model's accuracy) though many sigma
+    precise = {
+        "G": {**impact["G"], "median_change_over_sigma": 0.6, "median_abs_relative_change": 2e-4},
+        "Trxr": {**impact["Trxr"], "median_change_over_sigma": 0.5, "median_abs_change_K": 0.2},
+    }
+    assert is_negligible(precise)
+    big = {**precise, "G": {**precise["G"], "median_abs_relative_change": 0.02}}
+    assert not is_negligible(big)
+    # a change alternating in sign: its signed median is ~0, its absolute one is not
+    alternating = {**precise, "G": {**precise["G"], "median_relative_change": 0.0}}
+    alternating["G"]["median_abs_relative_change"] = 0.05
+    assert not is_negligible(alternating)
+    # below the sky model's accuracy it does not matter how many sigma the change is ...
+    sharp = {**precise, "Trxr": {**precise["Trxr"], "max_change_over_sigma": 1.5}}
+    assert is_negligible(sharp)
+    # ... unless a channel moves by ten times that accuracy
+    spike = {**sharp, "Trxr": {**sharp["Trxr"], "max_abs_change_K": 12.0}}
+    assert not is_negligible(spike)
+    # the products' variation in time must stay put as well: a 1 % rms jitter is not
+    # negligible to whoever applies the gains per integration, however well the time
+    # means agree
+    jitter = {**impact, "G_time": {"rms_relative_change": 1e-2, "max_abs_relative_change": 3e-2}}
+    assert not is_negligible(jitter)
+    steady = {**impact, "G_time": {"rms_relative_change": 1e-4, "max_abs_relative_change": 3e-4}}
+    assert is_negligible(steady)
+    drifting = {**impact, "Trxr_time": {"median_max_abs_change_K": 3.0, "max_abs_change_K": 5.0}}
+    assert not is_negligible(drifting)
+    # an effect that removes a fifth of the noise variance per sample is never negligible
+    assert not is_negligible(steady, chi2_share=0.2) and is_negligible(steady, chi2_share=0.01)
