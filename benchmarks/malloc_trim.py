@@ -24,7 +24,7 @@ import sys, time
 import numpy as np
 from autocal.fit import FitModel
 from autocal.io.uvh5 import scan_uvh5
-from autocal.pipeline.calibrate import FileTask, PartialSpec, compute_partial
+from autocal.pipeline.partials import FileTask, PartialSpec, compute_partial
 for path in sys.argv[1:]:
     open(path, "rb").read()  # page cache: time the decoding, not the disk
     file = scan_uvh5([path])[0]

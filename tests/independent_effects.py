@@ -101,7 +101,7 @@ PRIOR_SIGMA_K = 1.0
 DNU_DT = 1e6
 #: Seed of the suite (:func:`case_seed`).
 SUITE_SEED = 20260
-#: Delta BIC the diagnosis requires by default (:data:`autocal.diagnosis.search.BIC_THRESHOLD`).
+#: Delta BIC the diagnosis requires by default (:data:`autocal.diagnosis.trials.BIC_THRESHOLD`).
 BIC_THRESHOLD = 10.0
 
 

@@ -176,7 +176,7 @@ def test_import_is_lazy_and_diagnose_is_callable() -> None:
         "assert 'autocal.pipeline.calibrate' not in sys.modules, 'pipeline imported eagerly'\n"
         "assert callable(autocal.calibrate) and 'autocal.pipeline.calibrate' in sys.modules\n"
         "assert 'autocal.diagnosis.run' not in sys.modules, 'diagnosis imported eagerly'\n"
-        "import autocal.diagnosis.search\n"
+        "import autocal.diagnosis.stepwise\n"
         "assert autocal.diagnose is autocal.api.diagnose, 'a submodule shadows autocal.diagnose'\n"
         "assert issubclass(autocal.AutocalError, ValueError)\n"
     )

@@ -8,7 +8,7 @@ Each effect is a parameterised extension of the forward model
 with per-channel ``(G, n)`` (profiled out) and a few *global* parameters shared by all
 channels, antennas and polarisations. The entries a search tries are listed by
 :func:`autocal.diagnosis.catalogue.catalogue`. ``P_k`` are Legendre polynomials of ``s``,
-the LST mapped onto ``[-1, 1]`` (:class:`autocal.fit.lsq.FitModel`).
+the LST mapped onto ``[-1, 1]`` (:class:`autocal.fit.model.FitModel`).
 
 Identifiability (constant per-channel ``G`` and ``n``):
 
@@ -42,10 +42,11 @@ import numpy as np
 from numpy.polynomial import legendre
 
 from autocal.errors import AutocalError
-from autocal.fit.lsq import FitModel
-from autocal.sky.beams import Beam, BeamEvaluator, get_beam
+from autocal.fit.model import FitModel
+from autocal.sky.beam_base import Beam, BeamEvaluator
+from autocal.sky.beam_names import get_beam
 from autocal.sky.models import T_CMB
-from autocal.tsky.engine import compute_tsky
+from autocal.tsky.compute import compute_tsky
 
 logger = logging.getLogger(__name__)
 
@@ -213,7 +214,7 @@ def sky_templates(
     sky
         Sky model or spec (:func:`autocal.sky.models.get_sky`).
     beam
-        Beam or spec (:func:`autocal.sky.beams.get_beam`).
+        Beam or spec (:func:`autocal.sky.beam_names.get_beam`).
     site
         Site or name.
     freqs

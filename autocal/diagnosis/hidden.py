@@ -46,8 +46,8 @@ from autocal.simulate.mock import (
     mock_autos,
     simulate,
 )
-from autocal.sky.beams import get_beam
-from autocal.tsky.engine import compute_tsky
+from autocal.sky.beam_names import get_beam
+from autocal.tsky.compute import compute_tsky
 
 logger = logging.getLogger(__name__)
 

@@ -16,7 +16,7 @@ from autocal.core.observation import Observation
 from autocal.diagnosis.chunks import antenna_chunks
 from autocal.diagnosis.effects import SkyTemplates
 from autocal.diagnosis.extended_fit import ExtendedFit
-from autocal.fit.lsq import fit
+from autocal.fit.passes import fit
 
 #: An effect is negligible when it moves ``G`` and ``Trxr`` by less than this many total
 #: sigma in the median channel ...
@@ -96,9 +96,9 @@ def product_sigmas(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Return the total 1-sigma of ``G`` and ``Trxr`` of the ordinary calibration.
 
-    The constant-model fit of :func:`autocal.fit.lsq.fit` against the model Tsky, with
+    The constant-model fit of :func:`autocal.fit.passes.fit` against the model Tsky, with
     radiometer weights, errors inflated by ``max(1, chi^2/dof)``, the total uncertainty
-    (:mod:`autocal.fit.uncertainty`) and the diagnosis's receiver prior ``(trxr, sigma)`` if
+    (:mod:`autocal.fit.total_uncertainty`) and the diagnosis's receiver prior ``(trxr, sigma)`` if
     any: the yardstick of :func:`product_impact`. Every channel is fitted on its own, so a
     large observation is fitted :data:`PRODUCT_SIGMA_SAMPLES` at a time (the fit holds a
     few float64 copies of what it is given).

@@ -21,7 +21,7 @@ from autocal.diagnosis.effects import DIURNAL_MIN_SPAN_H, SkyTemplates, diurnal_
 from autocal.diagnosis.extended_fit import ExtendedFit, residual_pieces
 from autocal.diagnosis.feeds import FeedGainFit
 from autocal.diagnosis.trials import BIC_THRESHOLD
-from autocal.fit.lsq import unwrap_lsts
+from autocal.fit.model import unwrap_lsts
 
 #: Legendre order of the smooth part removed from a ``gain_jitter`` series before its
 #: remainder is tested (:func:`jitter_is_significant`).

@@ -17,7 +17,8 @@ import numpy as np
 
 from autocal.core.observation import Observation
 from autocal.diagnosis.errors import DiagnoseError
-from autocal.io.uvh5 import iter_uvh5, scan_uvh5
+from autocal.io.uvh5 import iter_uvh5
+from autocal.io.uvh5_meta import scan_uvh5
 
 logger = logging.getLogger(__name__)
 

@@ -50,7 +50,7 @@ from autocal.diagnosis.report import Diagnosis
 from autocal.diagnosis.stepwise import diagnose
 from autocal.diagnosis.trials import ALPHA, BIC_THRESHOLD
 from autocal.fit.priors import parse_trxr_prior
-from autocal.pipeline.calibrate import PipelineError, check_prior_spec, check_ranges
+from autocal.pipeline.config import PipelineError, check_prior_spec, check_ranges
 
 logger = logging.getLogger(__name__)
 
@@ -78,7 +78,7 @@ class DiagnoseConfig(BaseModel):
         "gsm2008", min_length=1, description="model sky (autocal.sky.models.get_sky spec)"
     )
     beam: str = Field(
-        "hera", min_length=1, description="model beam (autocal.sky.beams.get_beam spec)"
+        "hera", min_length=1, description="model beam (autocal.sky.beam_names.get_beam spec)"
     )
     tgnd_k: float = Field(300.0, ge=0.0, description="model ground temperature")
     nside: int = Field(64, ge=1, le=8192, description="HEALPix resolution of the templates")

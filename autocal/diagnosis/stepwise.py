@@ -71,7 +71,7 @@ from autocal.diagnosis.report import Diagnosis
 from autocal.diagnosis.screening import StepScreen
 from autocal.diagnosis.search_state import SearchContext, SearchSettings, SearchState
 from autocal.diagnosis.trials import ALPHA, BIC_THRESHOLD, ModelTrial, Trial
-from autocal.fit.lsq import unwrap_lsts
+from autocal.fit.model import unwrap_lsts
 
 logger = logging.getLogger(__name__)
 

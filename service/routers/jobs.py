@@ -32,8 +32,8 @@ from fastapi import Path as PathParam
 from fastapi.responses import FileResponse
 from pydantic import ValidationError
 
+from autocal.diagnosis.errors import DiagnoseError
 from autocal.diagnosis.run import DiagnoseConfig
-from autocal.diagnosis.search import DiagnoseError
 from autocal.fit.priors import PriorError
 from autocal.fit.separation import separation_summary
 from autocal.pipeline.config import PipelineError
@@ -280,7 +280,7 @@ def build_diagnose_config(
         For invalid or unknown options.
     InputPathError
         For paths outside the allowed roots (403) or missing (400).
-    autocal.diagnosis.search.DiagnoseError
+    autocal.diagnosis.errors.DiagnoseError
         For an input that is a folder rather than a UVH5 file.
     autocal.sky.models.SkyModelError
         For an unknown sky model.

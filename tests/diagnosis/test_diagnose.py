@@ -12,7 +12,7 @@ from autocal.core.coords import night_epoch
 from autocal.diagnosis.report import Diagnosis, summary_text
 from autocal.diagnosis.stepwise import diagnose
 from autocal.simulate.mock import gain_profile
-from autocal.tsky.engine import compute_tsky
+from autocal.tsky.compute import compute_tsky
 from tests.diagnosis.simulated import PRIOR_SIGMA, SKY, hidden, s_of
 
 

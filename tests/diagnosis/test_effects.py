@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-import autocal.tsky.engine
+import autocal.tsky.compute
 from autocal.core.sites import HERA
 from autocal.diagnosis.effects import sky_templates
 
@@ -17,12 +17,12 @@ def test_beam_width_templates_come_from_the_tsky_cache(tmp_cache, monkeypatch) -
     kw = {"pols": ("ee",), "nside": 16, "epoch": 2458116.0}
     first = sky_templates("uniform:300", "dipole", HERA, freqs, lsts, **kw)
     assert len(list(tmp_cache.rglob("*.h5"))) >= 4
-    real = autocal.tsky.engine.tsky_harmonics
+    real = autocal.tsky.ringfft.tsky_harmonics
 
     def no_widened_beams(sky, beam, *args, **kwargs):
         assert "scaled" not in str(beam.describe()), "a widened beam was computed again"
         return real(sky, beam, *args, **kwargs)
 
-    monkeypatch.setattr(autocal.tsky.engine, "tsky_harmonics", no_widened_beams)
+    monkeypatch.setattr(autocal.tsky.compute, "tsky_harmonics", no_widened_beams)
     second = sky_templates("uniform:300", "dipole", HERA, freqs, lsts, **kw)
     np.testing.assert_allclose(second.beam_width_poly, first.beam_width_poly, rtol=1e-12)

@@ -305,19 +305,19 @@ def test_cancelling_a_running_diagnosis(
 def test_run_diagnosis_publishes_all_or_nothing(
     data: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import autocal.diagnosis.search
+    import autocal.diagnosis.report
 
     config = DiagnoseConfig(inputs=[str(data / SIM)], max_steps=0, **FAST)  # gap only: fast
     out = tmp_path / "out"
     out.mkdir()
     (out / "notes.txt").write_text("mine")
-    real = autocal.diagnosis.search.write_diagnosis
+    real = autocal.diagnosis.report.write_diagnosis
 
     def half_then_fail(diag: Any, out_dir: Path, obs: Any = None) -> Path:
         (Path(out_dir) / "diagnosis.json").write_text('{"effects": [')
         raise OSError("disk full")
 
-    monkeypatch.setattr(autocal.diagnosis.search, "write_diagnosis", half_then_fail)
+    monkeypatch.setattr(autocal.diagnosis.report, "write_diagnosis", half_then_fail)
     with pytest.raises(OSError, match="disk full"):
         run_diagnosis(config, out)
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]  # no products, no staging
@@ -329,7 +329,7 @@ def test_run_diagnosis_publishes_all_or_nothing(
         calls.append("write")
         return real(diag, out_dir, obs)
 
-    monkeypatch.setattr(autocal.diagnosis.search, "write_diagnosis", write_then_cancel)
+    monkeypatch.setattr(autocal.diagnosis.report, "write_diagnosis", write_then_cancel)
     from autocal.pipeline.config import PipelineError
 
     with pytest.raises(PipelineError, match="cancelled"):
@@ -337,7 +337,7 @@ def test_run_diagnosis_publishes_all_or_nothing(
     assert calls and sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
     # cancelled in the middle of the search (between two candidate fits)
-    monkeypatch.setattr(autocal.diagnosis.search, "write_diagnosis", real)
+    monkeypatch.setattr(autocal.diagnosis.report, "write_diagnosis", real)
     messages: list[str] = []
     with pytest.raises(PipelineError, match="cancelled"):
         run_diagnosis(
