@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import os
 import pkgutil
 import shutil
@@ -232,61 +231,6 @@ def copy_benchmarks() -> None:
             shutil.copyfile(path, target / "results" / path.name)
 
 
-#: Docstring problems known when the documentation was set up, each as (package, message
-#: start): a warning about a docstring in that package that starts so is not counted. They
-#: are matched by package, not module, because the modules are being split at the time (the
-#: report of that work lists each file and line). Fix the docstring, then delete its entry
-#: here; the build fails on any other warning (``-W``).
-KNOWN_DOCSTRING_WARNINGS = (
-    ("autocal.cli.", 'Undefined substitution referenced: "g".'),
-    ("autocal.compare.", "Inline substitution_reference start-string without end-string."),
-    ("autocal.compare.", 'Undefined substitution referenced: "g_ref'),
-    ("autocal.core.", "Malformed table."),
-    ("autocal.diagnosis.", "Malformed table."),
-    ("autocal.diagnosis.", 'Undefined substitution referenced: "parameter".'),
-    ("autocal.io.", "Title underline too short."),
-    ("autocal.service.", 'Undefined substitution referenced: "g".'),
-)
-
-
-class KnownDocstringWarnings(logging.Filter):
-    """Drop the warnings listed in :data:`KNOWN_DOCSTRING_WARNINGS` (and count them)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.dropped: list[str] = []
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        """Return False for a known docstring warning, True for anything else."""
-        location = str(getattr(record, "location", "") or "")
-        message = record.getMessage()
-        for package, start in KNOWN_DOCSTRING_WARNINGS:
-            if f"docstring of {package}" in location and message.startswith(start):
-                self.dropped.append(f"{location}: {message.splitlines()[0]}")
-                return False
-        return True
-
-
-_KNOWN = KnownDocstringWarnings()
-
-
-def install_warning_filter(app: Sphinx) -> None:
-    """Put :data:`_KNOWN` first on Sphinx's warning handlers (before they count warnings)."""
-    for handler in logging.getLogger("sphinx").handlers:
-        if handler.level >= logging.WARNING and _KNOWN not in handler.filters:
-            handler.filters.insert(0, _KNOWN)
-
-
-def report_known_warnings(app: Sphinx, exception: BaseException | None) -> None:
-    """List the known docstring warnings that were not counted (they are still to fix)."""
-    if _KNOWN.dropped:
-        logging.getLogger("sphinx.autocal").info(
-            "%d known docstring warnings not counted (docs/conf.py KNOWN_DOCSTRING_WARNINGS):\n%s",
-            len(_KNOWN.dropped),
-            "\n".join(_KNOWN.dropped),
-        )
-
-
 def skip_library_internals(
     app: Sphinx, what: str, name: str, obj: object, skip: bool, options: object
 ) -> bool | None:
@@ -315,8 +259,6 @@ def setup(app: Sphinx) -> None:
     # deploy/README.md (included in the service page) has a crontab block; Pygments has no
     # crontab lexer, so it is shown as plain text.
     app.add_lexer("cron", TextLexer)
-    app.connect("builder-inited", install_warning_filter, priority=100)
     # Before autosummary's own handler (priority 500), so that api/index.rst exists for it.
     app.connect("builder-inited", generate, priority=400)
     app.connect("autodoc-skip-member", skip_library_internals)
-    app.connect("build-finished", report_known_warnings)

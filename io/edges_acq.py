@@ -5,7 +5,7 @@
 native grid as an ACQ file (``read_acq.encode``).
 
 ACQ format (what ``read_acq`` decodes; verified on every file of the data folder)
---------------------------------------------------------------------------------
+---------------------------------------------------------------------------------
 * A text file. Header lines start with ``;`` (``; FASTSPEC v1.1.0``, then
   ``;--key: value`` with the acquisition settings, e.g. ``num_channels``,
   ``acquisition_rate`` (MS/s), ``samples_per_accumulation``, ``switch_delay``).

@@ -32,7 +32,7 @@ with ``Omega_A`` integrated over the *whole* sphere, exactly the denominator of 
     =>  |g_auto|^2 = |g_ref|^2 J(nu),   |g_ref,K| = |g_ref| sqrt(J(nu)).
 
 The comparison is ``|g_auto| / |g_ref,K|``, expected to be 1. Sanity check (README of the
-data folder: "raw/|g|^2 ~ 6900 Jy ~ 255 K at 150 MHz for antenna 23"): the Fagnoni beam
+data folder: ``raw/|g|^2 ~ 6900 Jy ~ 255 K at 150 MHz for antenna 23``): the Fagnoni beam
 gives ``Omega_A = 0.0411 sr`` at 150 MHz, ``J = 28.42 Jy/K``; the median of
 ``R / |g_ref|^2`` for antenna 23 (ee, 36 integrations, 11 channels around 150 MHz) is
 7030 Jy = 247 K (nn: 6530 Jy = 230 K). The README's 255 K corresponds to

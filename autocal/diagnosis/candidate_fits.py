@@ -40,7 +40,7 @@ from autocal.diagnosis.trials import BandpassTrial, FeedTrial, ModelTrial, Trial
 
 logger = logging.getLogger(__name__)
 
-#: Largest |parameter| of an effect taken as that effect (fractions; K for ``sky_offset`` and
+#: Largest ``|parameter|`` of an effect taken as that effect (fractions; K for ``sky_offset`` and
 #: ``ground_temperature``): a fit beyond it means the template absorbs other structure (e.g.
 #: a diurnal drift of amplitude 100 over half an hour, nearly collinear with a constant).
 #: ``sky_spectral_index``: the diffuse sky's index at 90-190 MHz is measured between about

@@ -8,16 +8,16 @@ writes them as UVH5 with a ``.truth.json`` beside, and scores a diagnosis agains
 truth (:func:`score`). :func:`draw_case` draws random parameters in the ranges the
 workflow is specified for:
 
-====================  =============================================================
-``gain_drift``        profile a (linear), b or c (diurnal sines), amplitude 2-10 %
-``gain_jitter``       white broadband gain fluctuations, 0.1-1 % rms per integration
-``noise_drift``       linear in LST, 1-5 % of Trxr
-``cable_reflection``  ``1 + a cos(2 pi nu tau + phi)``: a 1e-3-1e-2, tau 100-400 ns
+======================  =============================================================
+``gain_drift``          profile a (linear), b or c (diurnal sines), amplitude 2-10 %
+``gain_jitter``         white broadband gain fluctuations, 0.1-1 % rms per integration
+``noise_drift``         linear in LST, 1-5 % of Trxr
+``cable_reflection``    ``1 + a cos(2 pi nu tau + phi)``: a 1e-3-1e-2, tau 100-400 ns
 ``sky_spectral_index``  index off by +-(0.05-0.2)
 ``ground_temperature``  ground at 200-350 K while the model assumes 300 K
-``beam_width``        true beam wider or narrower by 5-15 %
-``missing_cmb``       no CMB in the data
-====================  =============================================================
+``beam_width``          true beam wider or narrower by 5-15 %
+``missing_cmb``         no CMB in the data
+======================  =============================================================
 """
 
 from __future__ import annotations
