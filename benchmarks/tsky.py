@@ -145,7 +145,7 @@ class _Capture(logging.Handler):
         self.last = ""
 
     def emit(self, record: logging.LogRecord) -> None:
-        if record.getMessage().startswith("tsky_fft"):
+        if record.getMessage().startswith("ring-FFT engine"):
             self.last = record.getMessage()
 
 
