@@ -222,8 +222,8 @@ class UniformSky(SkyModel):
     name: str = "uniform"
 
     def __post_init__(self) -> None:
-        if not np.isfinite(self.t0):
-            raise SkyModelError("uniform sky temperature must be finite")
+        if not (np.isfinite(self.t0) and self.t0 >= 0):
+            raise SkyModelError(f"uniform sky temperature must be finite and >= 0 K, not {self.t0}")
 
     @property
     def maps_include_cmb(self) -> bool:  # type: ignore[override]
@@ -411,14 +411,35 @@ def get_sky(spec: str | SkyModel) -> SkyModel:
     if text.startswith("uniform"):
         match = re.fullmatch(r"uniform(?::([-+0-9.eE]+))?", text)
         if match:
-            return UniformSky(float(match.group(1)) if match.group(1) else T_CMB)
+            if match.group(1) is None:
+                return UniformSky(T_CMB)
+            t0 = _spec_number(match.group(1), spec, "T0 (kelvin)")
+            if t0 <= 0:
+                raise SkyModelError(
+                    f"sky {spec!r}: the uniform sky's total brightness T0 must be > 0 K "
+                    f"(it includes the CMB, {T_CMB} K)"
+                )
+            return UniformSky(t0)
     if text.startswith("powerlaw"):
         match = re.fullmatch(r"powerlaw:([a-z0-9]+)@([0-9.eE+]+):([-+0-9.eE]+)", text)
         if match:
-            return PowerLawSky(
-                get_sky(match.group(1)), float(match.group(2)) * 1e6, float(match.group(3))
-            )
+            nu0 = _spec_number(match.group(2), spec, "NU0MHZ (the reference frequency, MHz)")
+            beta = _spec_number(match.group(3), spec, "BETA (the spectral index)")
+            return PowerLawSky(get_sky(match.group(1)), nu0 * 1e6, beta)
     raise SkyModelError(f"unknown sky model {spec!r}; {_SPEC_HELP}")
+
+
+def _spec_number(text: str, spec: str, what: str) -> float:
+    """Return a number of a sky specification, or raise :class:`SkyModelError` naming it."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise SkyModelError(
+            f"sky {spec!r}: {what} is {text!r}, not a number; {_SPEC_HELP}"
+        ) from None
+    if not np.isfinite(value):
+        raise SkyModelError(f"sky {spec!r}: {what} must be finite; {_SPEC_HELP}")
+    return value
 
 
 def describe_hash(description: dict[str, Any]) -> str:

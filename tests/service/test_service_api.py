@@ -97,6 +97,20 @@ def _submit(client: TestClient, **body: object) -> httpx.Response:
 # the job lifecycle ----------------------------------------------------------------------
 
 
+@pytest.mark.parametrize(
+    "sky", ["uniform:.", "uniform:e", "uniform:-", "powerlaw:gsm2008@.:1", "uniform:-100"]
+)
+def test_malformed_sky_is_a_4xx_naming_the_sky(client: TestClient, sky: str) -> None:
+    """Issue 24 D1: these skies answered 500 (a failed float() escaped); D8: -100 K ran."""
+    for kind in ("calibrate", "diagnose"):
+        response = _submit(client, sky=sky, kind=kind)
+        assert 400 <= response.status_code < 500, (kind, response.status_code, response.text)
+        assert sky in response.text, response.text
+    response = client.post("/nightly", json={"night": 2458116, "sky": sky}, headers=AUTH)
+    assert 400 <= response.status_code < 500, (response.status_code, response.text)
+    assert sky in response.text, response.text
+
+
 def test_submit_get_list_cancel(client: TestClient, data: Path) -> None:
     response = _submit(client, antennas=[23, 24], freq_range_mhz=[110, 190])
     assert response.status_code == 202, response.text

@@ -71,6 +71,28 @@ def test_bad_sky_inputs():
         UniformSky(10.0).components(np.array([1e8]), nside=3)
 
 
+@pytest.mark.parametrize(
+    ("spec", "says"),
+    [
+        ("uniform:.", "T0 (kelvin) is '.', not a number"),
+        ("uniform:e", "T0 (kelvin) is 'e', not a number"),
+        ("uniform:-", "T0 (kelvin) is '-', not a number"),
+        ("uniform:1e400", "must be finite"),
+        ("uniform:-100", "must be > 0 K"),
+        ("uniform:0", "must be > 0 K"),
+        ("powerlaw:gsm2008@.:1", "NU0MHZ (the reference frequency, MHz) is '.'"),
+        ("powerlaw:gsm2008@150:-", "BETA (the spectral index) is '-'"),
+    ],
+)
+def test_malformed_sky_numbers_are_user_errors(spec: str, says: str) -> None:
+    """A number in a sky specification that is not one (issue 24 D1) or unphysical (D8)."""
+    with pytest.raises(SkyModelError) as err:
+        get_sky(spec)
+    assert says in str(err.value) and spec in str(err.value)
+    with pytest.raises(SkyModelError, match=">= 0 K"):
+        UniformSky(-1.0)
+
+
 def test_galactic_centre_lands_at_its_equatorial_position():
     rot = galactic_to_equatorial_matrix("J2000")
     vec = rot @ np.array(hp.ang2vec(np.pi / 2, 0.0))
