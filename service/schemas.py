@@ -158,7 +158,9 @@ class CalibrationOptions(BaseModel):
     model: Literal["constant", "legendre"] | None = None
     order: Order | None = Field(None, description="Legendre order")
     weights: Literal["radiometer", "identity"] | None = None
-    antennas: list[AntennaNumber] | None = Field(None, max_length=10_000)
+    antennas: list[AntennaNumber] | None = Field(
+        None, min_length=1, max_length=10_000, description="antenna numbers; omit for all"
+    )
     pols: list[Literal["ee", "nn", "xx", "yy"]] | None = Field(None, max_length=4)
     freq_range_mhz: tuple[Number, Number] | None = Field(None, description="(low, high) MHz")
     lst_range_h: tuple[Number, Number] | None = Field(None, description="(start, stop) hours")
@@ -295,6 +297,22 @@ class JobCreate(DiagnoseOptions, CalibrationOptions):
         "(calibrate), UVH5 files (diagnose)",
     )
     force: StrictBool = Field(False, description="submit even if an identical job exists")
+
+    @field_validator("inputs")
+    @classmethod
+    def _each_input_once(cls, inputs: list[str]) -> list[str]:
+        """Refuse an input listed more than once (it would be read, and counted, twice)."""
+        seen: dict[str, int] = {}
+        for item in inputs:
+            seen[item] = seen.get(item, 0) + 1
+        repeated = {k: n for k, n in seen.items() if n > 1}
+        if repeated:
+            name, count = next(iter(repeated.items()))
+            raise ValueError(
+                f"{name!r} is listed {count} times ({len(repeated)} inputs repeated); "
+                "list each file once"
+            )
+        return inputs
 
     def given(self) -> dict[str, Any]:
         """Return every option that was given (``None`` = default), of either kind."""

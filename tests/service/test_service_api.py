@@ -97,6 +97,17 @@ def _submit(client: TestClient, **body: object) -> httpx.Response:
 # the job lifecycle ----------------------------------------------------------------------
 
 
+def test_empty_antennas_and_repeated_inputs_are_refused_at_submission(client: TestClient) -> None:
+    """Issue 24 D8: ``antennas: []`` failed in the worker (ZeroDivisionError) and one file
+    listed 2000 times was accepted."""
+    response = _submit(client, antennas=[])
+    assert response.status_code == 422 and "antennas" in response.text, response.text
+    response = _submit(client, inputs=[HH] * 2000)
+    assert response.status_code == 422, response.text
+    assert "listed 2000 times" in response.text and "inputs" in response.text, response.text
+    assert client.get("/jobs").json()["count"] == 0
+
+
 @pytest.mark.parametrize(
     "sky", ["uniform:.", "uniform:e", "uniform:-", "powerlaw:gsm2008@.:1", "uniform:-100"]
 )
