@@ -17,7 +17,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
 
-from fastapi import FastAPI, Request
+from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -34,6 +34,7 @@ from autocal.service.routers import (
     problems_message,
     uploads,
 )
+from autocal.service.schemas import ApiError
 from autocal.service.settings import Settings, get_settings
 from autocal.service.store import JobStore
 
@@ -90,6 +91,26 @@ class CatchAllMiddleware:
                 status_code=500,
             )
             await response(scope, receive, send)
+
+
+async def single_valued_query(request: Request) -> None:
+    """Refuse a query parameter given more than once (every parameter here takes one value).
+
+    Without this, ``?night=1&night=2`` silently used the last value.
+    """
+    counts: dict[str, int] = {}
+    for key, _ in request.query_params.multi_items():
+        counts[key] = counts.get(key, 0) + 1
+    repeated = sorted(k for k, n in counts.items() if n > 1)
+    if repeated:
+        raise ApiError(
+            422,
+            f"query parameter {repeated[0]!r} given {counts[repeated[0]]} times; give it once",
+            errors=[
+                {"field": f"query.{k}", "message": f"given {counts[k]} times", "type": "repeated"}
+                for k in repeated
+            ],
+        )
 
 
 async def _validation_error(request: Request, exc: Exception) -> JSONResponse:
@@ -163,6 +184,7 @@ def create_app(settings: Settings | None = None, store: JobStore | None = None) 
         version=__version__,
         description=DESCRIPTION,
         lifespan=lifespan,
+        dependencies=[Depends(single_valued_query)],
     )
     app.state.settings = settings
     app.state.store = store

@@ -28,6 +28,7 @@ from pydantic import (
     StrictBool,
     StringConstraints,
     field_validator,
+    model_validator,
 )
 
 PathText = Annotated[str, StringConstraints(min_length=1, max_length=4096)]
@@ -329,12 +330,23 @@ class NightlyCreate(CalibrationOptions):
     """``POST /nightly``: one job per observation of a night or a folder."""
 
     model_config = ConfigDict(
-        json_schema_extra={"examples": [{"night": 2458116, "beam": "hera", "antennas": [23]}]}
+        json_schema_extra={
+            "examples": [{"night": 2458116, "beam": "hera", "antennas": [23]}],
+            # a night, a folder or both: the schema says so, as the validator below does
+            "anyOf": [{"required": ["night"]}, {"required": ["folder"]}],
+        }
     )
 
     night: NightJD | None = Field(None, description="integer Julian date of the night")
     folder: PathText | None = Field(None, description="folder under the data roots to scan")
     force: StrictBool = Field(False, description="resubmit observations that already have a job")
+
+    @model_validator(mode="after")
+    def _night_or_folder(self) -> NightlyCreate:
+        """Require a night, a folder or both."""
+        if self.night is None and self.folder is None:
+            raise ValueError("give a night (integer JD) or a folder (or both)")
+        return self
 
 
 # responses ------------------------------------------------------------------------------

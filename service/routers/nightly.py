@@ -12,7 +12,7 @@ from autocal.service.auth import app_settings, require_token
 from autocal.service.nightly import NightlyError, submit_nightly
 from autocal.service.paths import InputPathError
 from autocal.service.routers import app_store, as_api_error
-from autocal.service.schemas import ApiError, ErrorBody, NightlyAccepted, NightlyCreate
+from autocal.service.schemas import ErrorBody, NightlyAccepted, NightlyCreate
 from autocal.service.settings import Settings
 from autocal.service.store import JobStore
 from autocal.sky.models import SkyModelError
@@ -28,11 +28,11 @@ router = APIRouter(tags=["nightly"])
     responses={
         code: {"model": ErrorBody, "description": text}
         for code, text in {
-            400: "neither night nor folder, or a malformed path",
+            400: "a malformed path",
             401: "missing or wrong API token",
             403: "folder or option path outside the allowed folders",
             404: "no zen.<JD>.*uvh5* files found",
-            422: "invalid options; each bad field is named",
+            422: "neither night nor folder, or invalid options; each bad field is named",
             503: "writes disabled: no API token configured",
         }.items()
     },
@@ -49,8 +49,6 @@ def create_nightly(
     Observations that already have a queued, running or succeeded job with the same
     settings are not resubmitted unless ``force``.
     """
-    if body.night is None and body.folder is None:
-        raise ApiError(400, "give a night (integer JD) or a folder (or both)")
     try:
         report = submit_nightly(
             store,

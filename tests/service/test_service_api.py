@@ -97,6 +97,23 @@ def _submit(client: TestClient, **body: object) -> httpx.Response:
 # the job lifecycle ----------------------------------------------------------------------
 
 
+def test_nightly_needs_a_night_or_a_folder_as_its_schema_says(client: TestClient) -> None:
+    """Issue 24 D11: ``POST /nightly {}`` answered 400 though the schema allowed it."""
+    schema = client.get("/openapi.json").json()["components"]["schemas"]["NightlyCreate"]
+    assert {"required": ["night"]} in schema["anyOf"]
+    assert {"required": ["folder"]} in schema["anyOf"]
+    response = client.post("/nightly", json={}, headers=AUTH)
+    assert response.status_code == 422 and "night" in response.text, response.text
+
+
+def test_a_repeated_query_parameter_is_refused(client: TestClient) -> None:
+    """Issue 24 D11: ``?night=1&night=2`` was accepted (the last value used)."""
+    response = client.get("/jobs?night=2458116&night=2458117")
+    assert response.status_code == 422, response.text
+    assert "'night' given 2 times" in response.json()["detail"]
+    assert client.get("/jobs?night=2458116&limit=5").status_code == 200
+
+
 def test_empty_antennas_and_repeated_inputs_are_refused_at_submission(client: TestClient) -> None:
     """Issue 24 D8: ``antennas: []`` failed in the worker (ZeroDivisionError) and one file
     listed 2000 times was accepted."""
@@ -899,7 +916,7 @@ def test_nightly_on_the_real_data_is_idempotent(tmp_path: Path, data_root: Path)
 
 def test_nightly_errors(client: TestClient, tmp_path: Path) -> None:
     nothing = client.post("/nightly", json={}, headers=AUTH)
-    assert nothing.status_code == 400 and "night" in nothing.json()["detail"]
+    assert nothing.status_code == 422 and "night" in nothing.json()["detail"]
     absent = client.post("/nightly", json={"night": 2450000}, headers=AUTH)
     assert absent.status_code == 404 and "zen.2450000" in absent.json()["detail"]
     outside = client.post("/nightly", json={"folder": str(tmp_path)}, headers=AUTH)
