@@ -513,7 +513,14 @@ def cancel_job(job_id: JobId, store: StoreDep) -> JobDetail:
 @router.get(
     "/{job_id}/results",
     response_model=JobResults | DiagnosisResults,
-    responses=_errors(404, 409, 422),
+    responses={
+        **_errors(404, 409),
+        422: {
+            "model": ErrorBody,
+            "description": "a bad filter value, or an antenna/pol filter on a diagnose job "
+            "(a diagnosis covers its whole selection)",
+        },
+    },
 )
 def job_results(
     job_id: JobId,

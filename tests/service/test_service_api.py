@@ -106,6 +106,14 @@ def test_nightly_needs_a_night_or_a_folder_as_its_schema_says(client: TestClient
     assert response.status_code == 422 and "night" in response.text, response.text
 
 
+def test_results_document_the_422_of_a_filtered_diagnosis(client: TestClient) -> None:
+    """Issue 24 D11: a diagnose job's results with an antenna filter answer a 422 the
+    OpenAPI description did not mention."""
+    spec = client.get("/openapi.json").json()
+    text = spec["paths"]["/jobs/{job_id}/results"]["get"]["responses"]["422"]["description"]
+    assert "diagnose" in text and "antenna" in text
+
+
 def test_a_repeated_query_parameter_is_refused(client: TestClient) -> None:
     """Issue 24 D11: ``?night=1&night=2`` was accepted (the last value used)."""
     response = client.get("/jobs?night=2458116&night=2458117")
