@@ -25,6 +25,7 @@ from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from autocal import __version__
+from autocal.service.body_limit import BodyLimitMiddleware
 from autocal.service.routers import (
     MAX_ERRORS,
     describe_problem,
@@ -191,6 +192,8 @@ def create_app(settings: Settings | None = None, store: JobStore | None = None) 
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_middleware(CatchAllMiddleware)
+    # outermost: an oversized body is refused before it is read, before authentication
+    app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
     modules = (jobs, uploads, nightly, health)
     for module in modules:
         app.include_router(module.router)

@@ -47,6 +47,7 @@ class Settings(BaseSettings):
     data_roots: Annotated[list[Path], NoDecode] = Field(default_factory=list)
     api_token: str = ""
     max_upload_bytes: int = Field(2 * 1024**3, gt=0)
+    max_body_bytes: int = Field(4 * 1024**2, gt=0)
     heartbeat_s: float = Field(10.0, gt=0)
     stale_after_s: float = Field(60.0, gt=0)
     max_attempts: int = Field(3, ge=1)

@@ -114,6 +114,36 @@ def test_results_document_the_422_of_a_filtered_diagnosis(client: TestClient) ->
     assert "diagnose" in text and "antenna" in text
 
 
+def test_body_limit_before_reading_and_before_the_token(
+    tmp_path: Path, data: Path, store: JobStore
+) -> None:
+    """Issue 24 D4: a 200 MB anonymous POST was read in full before the 401, and a 120 MB
+    authenticated body was accepted."""
+    settings = _settings(tmp_path, data, max_body_bytes=1000)
+    big = b'{"inputs": ["' + b"x" * 2000 + b'"]}'
+
+    def chunks():  # no Content-Length: counted as it arrives
+        for start in range(0, len(big), 100):
+            yield big[start : start + 100]
+
+    with TestClient(create_app(settings, store)) as small:
+        anonymous = small.post("/jobs", content=big, headers={"content-type": "application/json"})
+        assert anonymous.status_code == 413, anonymous.text
+        assert "AUTOCAL_MAX_BODY_BYTES" in anonymous.json()["detail"]
+        authed = small.post(
+            "/jobs", content=big, headers={**AUTH, "content-type": "application/json"}
+        )
+        assert authed.status_code == 413, authed.text
+        streamed = small.post(
+            "/jobs", content=chunks(), headers={**AUTH, "content-type": "application/json"}
+        )
+        assert streamed.status_code == 413, streamed.text
+        assert "AUTOCAL_MAX_BODY_BYTES" in streamed.json()["detail"]
+        fine = small.post("/jobs", json={"inputs": [HH], "beam": "dipole"}, headers=AUTH)
+        assert fine.status_code == 202, fine.text
+        assert small.get("/jobs").json()["count"] == 1
+
+
 def test_a_repeated_query_parameter_is_refused(client: TestClient) -> None:
     """Issue 24 D11: ``?night=1&night=2`` was accepted (the last value used)."""
     response = client.get("/jobs?night=2458116&night=2458117")
