@@ -4,10 +4,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from autocal.cli.args import CliError, validation_message
-from autocal.cli.options import add_calibration_arguments, calibration_settings
+from autocal.cli.options import (
+    add_calibration_arguments,
+    calibration_settings,
+    refuse_edges_options,
+)
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -45,7 +50,13 @@ def add(sub: argparse._SubParsersAction) -> None:
         metavar="N",
         help="integrations read per block (default: about 8 M values; bounds the memory)",
     )
-    p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.add_argument(
+        "--out",
+        required=True,
+        type=Path,
+        help="output folder, owned by autocal: a rerun replaces every product it wrote there "
+        "(products this run does not write, e.g. an old comparison, are removed)",
+    )
     p.set_defaults(func=run)
 
 
@@ -54,10 +65,12 @@ def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
     from tqdm import tqdm
 
+    from autocal.cli.quality import EXIT_FLAGGED, flag_quality, record_quality, remove_stale
     from autocal.pipeline.calibrate import calibrate, read_summary
     from autocal.pipeline.config import CalibrationConfig
 
     settings = calibration_settings(args)
+    refuse_edges_options(settings, args.inputs)
     try:
         config = CalibrationConfig(inputs=[str(p) for p in args.inputs], **settings)
     except ValidationError as err:
@@ -75,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
             bar.set_postfix_str(message[-60:])
             bar.refresh()
 
-        calibrate(  # autocal.calibrate: the notebook's, the service's and nightly's function
+        # autocal.calibrate: the notebook's, the service's and nightly's function
+        solution = calibrate(
             config,
             out=args.out,
             progress=progress,
@@ -84,6 +98,10 @@ def run(args: argparse.Namespace) -> int:
             block_size=args.block_size,
         )
     summary = read_summary(args.out)
+    for path in remove_stale(args.out, summary["products"]):
+        print(f"removed {path} (a product of an earlier run)")
+    quality = flag_quality(solution)
+    record_quality(args.out, quality)
     print(json.dumps(summary["solution"], indent=2))
     separation = summary.get("separation") or []
     shown = (
@@ -98,4 +116,14 @@ def run(args: argparse.Namespace) -> int:
         print(entry["message"])
     for name, path in summary["products"].items():
         print(f"wrote {name}: {path}")
+    if quality["status"] != "ok":
+        what = "every channel" if quality["status"] == "fully_flagged" else "most channels"
+        print(
+            f"autocal calibrate: error: {what} flagged, no usable calibration: "
+            f"{quality['message']} (products written; summary.json 'quality')",
+            file=sys.stderr,
+        )
+        return EXIT_FLAGGED
+    if quality["fully_flagged"]:
+        print(f"autocal calibrate: warning: {quality['message']}", file=sys.stderr)
     return 0

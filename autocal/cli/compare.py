@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from autocal.cli.args import CliError, parse_int_list, parse_str_list
+from autocal.cli.args import CliError, parse_freq_mhz, parse_int_list, parse_str_list
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -31,7 +31,6 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.add_argument(
         "--smooth-mhz",
-        type=float,
         default=None,
         help="smooth the reference along frequency with a Gaussian kernel of this FWHM (MHz)",
     )
@@ -62,6 +61,8 @@ def run(args: argparse.Namespace) -> int:
     from autocal.io.calsol_read import read_reference_gains
     from autocal.io.products import read_solution
 
+    if args.smooth_mhz is not None:
+        args.smooth_mhz = parse_freq_mhz(args.smooth_mhz, "smooth-mhz")
     if args.smooth_mhz is not None and not args.smooth_mhz > 0:
         raise CliError(f"--smooth-mhz must be positive (MHz), got {args.smooth_mhz}")
     if args.out.exists() and not args.out.is_dir():

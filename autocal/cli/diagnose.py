@@ -8,6 +8,7 @@ from typing import Any
 
 from autocal.cli.args import (
     CliError,
+    parse_freq_pair,
     parse_int_list,
     parse_pair,
     parse_str_list,
@@ -38,7 +39,9 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--nside", type=int, default=64, help="HEALPix resolution (64)")
     p.add_argument("--antennas", help="comma-separated antenna numbers (default all)")
     p.add_argument("--pols", help="comma-separated polarisations (default all)")
-    p.add_argument("--freq-range", help="LOW:HIGH in MHz")
+    p.add_argument(
+        "--freq-range", help="LOW:HIGH in MHz (a unit suffix, e.g. 1.1e8Hz, is accepted)"
+    )
     p.add_argument("--lst-range", help="START:STOP in hours (START > STOP wraps)")
     p.add_argument(
         "--trxr-prior",
@@ -90,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
             nside=args.nside,
             antennas=parse_int_list(args.antennas, "antennas") if args.antennas else None,
             pols=parse_str_list(args.pols, "pols") if args.pols else None,
-            freq_range_mhz=parse_pair(args.freq_range, "freq-range", "MHz"),
+            freq_range_mhz=parse_freq_pair(args.freq_range, "freq-range"),
             lst_range_h=parse_pair(args.lst_range, "lst-range", "hours"),
             trxr_prior=None if args.trxr_prior is None else prior_value(args.trxr_prior),
             trxr_prior_sigma_k=args.trxr_prior_sigma,

@@ -124,6 +124,24 @@ def user_error_message(err: BaseException) -> str | None:
     return None
 
 
+def parse_arguments(
+    parser: argparse.ArgumentParser, argv: Sequence[str] | None
+) -> argparse.Namespace:
+    """Parse the command line; an unknown option is reported with its sub-command's usage.
+
+    argparse leaves options a sub-command does not know to the top-level parser, which
+    would print the usage of ``autocal`` itself; the sub-command's parser reports them here
+    (and exits with status 2), so ``autocal calibrate --site x`` shows ``calibrate``'s usage.
+    """
+    args, extras = parser.parse_known_args(argv)
+    if extras:
+        commands = next(
+            a for a in parser._actions if isinstance(a, argparse._SubParsersAction)
+        ).choices
+        commands[args.command].error(f"unrecognized arguments: {' '.join(extras)}")
+    return args
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the exit status.
 
@@ -135,7 +153,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         interpreter exits with status 1).
     """
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parse_arguments(parser, argv)
     level = [logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:

@@ -13,6 +13,7 @@ import json
 import logging
 import os
 import re
+import sys
 import time
 from collections.abc import Iterable
 from pathlib import Path
@@ -173,13 +174,26 @@ def _snapshot(folder: Path) -> dict[str, tuple[int, int]]:
     return snap
 
 
+def _shown_url(url: str) -> str:
+    """Return a store URL without its password."""
+    from sqlalchemy.engine import make_url
+
+    return make_url(url).render_as_string(hide_password=True)
+
+
 def _submit(args: argparse.Namespace, **where: Any) -> dict[str, Any]:
     from autocal.service.nightly import submit_nightly  # written alongside the API
     from autocal.service.settings import get_settings
     from autocal.service.store import JobStore
 
     settings = get_settings()
-    store = JobStore(settings.resolved_database_url())
+    url = settings.resolved_database_url()
+    store = JobStore(url)
+    print(
+        f"autocal nightly: job store {_shown_url(url)}, products under "
+        f"{settings.products_dir} (AUTOCAL_DATABASE_URL, AUTOCAL_STATE_DIR change them)",
+        file=sys.stderr,
+    )
     try:
         return submit_nightly(
             store, settings, force=args.force, options=calibration_settings(args), **where

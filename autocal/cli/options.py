@@ -17,6 +17,7 @@ from autocal.cli.args import (
     BEAM_HELP,
     SKY_HELP,
     CliError,
+    parse_freq_pair,
     parse_int_list,
     parse_pair,
     parse_str_list,
@@ -120,7 +121,10 @@ def _add_selection_arguments(group: argparse._ActionsContainer) -> None:
     group.add_argument("--antennas", help=f"comma-separated antenna numbers ({d('antennas')})")
     group.add_argument("--pols", help="comma-separated polarisations (default: all in the data)")
     group.add_argument(
-        "--freq-range", dest="freq_range_mhz", metavar="LOW:HIGH", help="frequencies in MHz"
+        "--freq-range",
+        dest="freq_range_mhz",
+        metavar="LOW:HIGH",
+        help="frequencies in MHz (a unit suffix, e.g. 110MHz or 1.1e8Hz, is accepted)",
     )
     group.add_argument(
         "--lst-range",
@@ -134,9 +138,11 @@ def _add_selection_arguments(group: argparse._ActionsContainer) -> None:
     )
     group.add_argument(
         "--reference",
-        nargs="+",
+        action="append",
         type=Path,
-        help="reference gains (calfits/calh5, abscal or redcal) to compare |g| with",
+        metavar="FILE",
+        help="reference gains (calfits/calh5, abscal or redcal) to compare |g| with; one file "
+        "per flag, repeat it for consecutive files (before or after the inputs)",
     )
     group.add_argument(
         "--format",
@@ -186,7 +192,7 @@ def calibration_settings(args: argparse.Namespace) -> dict[str, Any]:
         "antennas": lambda v: parse_int_list(v, "antennas"),
         "pols": lambda v: parse_str_list(v, "pols"),
         "products": lambda v: parse_str_list(v, "products"),
-        "freq_range_mhz": lambda v: parse_pair(v, "freq-range", "MHz"),
+        "freq_range_mhz": lambda v: parse_freq_pair(v, "freq-range"),
         "lst_range_h": lambda v: parse_pair(v, "lst-range", "hours"),
         "passes": lambda v: v if v == "auto" else int(v),
         "reference": lambda v: [str(p) for p in v],
@@ -197,11 +203,74 @@ def calibration_settings(args: argparse.Namespace) -> dict[str, Any]:
         value = getattr(args, name)
         if value is not None:
             settings[name] = parsers.get(name, lambda v: v)(value)
+    refuse_inapplicable(settings)
     try:
         CalibrationConfig(inputs=["-"], **settings)
     except ValidationError as err:
         raise CliError(validation_message(err, "options")) from None
     return settings
+
+
+def refuse_inapplicable(settings: dict[str, Any]) -> None:
+    """Refuse options that do nothing with the other options given, saying why.
+
+    Parameters
+    ----------
+    settings
+        The options given (:func:`calibration_settings`).
+
+    Raises
+    ------
+    CliError
+        ``--order`` without ``--model legendre``, ``--trxr-prior-sigma`` without
+        ``--trxr-prior``, ``--passes`` or ``--no-inflate-errors`` with identity weights, or an
+        EDGES option with a ``--format`` other than ``edges`` or ``auto``.
+    """
+    refusals = {
+        "order": (
+            settings.get("model", "constant") != "legendre",
+            "--order sets the Legendre order: it needs --model legendre (the constant model "
+            "has none)",
+        ),
+        "trxr_prior_sigma_k": (
+            "trxr_prior" not in settings,
+            "--trxr-prior-sigma is the 1-sigma of --trxr-prior: give the prior too",
+        ),
+        "passes": (
+            settings.get("weights") == "identity",
+            "--passes re-weights radiometer weights: it does nothing with --weights identity",
+        ),
+        "inflate_errors": (
+            settings.get("weights") == "identity",
+            "identity weights always scale the errors by chi2/dof: drop --(no-)inflate-errors",
+        ),
+    }
+    for option in ("edges_r", "edges_bin"):
+        refusals[option] = (
+            settings.get("input_format", "auto") not in ("auto", "edges"),
+            f"--{option.replace('_', '-')} is an option of EDGES spectra: it does nothing with "
+            f"--format {settings.get('input_format')}",
+        )
+    for name, (refused, why) in refusals.items():
+        if name in settings and refused:
+            raise CliError(why)
+
+
+def refuse_edges_options(settings: dict[str, Any], inputs: list[Path]) -> None:
+    """Refuse ``--edges-r`` / ``--edges-bin`` when the inputs are not EDGES spectra."""
+    from autocal.pipeline.sources import detect_format
+
+    given = [f"--{n.replace('_', '-')}" for n in ("edges_r", "edges_bin") if n in settings]
+    if not given:
+        return
+    kind = detect_format(
+        [Path(p).expanduser().absolute() for p in inputs], settings.get("input_format", "auto")
+    )
+    if kind != "edges":
+        raise CliError(
+            f"{', '.join(given)}: option(s) of EDGES spectra, and the inputs are {kind} "
+            "files: drop them"
+        )
 
 
 def calibration_dests() -> list[str]:

@@ -5,7 +5,22 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from autocal.cli.args import CliError, parse_int_list, parse_str_list, validation_message
+from autocal.cli.args import (
+    CliError,
+    parse_freq_mhz,
+    parse_int_list,
+    parse_str_list,
+    validation_message,
+)
+
+#: Largest bare value (MHz) of each frequency option, and the option's former unit in which
+#: a larger bare value is read (with a note); ``None``: a larger value is an error.
+BARE_LIMIT_MHZ: dict[str, tuple[float, str | None]] = {
+    "freq-start": (1e4, None),
+    "freq-stop": (1e4, None),
+    "channel-width": (10.0, "kHz"),
+    "noise-dnu": (100.0, "Hz"),
+}
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -26,9 +41,14 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--telescope", default="HERA", help="telescope name written to the file")
     p.add_argument("--antennas", default="0", help="comma-separated antenna numbers (0)")
     p.add_argument("--pols", default="ee", help="comma-separated polarisations (ee)")
-    p.add_argument("--freq-start", type=float, default=110.0, help="first channel, MHz")
-    p.add_argument("--freq-stop", type=float, default=190.0, help="last channel, MHz")
-    p.add_argument("--channel-width", type=float, default=250.0, help="channel width, kHz")
+    p.add_argument("--freq-start", default="110", help="first channel, MHz (110)")
+    p.add_argument("--freq-stop", default="190", help="last channel, MHz (190)")
+    p.add_argument(
+        "--channel-width",
+        default="0.25",
+        help="channel width, MHz (0.25; a unit suffix such as 250kHz is accepted; a bare "
+        "value above 10 is read as kHz, the former unit, with a note)",
+    )
     p.add_argument("--lst-start", type=float, default=0.0, help="first LST, hours")
     p.add_argument("--duration", type=float, default=24.0, help="LST hours covered (24)")
     p.add_argument("--cadence", type=float, default=300.0, help="sidereal seconds per sample")
@@ -39,7 +59,12 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bandpass", default="flat", choices=["flat", "hera-h1c"])
     p.add_argument("--trxr", type=float, default=150.0, help="receiver temperature, K")
     p.add_argument("--tgnd", type=float, default=300.0, help="ground temperature, K")
-    p.add_argument("--noise-dnu", type=float, default=5e3, help="noise bandwidth, Hz (5e3)")
+    p.add_argument(
+        "--noise-dnu",
+        default="0.005",
+        help="noise bandwidth, MHz (0.005; a unit suffix such as 5kHz is accepted; a bare "
+        "value above 100 is read as Hz, the former unit, with a note)",
+    )
     p.add_argument("--noise-dt", type=float, default=1.0, help="noise integration, s (1)")
     p.add_argument("--no-noise", action="store_true", help="noiseless data")
     p.add_argument("--seed", type=int, default=0, help="noise seed (0)")
@@ -64,6 +89,10 @@ def run(args: argparse.Namespace) -> int:
     for path in (args.out, truth_path):
         if path.exists() and not args.overwrite:
             raise CliError(f"{path} exists; pass --overwrite to replace it")
+    freq = {
+        name: parse_freq_mhz(getattr(args, name.replace("-", "_")), name, limit, legacy)
+        for name, (limit, legacy) in BARE_LIMIT_MHZ.items()
+    }
     try:
         config = SimulationConfig(
             sky=args.sky,
@@ -73,9 +102,9 @@ def run(args: argparse.Namespace) -> int:
             telescope=args.telescope,
             antennas=parse_int_list(args.antennas, "antennas"),
             pols=parse_str_list(args.pols, "pols"),
-            freq_start_mhz=args.freq_start,
-            freq_stop_mhz=args.freq_stop,
-            channel_width_khz=args.channel_width,
+            freq_start_mhz=freq["freq-start"],
+            freq_stop_mhz=freq["freq-stop"],
+            channel_width_khz=freq["channel-width"] * 1e3,
             lst_start_h=args.lst_start,
             duration_h=args.duration,
             cadence_s=args.cadence,
@@ -87,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
             trxr_k=args.trxr,
             tgnd_k=args.tgnd,
             noise=not args.no_noise,
-            noise_dnu_hz=args.noise_dnu,
+            noise_dnu_hz=freq["noise-dnu"] * 1e6,
             noise_dt_s=args.noise_dt,
             seed=args.seed,
             nside=args.nside,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from autocal.cli.args import BEAM_HELP, SKY_HELP, CliError, parse_range
+from autocal.cli.args import BEAM_HELP, SKY_HELP, CliError, parse_freq_range_mhz, parse_range
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -31,8 +31,10 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--site", default="hera", help="hera | edges | LAT,LON[,ALT]")
     p.add_argument(
         "--freqs",
-        default="100e6:200e6:101",
-        help="frequencies START:STOP:N in Hz, or a list (default 100e6:200e6:101)",
+        default="100:200:101",
+        help="frequencies START:STOP:N in MHz, or a list; a unit suffix (150MHz, 1.5e8Hz) "
+        "is accepted; a bare value above 1e4 is read as Hz, the former unit, with a note "
+        "(default 100:200:101)",
     )
     p.add_argument(
         "--lsts", default="0:24:97", help="LSTs START:STOP:N in hours, or a list (default 0:24:97)"
@@ -70,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.out.suffix.lower() not in {".h5", ".hdf5"}:
         raise CliError(f"--out {args.out}: the Tsky table is HDF5; use a .h5 file name")
-    freqs = parse_range(args.freqs, "freqs", "Hz")
+    # MHz on the command line; the engine works in Hz
+    freqs = parse_freq_range_mhz(args.freqs, "freqs", legacy_unit="Hz") * 1e6
     lsts = parse_range(args.lsts, "lsts", "hours")
     result = compute_tsky(
         args.sky,

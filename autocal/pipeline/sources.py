@@ -151,12 +151,17 @@ def _open_uvh5(paths: list[Path], config: CalibrationConfig, sel: dict[str, Any]
     files = scan_uvh5(paths)
     kept = [f for f in files if np.any(lst_mask(f.lsts, sel["lst_range"]))]
     if not kept:
-        raise PipelineError(f"no integrations in LST range {config.lst_range_h} h")
+        spans = ", ".join(f"{f.lsts.min():.3f}-{f.lsts.max():.3f}" for f in files[:4])
+        raise PipelineError(
+            f"no integrations in LST range {config.lst_range_h} h: the data cover LST "
+            f"{spans}{' ...' if len(files) > 4 else ''} h; choose LSTs inside them"
+        )
     masks = [lst_mask(f.lsts, sel["lst_range"]) for f in kept]
     freqs = kept[0].freqs
     if sel["freq_range"] is not None:
         lo, hi = sel["freq_range"]
         freqs = freqs[(freqs >= lo) & (freqs <= hi)]
+    check_band(freqs, kept[0].freqs, config.freq_range_mhz)
     return Source(
         "uvh5",
         [f.path for f in kept],
@@ -167,6 +172,30 @@ def _open_uvh5(paths: list[Path], config: CalibrationConfig, sel: dict[str, Any]
         kept[0].site,
         scanned=tuple(kept),
         ntimes=tuple(int(m.sum()) for m in masks),
+    )
+
+
+def check_band(
+    selected: np.ndarray, band: np.ndarray, freq_range_mhz: tuple[float, float] | None
+) -> None:
+    """Raise :class:`PipelineError` naming the data's band when a selection keeps no channel.
+
+    Parameters
+    ----------
+    selected
+        Frequencies (Hz) the selection keeps.
+    band
+        Every frequency (Hz) of the data.
+    freq_range_mhz
+        The selection (MHz).
+    """
+    if selected.size or band.size == 0:
+        return
+    lo, hi = freq_range_mhz if freq_range_mhz is not None else (np.nan, np.nan)
+    raise PipelineError(
+        f"frequency range {lo:g}-{hi:g} MHz keeps no channel: the data cover "
+        f"{band.min() / 1e6:.3f}-{band.max() / 1e6:.3f} MHz ({band.size} channels); "
+        "choose a range inside that band"
     )
 
 

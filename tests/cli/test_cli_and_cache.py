@@ -81,7 +81,8 @@ def test_cli_tsky_writes_table_and_plot(tmp_path, capsys, data_root):
         (["--site", "mars"], "unknown site"),
         (["--nside", "48"], "nside"),
         (["--tgnd", "nan"], "ground temperature"),
-        (["--freqs", "100:200:3"], "beam's range|MHz"),
+        (["--beam", "edges-low", "--freqs", "0.1:0.2GHz:3"], "outside"),
+        (["--freqs", "100:2ooMHz:3"], "give a frequency in MHz"),
     ],
 )
 def test_cli_bad_input_gives_clear_error(tmp_path, capsys, args, message, data_root):
