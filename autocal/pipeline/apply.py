@@ -157,7 +157,11 @@ def _missing_times(uvd: Any, uvc: Any) -> np.ndarray:
 
 
 def check_coverage(uvd: Any, uvc: Any) -> None:
-    """Raise :class:`ApplyError` unless the solution covers the data's antennas, pols, band, times."""
+    """Raise :class:`ApplyError` unless the solution covers the data.
+
+    The data's antennas, polarisations (both feeds), channels and, for a solution with a
+    ``time_array``, integrations must all be in the solution.
+    """
     ants = np.union1d(uvd.ant_1_array, uvd.ant_2_array)
     missing = np.setdiff1d(ants, uvc.ant_array)
     if missing.size:
@@ -268,7 +272,8 @@ def apply_solution(
             uvutils.uvcalibrate(uvd, uvc, inplace=True, prop_flags=True)
     except ValueError as err:
         raise ApplyError(f"pyuvdata cannot apply {solution} to the data: {err}") from err
-    uvd.history += ("" if uvd.history.endswith("\n") else "\n") + _history_line(solution, data_paths)
+    separator = "" if uvd.history.endswith("\n") else "\n"
+    uvd.history += separator + _history_line(solution, data_paths)
     with atomic_path(out) as tmp, _log_warnings(f"writing {out.name}"):
         tmp.unlink()  # pyuvdata writes a new file
         uvd.write_uvh5(str(tmp))

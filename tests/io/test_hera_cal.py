@@ -87,7 +87,7 @@ def test_smooth_cal_smooths_the_calfits(real, tmp_path) -> None:
     smoother.time_freq_2D_filter(freq_scale=10.0, time_scale=1800.0)
     smoother.write_smoothed_cal(output_replace=(".calfits", ".smooth.calfits"))
     smoothed = tmp_path / "solution.smooth.calfits"
-    gains, flags, _, _ = hera_io.HERACal(str(smoothed)).read()
+    gains, _, _, _ = hera_io.HERACal(str(smoothed)).read()
     original, oflags, _, _ = hera_io.HERACal(str(cal)).read()
     for key, gain in gains.items():
         assert gain.shape == original[key].shape
