@@ -185,6 +185,20 @@ def _read_uvcal(path: Path) -> tuple[Any, bool]:
         return uvc, False
 
 
+def _gain_scale(uvc: Any) -> str | None:
+    """Return a file's gain scale; ``"K"`` for autocal's own files (labelled ``"K str"``).
+
+    autocal writes ``gain_scale = "K str"`` (pyuvdata's temperature unit) for gains whose
+    calibrated autos are antenna temperatures in kelvin (:mod:`autocal.io.calsol_uvcal`).
+    """
+    scale = getattr(uvc, "gain_scale", None)
+    extra = getattr(uvc, "extra_keywords", None) or {}
+    autocal_file = str(extra.get("AUTOCAL", "")).lower() in ("true", "1", "t")
+    if autocal_file and str(scale).strip().lower() == "k str":
+        return "K"
+    return str(scale) if scale else None
+
+
 def load_cal_file(path: Path) -> CalFile:
     """Read one calfits or calh5 file of per-channel gain solutions into a :class:`CalFile`.
 
@@ -232,7 +246,7 @@ def load_cal_file(path: Path) -> CalFile:
     order = np.argsort(freqs, kind="stable")
     gains, flags, freqs = gains[..., order], flags[..., order], freqs[order]
     bad = ~np.isfinite(gains) | (gains == 0)
-    scale = getattr(uvc, "gain_scale", None)
+    scale = _gain_scale(uvc)
     return CalFile(
         path=path,
         gains=gains.astype(np.complex128),

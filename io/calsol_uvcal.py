@@ -11,13 +11,23 @@ calfits writers (:mod:`autocal.io.calsol_write`) write it:
   ``V_cal = V_raw / (g_i g_j^*)``, so an auto becomes ``R / |g|^2 = Tsky + Trxr`` in
   kelvin. This is the same convention as the H1C abscal files (whose ``R / |g|^2`` is
   in Jy);
-* ``gain_scale = "K"``: calibrated data are antenna temperatures in kelvin;
+* ``gain_scale = "K str"`` (:data:`GAIN_SCALE`): pyuvdata's ``uvcalibrate`` copies the gain
+  scale into ``UVData.vis_units``, whose only allowed values are ``"uncalib"``, ``"Jy"`` and
+  ``"K str"``; ``"K str"`` is the one temperature unit among them. The calibrated autos
+  ``R / |g|^2 = Tsky + Trxr`` are the beam-averaged antenna temperature in kelvin (NOT
+  multiplied by the beam solid angle): multiply by the beam solid angle ``Omega_p(nu)`` (sr)
+  for kelvin steradians proper. ``extra_keywords["ACVUNIT"]`` says so in the file;
+* ``pol_convention = "avg"`` (:data:`POL_CONVENTION`): each calibrated instrumental
+  polarisation carries the full temperature of an unpolarised sky (``ee ~ I``), as the Tsky
+  model autocal fits is the beam-weighted (Stokes I) temperature;
 * polarisations ``ee``/``nn`` are Jones codes -5/-6 with the x feed pointing east
   (pyuvdata's HERA telescope has exactly these feeds); ``xx``/``yy`` names are written
   with the same codes and, for a non-HERA telescope, the same east-pointing x feed;
-* one solution per antenna/polarisation/channel: ``Ntimes = 1`` with a ``time_range``
-  spanning the fitted integrations (the time-averaged ``G`` of the solution), or, with
-  ``per_time=True``, the time model ``G(t)`` evaluated at every fitted integration;
+* by default (``per_time=True``) the time model ``G(t)`` (Legendre or constant) evaluated at
+  every fitted integration: ``time_array`` holds their Julian dates (``Ntimes > 1``, as
+  hera_cal's ``HERACal`` and ``smooth_cal`` need) and ``integration_time`` the median
+  spacing; with ``per_time=False`` (or a ``time_range``) one time-averaged solution,
+  ``Ntimes = 1``, over a ``time_range`` spanning the fitted integrations;
 * ``flag_array`` is the solution's channel flags (failed fits, non-positive ``G``);
   flagged gains are written as 1 (never NaN);
 * ``quality_array`` holds the total 1-sigma uncertainty of the written gain amplitude
@@ -59,8 +69,15 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-#: Gain scale written by autocal: calibrated autos are antenna temperatures in kelvin.
-GAIN_SCALE = "K"
+#: Gain scale written by autocal: pyuvdata's temperature unit (the calibrated autos are
+#: beam-averaged antenna temperatures in kelvin; see the module notes).
+GAIN_SCALE = "K str"
+
+#: What the calibrated data carry (``extra_keywords["ACVUNIT"]``).
+CALIBRATED_UNIT = "K antenna temperature, not times beam solid angle"
+
+#: Polarisation convention written by autocal (``ee ~ I``).
+POL_CONVENTION = "avg"
 
 #: Gain convention written by autocal (``V_cal = V_raw / (g_i g_j^*)``).
 GAIN_CONVENTION = "divide"
@@ -183,8 +200,9 @@ def _history(solution: Solution, extra: str) -> str:
     config = solution.config or {}
     lines = [
         f"autocal {__version__}: gains |g| = sqrt(G) fitted to auto-correlations "
-        "R = G (Tsky + Trxr) + noise; gain_convention divide, gain_scale K "
-        "(R / |g|^2 is the antenna temperature in kelvin); phases are zero.",
+        "R = G (Tsky + Trxr) + noise; gain_convention divide, gain_scale 'K str' "
+        "(R / |g|^2 is the beam-averaged antenna temperature in kelvin, not multiplied by "
+        "the beam solid angle), pol_convention avg; phases are zero.",
         f"autocal model: {json.dumps(solution.model.describe(), sort_keys=True)}",
         f"autocal fitted {len(solution.jds)} integrations, JD "
         f"{float(np.min(solution.jds)):.6f}-{float(np.max(solution.jds)):.6f}"
@@ -208,7 +226,7 @@ def solution_to_uvcal(
     solution: Solution,
     *,
     time_range: tuple[float, float] | None = None,
-    per_time: bool = False,
+    per_time: bool | None = None,
     telescope: str | None = None,
     site: Any = None,
     history: str = "",
@@ -220,11 +238,13 @@ def solution_to_uvcal(
     solution
         An :class:`autocal.fit.solution.Solution`.
     time_range
-        ``(start, stop)`` JD of the single solution interval (default: the fitted
-        integrations, padded by half the median integration spacing at each end).
+        ``(start, stop)`` JD of a single time-averaged solution (with ``per_time=False``;
+        default: the fitted integrations, padded by half the median integration spacing at
+        each end).
     per_time
-        Write ``G(t)`` of the time model at every fitted integration instead of one
-        time-averaged solution.
+        Write ``G(t)`` of the time model at every fitted integration (``time_array``;
+        the default unless a ``time_range`` is given) rather than one time-averaged
+        solution over a ``time_range``.
     telescope
         Telescope name (default: ``"telescope"`` in ``solution.config`` or its
         ``provenance``/``calibration`` sections; else HERA when the site is HERA or unknown
@@ -260,6 +280,10 @@ def solution_to_uvcal(
     flags = np.asarray(solution.flags, dtype=bool)  # (A, P, F)
     sigma_amp = np.asarray(solution.sigma_abs_g, dtype=np.float64)  # (A, P, F), total
     total = _pooled_chi2(solution, flags)
+    if per_time is None:
+        per_time = time_range is None
+    if per_time and time_range is not None:
+        raise CalsolFormatError("time_range describes one averaged solution: not with per_time")
     if per_time:
         gains = _per_time_gains(solution, jds, flags, sigma_amp)
     else:
@@ -286,12 +310,14 @@ def solution_to_uvcal(
             gain_scale=GAIN_SCALE,
             **gains.times,
         )
+        uvc.pol_convention = POL_CONVENTION
         uvc.diffuse_model = sky
         uvc.extra_keywords = {
             "AUTOCAL": True,
             "ACMODEL": str(solution.model.kind),
             "ACORDER": int(solution.model.order),
             "ACGAIN": "|g|=sqrt(G); R/|g|^2 in K",
+            "ACVUNIT": CALIBRATED_UNIT,
         }
         uvc.check()
     return uvc

@@ -2,7 +2,8 @@
 
 :func:`write_calh5` and :func:`write_calfits` write the ``UVCal`` that
 :func:`autocal.io.calsol_uvcal.solution_to_uvcal` builds (gains ``|g| = sqrt(G)``,
-``gain_convention="divide"``, ``gain_scale="K"``; see that module for what the file
+``gain_convention="divide"``, ``gain_scale="K str"``, ``pol_convention="avg"``, the time model
+at every fitted integration; see that module for what the file
 holds). Files are written atomically (temporary file in the same folder, then rename)
 and existing files are replaced only with ``overwrite=True``.
 """
@@ -62,7 +63,7 @@ def write_calh5(
     *,
     overwrite: bool = False,
     time_range: tuple[float, float] | None = None,
-    per_time: bool = False,
+    per_time: bool | None = None,
     telescope: str | None = None,
     site: Any = None,
     history: str = "",
@@ -111,7 +112,7 @@ def write_calfits(
     *,
     overwrite: bool = False,
     time_range: tuple[float, float] | None = None,
-    per_time: bool = False,
+    per_time: bool | None = None,
     telescope: str | None = None,
     site: Any = None,
     history: str = "",

@@ -4,6 +4,8 @@ Commands (one module each in :mod:`autocal.cli`)
 ------------------------------------------------
 ``autocal calibrate``
     Fit G and Trxr to the autos of one observation; write calh5/calfits, HDF5, plots.
+``autocal apply``
+    Apply a calfits/calh5 gain solution to UVH5 data; write calibrated UVH5.
 ``autocal diagnose``
     Name the physical effects missing from the model, add them, show the gap shrink.
 ``autocal compare``
@@ -51,6 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     """Build the argument parser."""
     from autocal import __version__
     from autocal.cli import (
+        apply,
         calibrate,
         compare,
         diagnose,
@@ -74,6 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     for module in (
         calibrate,
+        apply,
         compare,
         diagnose,
         tsky,

@@ -21,11 +21,12 @@ def test_round_trip_through_pyuvdata(tmp_path, kind, capsys):
 
     sol = make_solution()
     writer = write_calh5 if kind == "calh5" else write_calfits
-    path = writer(sol, tmp_path / f"gains.{kind}")
+    path = writer(sol, tmp_path / f"gains.{kind}", per_time=False)
     uvc = UVCal.from_file(str(path))  # a genuine, checked UVCal
     assert uvc.cal_type == "gain"
     assert uvc.gain_convention == "divide"
-    assert uvc.gain_scale == "K"
+    assert uvc.gain_scale == "K str" and uvc.pol_convention == "avg"
+    assert uvc.extra_keywords["ACVUNIT"].startswith("K antenna temperature")
     assert uvc.telescope.name == "HERA"
     assert uvc.telescope.get_x_orientation_from_feeds() == "east"
     assert list(uvc.jones_array) == [-5, -6]
@@ -33,7 +34,7 @@ def test_round_trip_through_pyuvdata(tmp_path, kind, capsys):
     start, stop = uvc.time_range[0]
     assert start < sol.jds.min() and stop > sol.jds.max()
     assert stop - start == pytest.approx(np.ptp(sol.jds) + 60 / 86400, rel=1e-6)
-    assert "autocal" in uvc.history and "gain_scale K" in uvc.history
+    assert "autocal" in uvc.history and "gain_scale 'K str'" in uvc.history
     gains = uvc.gain_array[:, :, 0, :].transpose(0, 2, 1)  # (A, J, F)
     flags = uvc.flag_array[:, :, 0, :].transpose(0, 2, 1)
     np.testing.assert_array_equal(flags, sol.flags)
@@ -61,9 +62,9 @@ def test_per_time_and_explicit_time_range(tmp_path):
     from pyuvdata import UVCal
 
     sol = fitted_solution(order=1, residuals=False)
-    path = write_calh5(sol, tmp_path / "per_time.calh5", per_time=True)
+    path = write_calh5(sol, tmp_path / "per_time.calh5")  # the default
     uvc = UVCal.from_file(str(path))
-    assert uvc.Ntimes == sol.jds.size
+    assert uvc.Ntimes == sol.jds.size > 1 and uvc.time_range is None
     np.testing.assert_allclose(uvc.time_array, sol.jds)
     big_g = sol.evaluate()["G"]  # (A, P, T, F)
     ok = ~uvc.flag_array.transpose(0, 3, 2, 1)
@@ -76,6 +77,9 @@ def test_per_time_and_explicit_time_range(tmp_path):
     with pytest.raises(CalsolFormatError, match="increasing"):
         write_calh5(sol, tmp_path / "bad.calh5", time_range=(rng[1], rng[0]))
     assert not (tmp_path / "bad.calh5").exists()
+    with pytest.raises(CalsolFormatError, match="per_time"):
+        write_calh5(sol, tmp_path / "both.calh5", time_range=rng, per_time=True)
+    assert not (tmp_path / "both.calh5").exists()
 
 
 def test_non_hera_antennas_get_a_minimal_telescope(tmp_path):
