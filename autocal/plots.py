@@ -112,17 +112,19 @@ def band(
     sigma: np.ndarray,
     label: str,
     inner: np.ndarray | None = None,
+    alpha: tuple[float, float] = (0.18, 0.35),
     **kw: Any,
 ) -> None:
     """Plot ``y`` with a shaded 2-sigma band (and a darker ``inner`` 2-sigma band).
 
-    ``inner``: e.g. the statistical part of a total error drawn inside it.
+    ``inner``: e.g. the statistical part of a total error drawn inside it; ``alpha``: the
+    opacities of the band and of the inner band.
     """
     (line,) = ax.plot(x, y, label=label, lw=1, **kw)
     color = line.get_color()
-    ax.fill_between(x, y - 2 * sigma, y + 2 * sigma, color=color, alpha=0.18, lw=0)
+    ax.fill_between(x, y - 2 * sigma, y + 2 * sigma, color=color, alpha=alpha[0], lw=0)
     if inner is not None:
-        ax.fill_between(x, y - 2 * inner, y + 2 * inner, color=color, alpha=0.35, lw=0)
+        ax.fill_between(x, y - 2 * inner, y + 2 * inner, color=color, alpha=alpha[1], lw=0)
 
 
 def robust_limits(
@@ -332,12 +334,12 @@ def residuals_figure(
     import matplotlib
 
     k = len(labels)
-    height = 2.6 * k + 0.9
+    height = 2.6 * k + 1.2
     fig = _pyplot().figure(figsize=(9, height))
     # a fixed grid (constrained layout took 0.5 s of a HERA file's 1.1 s figure)
     grid = fig.add_gridspec(
         k, 2, width_ratios=[1.0, 0.025], left=0.09, right=0.9, wspace=0.04, hspace=0.5,
-        bottom=0.55 / height, top=1 - 0.65 / height,
+        bottom=0.55 / height, top=1 - 0.95 / height,
     )  # fmt: skip
     axes = [fig.add_subplot(grid[i, 0]) for i in range(k)]
     fmhz = freqs / 1e6

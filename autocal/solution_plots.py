@@ -90,10 +90,13 @@ def solution_figure(solution: Any, title: str | None = None, stems: tuple[str, .
 
 def _solution_lines(solution: Any, core: np.ndarray) -> Any:
     fmhz = solution.freqs / 1e6
-    fig = _pyplot().figure(figsize=(9, 9.6))
-    grid = fig.add_gridspec(3, 1, left=0.1, right=0.98, bottom=0.06, top=0.93, hspace=0.12)
+    fig = _pyplot().figure(figsize=(11, 9.6))
+    # the legend right of the panels: over them it hides the curves of many antennas
+    grid = fig.add_gridspec(3, 1, left=0.08, right=0.76, bottom=0.06, top=0.93, hspace=0.12)
     axes = [fig.add_subplot(grid[i, 0]) for i in range(3)]
     stat = solution.total is not None
+    ncurve = solution.antennas.size * len(solution.pols)
+    alpha = (0.18, 0.35) if ncurve <= 2 else (0.07, 0.2)  # overlapping bands stay readable
     values = (
         (solution.abs_g, solution.sigma_abs_g, solution.sigma_abs_g_stat, ABS_G_LABEL),
         (solution.G, solution.sigma_G, solution.sigma_G_stat, G_LABEL),
@@ -108,14 +111,14 @@ def _solution_lines(solution: Any, core: np.ndarray) -> Any:
                     " (weak G-n separation)" if stat and weak[ia, ip] else ""
                 )
                 inner = sig_stat[ia, ip] if stat else None
-                band(ax, fmhz, val[ia, ip], sig[ia, ip], label, inner=inner)
+                band(ax, fmhz, val[ia, ip], sig[ia, ip], label, inner=inner, alpha=alpha)
         ax.set(ylabel=name, xlim=(fmhz.min(), fmhz.max()))
         robust_ylim(ax, val[scaled], 1.0, 99.0)
         shade_band_edges(ax, fmhz, core)
         if ax is not axes[-1]:
             ax.tick_params(labelbottom=False)
     axes[-1].set(xlabel="frequency [MHz]")
-    axes[0].legend(fontsize=7, ncol=2, loc="lower center")
+    axes[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     return fig
 
 
@@ -305,13 +308,12 @@ def data_model_figure(
     axes[1].set(
         xlabel="LST [h]",
         ylabel="autocorrelation [data units]",
-        title="mean over the band's unflagged channels (grey edges excluded) vs LST",
+        title="mean over the band's channels with data at every LST (edges excluded) vs LST",
     )
     axes[2].set(xlabel="LST [h]", ylabel="(data - model) / model [%]",
                 title="fractional residual of the band average")  # fmt: skip
     axes[2].axhline(0, color="k", lw=0.6)
-    for ax in axes:
-        ax.legend(fontsize=7, ncol=2, loc="upper right")
+    axes[0].legend(fontsize=7, ncol=2, loc="upper right")  # the colours of every panel
     showing_note(fig, len(curves["labels"]), total or len(curves["labels"]))
     fig.suptitle(title or "data vs model", fontsize=9)
     return fig

@@ -136,8 +136,8 @@ def data_model_curves(
     """Return the data and model curves of :func:`~autocal.solution_plots.data_model_figure`.
 
     Of the data and of the fitted model: weighted means over time (``(K, Nfreq)``), and
-    per waterfall row (``(K, Nbins)``) the mean over the unflagged channels in ``core`` of
-    the row's weighted means.
+    per waterfall row (``(K, Nbins)``) the mean over the channels in ``core`` with data in
+    every row of the row's weighted means.
     """
     wf = run.waterfall
     ns = wf.shape[0]
@@ -149,7 +149,11 @@ def data_model_curves(
         wf_t = wsum.sum(axis=2)
         data = np.where(wf_t > 0, data_sum.sum(axis=2) / wf_t, np.nan)
         model = np.where(wf_t > 0, model_sum.sum(axis=2) / wf_t, np.nan)
-        use = (core & ~flagged)[:, :, None, :] & (wsum > 0)  # unflagged, inside the band
+        # the channels inside the band with data in every row (a set changing from row to
+        # row makes the mean jump); any with data in the row if no channel has it in all
+        band = (core & ~flagged)[:, :, None, :] & (wsum > 0)
+        always = band.all(axis=2, keepdims=True)
+        use = np.where(always.any(axis=-1, keepdims=True), always & band, band)
         count = np.count_nonzero(use, axis=-1)
         per_bin = np.where(use, wsum, 1.0)
         data_t = np.where(use, data_sum / per_bin, 0.0).sum(axis=-1) / count
