@@ -313,7 +313,7 @@ def test_run_diagnosis_publishes_all_or_nothing(
     (out / "notes.txt").write_text("mine")
     real = autocal.diagnosis.report.write_diagnosis
 
-    def half_then_fail(diag: Any, out_dir: Path, obs: Any = None) -> Path:
+    def half_then_fail(diag: Any, out_dir: Path, obs: Any = None, **kw: Any) -> Path:
         (Path(out_dir) / "diagnosis.json").write_text('{"effects": [')
         raise OSError("disk full")
 
