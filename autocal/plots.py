@@ -34,7 +34,10 @@ def save_figure(fig: Any, path: str | Path) -> Path:
 
     path = Path(path)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format=path.suffix.lstrip(".") or "png")
+        fmt = path.suffix.lstrip(".") or "png"
+        # zlib level 3: a fifth of the PNG encoding time of the default 6, files ~10 % larger
+        extra = {"pil_kwargs": {"compress_level": 3}} if fmt == "png" else {}
+        fig.savefig(tmp, dpi=110, format=fmt, **extra)
     plt.close(fig)
     logger.info("wrote %s", path)
     return path
@@ -109,17 +112,19 @@ def band(
     sigma: np.ndarray,
     label: str,
     inner: np.ndarray | None = None,
+    alpha: tuple[float, float] = (0.18, 0.35),
     **kw: Any,
 ) -> None:
     """Plot ``y`` with a shaded 2-sigma band (and a darker ``inner`` 2-sigma band).
 
-    ``inner``: e.g. the statistical part of a total error drawn inside it.
+    ``inner``: e.g. the statistical part of a total error drawn inside it; ``alpha``: the
+    opacities of the band and of the inner band.
     """
     (line,) = ax.plot(x, y, label=label, lw=1, **kw)
     color = line.get_color()
-    ax.fill_between(x, y - 2 * sigma, y + 2 * sigma, color=color, alpha=0.18, lw=0)
+    ax.fill_between(x, y - 2 * sigma, y + 2 * sigma, color=color, alpha=alpha[0], lw=0)
     if inner is not None:
-        ax.fill_between(x, y - 2 * inner, y + 2 * inner, color=color, alpha=0.35, lw=0)
+        ax.fill_between(x, y - 2 * inner, y + 2 * inner, color=color, alpha=alpha[1], lw=0)
 
 
 def robust_limits(
@@ -144,6 +149,93 @@ def robust_ylim(ax: Any, values: np.ndarray, low: float = 2.0, high: float = 98.
         ax.set_ylim(*limits)
 
 
+#: Axis labels of the solution's quantities, with their units: ``G`` converts kelvin into
+#: the correlator's raw units (HERA: uncalibrated correlator units), ``|g| = sqrt(G)``.
+G_LABEL = "G [data units / K]"
+ABS_G_LABEL = "|g| [(data units / K)$^{1/2}$]"
+TRXR_LABEL = "Trxr [K]"
+RESIDUAL_LABEL = "(R - model) / sigma"
+
+#: A channel is inside the band when the median gain over antenna-pols is at least this
+#: fraction of its 90th percentile (the filter roll-off at the band edges is outside).
+BAND_EDGE_FRACTION = 0.25
+
+
+def run_title(
+    jds: np.ndarray, antennas: np.ndarray, pols: tuple[str, ...], stems: tuple[str, ...] = ()
+) -> str:
+    """Return a figure title naming the files, the JD range and the antennas and pols.
+
+    E.g. ``zen.2458116.30448.HH (+2 files) | JD 2458116.30448-2458116.32613 | ant 23 | ee, nn``.
+    """
+    parts = []
+    if stems:
+        more = len(stems) - 1
+        parts.append(stems[0] + (f" (+{more} file{'s' if more > 1 else ''})" if more else ""))
+    jds = np.asarray(jds, float)
+    if jds.size:
+        parts.append(f"JD {np.min(jds):.5f}-{np.max(jds):.5f}")
+    ants = [str(a) for a in np.asarray(antennas).tolist()]
+    if len(ants) <= 8:
+        parts.append(("ant " if len(ants) == 1 else "ants ") + ", ".join(ants))
+    else:
+        parts.append(f"{len(ants)} antennas ({ants[0]}-{ants[-1]})")
+    parts.append(", ".join(pols))
+    return " | ".join(parts)
+
+
+def file_stems(paths: Any) -> tuple[str, ...]:
+    """Return the stems of input files (``zen.2458116.30448.HH`` of ``...HH.uvh5``)."""
+    return tuple(Path(str(p)).name.removesuffix(".uvh5") for p in paths)
+
+
+def band_core(gain: np.ndarray, flags: np.ndarray) -> np.ndarray:
+    """Return a ``(Nfreq,)`` mask of the channels inside the band.
+
+    The contiguous channels from the first to the last whose median ``gain`` over the
+    unflagged antenna-pols is at least :data:`BAND_EDGE_FRACTION` of its 90th percentile;
+    every channel when that leaves fewer than 4 (or no gain is finite).
+    """
+    values = np.where(flags, np.nan, gain).reshape(-1, gain.shape[-1])
+    median = nan_quantiles(values, (0.5,))[0]
+    finite = np.isfinite(median)
+    core = np.ones(gain.shape[-1], bool)
+    if np.count_nonzero(finite) < 4:
+        return core
+    inside = np.flatnonzero(
+        finite & (median >= BAND_EDGE_FRACTION * np.percentile(median[finite], 90))
+    )
+    if inside.size < 4:
+        return core
+    core[:] = False
+    core[inside[0] : inside[-1] + 1] = True
+    return core
+
+
+def shade_band_edges(ax: Any, fmhz: np.ndarray, core: np.ndarray) -> None:
+    """Grey out the channels outside ``core`` (band edges, left out of the scales)."""
+    if core.all() or not core.any():
+        return
+    step = abs(fmhz[1] - fmhz[0]) / 2 if fmhz.size > 1 else 0.0
+    inside = np.flatnonzero(core)
+    lo, hi = fmhz[inside[0]] - step, fmhz[inside[-1]] + step
+    ax.axvspan(fmhz.min() - step, lo, color="0.85", zorder=0, lw=0)
+    ax.axvspan(hi, fmhz.max() + step, color="0.85", zorder=0, lw=0)
+
+
+def showing_note(fig: Any, shown: int, total: int, what: str = "antenna-pols") -> None:
+    """Write 'showing N of M antenna-pols' in the figure's lower right when N < M."""
+    if shown < total:
+        fig.text(0.99, 0.005, f"showing {shown} of {total} {what}", ha="right", va="bottom",
+                 fontsize=9, color="firebrick")  # fmt: skip
+
+
+def symmetric_limit(values: np.ndarray, percentile: float = 99.0) -> float:
+    """Return the ``percentile`` of ``|values|`` over the finite ones (1 without any)."""
+    finite = np.abs(values[np.isfinite(values)])
+    return float(np.percentile(finite, percentile)) if finite.size else 1.0
+
+
 def channel_image(ax: Any, fmhz: np.ndarray, values: np.ndarray, **style: Any) -> Any:
     """Draw ``(Nrow, Nfreq)`` values against frequency (MHz), one row per unit of y.
 
@@ -159,134 +251,6 @@ def channel_image(ax: Any, fmhz: np.ndarray, values: np.ndarray, **style: Any) -
         kw = {"aspect": "auto", "origin": "lower", "interpolation": "nearest"}
         return ax.imshow(values, extent=extent, **kw, **style)
     return ax.pcolormesh(fmhz, np.arange(nrow), values, shading="auto", **style)
-
-
-#: Curves (antennas x polarisations) up to which ``solution.png`` draws every antenna's
-#: line with its 2-sigma band; above it the figure shows the whole array as images.
-MAX_SOLUTION_CURVES = 12
-
-
-def plot_solution(solution: Any, path: str | Path, title: str | None = None) -> Path:
-    """Plot a solution against frequency.
-
-    Up to :data:`MAX_SOLUTION_CURVES` antenna-polarisations: ``|g|``, ``G`` and ``Trxr``
-    of each with its 2-sigma band. More: every antenna as a row of an image of ``|g|``,
-    ``Trxr`` and ``chi^2 / dof`` (log scale) per polarisation, beside the median over
-    antennas and the 16-84 % spread between them.
-
-    Parameters
-    ----------
-    solution
-        A :class:`autocal.fit.solution.Solution`.
-    path
-        Output image.
-    title
-        Figure title.
-
-    Returns
-    -------
-    pathlib.Path
-        The written file.
-    """
-    kind = solution.model.kind
-    if solution.antennas.size * len(solution.pols) <= MAX_SOLUTION_CURVES:
-        bands = (
-            "2-sigma bands: total (light), statistical (dark)"
-            if solution.total is not None
-            else "2-sigma bands (statistical)"
-        )
-        fig, default = _solution_lines(solution), f"{kind} fit, {bands}"
-    else:
-        nant = solution.antennas.size
-        fig, default = _solution_array(solution), f"{kind} fit of {nant} antennas"
-    fig.suptitle(title or default, fontsize=10)
-    return save_figure(fig, path)
-
-
-def _solution_lines(solution: Any) -> Any:
-    fmhz = solution.freqs / 1e6
-    fig, axes = figure(3, 1, (9, 9))
-    stat = solution.total is not None
-    values = (
-        (solution.abs_g, solution.sigma_abs_g, solution.sigma_abs_g_stat, "|g|"),
-        (solution.G, solution.sigma_G, solution.sigma_G_stat, "G"),
-        (solution.Trxr, solution.sigma_Trxr, solution.sigma_Trxr_stat, "Trxr [K]"),
-    )
-    weak = solution.total.separation() if stat else np.zeros((0, 0), bool)
-    for ax, (val, sig, sig_stat, name) in zip(axes, values, strict=True):
-        for ia, ant in enumerate(solution.antennas):
-            for ip, pol in enumerate(solution.pols):
-                label = f"ant {ant} {pol}" + (
-                    " (weak G-n separation)" if stat and weak[ia, ip] else ""
-                )
-                inner = sig_stat[ia, ip] if stat else None
-                band(ax, fmhz, val[ia, ip], sig[ia, ip], label, inner=inner)
-        ax.set(ylabel=name)
-        robust_ylim(ax, val[~solution.flags])
-    axes[-1].set(xlabel="frequency [MHz]")
-    axes[0].legend(fontsize=7, ncol=2)
-    return fig
-
-
-def _solution_array(solution: Any) -> Any:
-    import matplotlib
-
-    fmhz = solution.freqs / 1e6
-    npol, nant = len(solution.pols), solution.antennas.size
-    # a fixed grid (images, colour bar, gap, spread over antennas) instead of constrained
-    # layout, which took 0.8 s of this figure's 2 s
-    fig = _pyplot().figure(figsize=(3.4 * npol + 5.0, 9.5))
-    widths = [1.0] * npol + [0.05, 0.32, 1.3]
-    grid = fig.add_gridspec(
-        3, npol + 3, width_ratios=widths, left=0.06, right=0.99, bottom=0.06, top=0.92,
-        wspace=0.12, hspace=0.38,
-    )  # fmt: skip
-    rows = (
-        ("|g|", solution.abs_g, "viridis"),
-        ("Trxr [K]", solution.Trxr, "viridis"),
-        ("chi2 / dof", solution.reduced_chi2, "magma"),
-    )
-    ticks = np.unique(np.linspace(0, nant - 1, min(nant, 8)).astype(int))
-    for r, (name, values, cmap) in enumerate(rows):
-        values = np.where(solution.flags, np.nan, values)
-        style: dict[str, Any] = {"cmap": matplotlib.colormaps[cmap].with_extremes(bad="0.85")}
-        if r == 2:  # chi2/dof spans decades where the model fails: a log scale around 1
-            limits = _chi2_limits(values)
-            style["norm"] = matplotlib.colors.LogNorm(*limits)
-        else:
-            limits = robust_limits(values) or (None, None)
-            style.update(vmin=limits[0], vmax=limits[1])
-        for ip, pol in enumerate(solution.pols):
-            ax = fig.add_subplot(grid[r, ip])
-            image = channel_image(ax, fmhz, values[:, ip], **style)
-            ax.set_yticks(ticks, [str(a) for a in solution.antennas[ticks]] if ip == 0 else [])
-            ax.set(ylabel="antenna" if ip == 0 else None, title=f"{name}, {pol}")
-            if r == 2:
-                ax.set_xlabel("frequency [MHz]")
-        fig.colorbar(image, cax=fig.add_subplot(grid[r, npol]))
-        ax = fig.add_subplot(grid[r, npol + 2])
-        median, lo, hi = nan_quantiles(values, (0.5, 0.16, 0.84))
-        for ip, pol in enumerate(solution.pols):
-            (line,) = ax.plot(fmhz, median[ip], lw=1, label=f"{pol} median")
-            ax.fill_between(fmhz, lo[ip], hi[ip], color=line.get_color(), alpha=0.25, lw=0)
-        if r == 2:
-            ax.axhline(1.0, color="k", lw=0.6, ls="--")
-            ax.set(yscale="log", xlabel="frequency [MHz]")
-        if limits[0] is not None:
-            ax.set_ylim(*limits)
-        ax.set(ylabel=name, title="spread over antennas (16-84 %)")
-        ax.legend(fontsize=7)
-    return fig
-
-
-def _chi2_limits(values: np.ndarray) -> tuple[float, float]:
-    """Return log-scale limits of ``chi^2 / dof``.
-
-    The central 2-98 % of the positive values, widened to at least 0.5 to 2.
-    """
-    positive = values[np.isfinite(values) & (values > 0)]
-    lo, hi = np.percentile(np.log10(positive), [2, 98]) if positive.size else (0.0, 0.0)
-    return min(10.0**lo, 0.5), max(10.0**hi, 2.0)
 
 
 def nan_quantiles(values: np.ndarray, qs: tuple[float, ...]) -> list[np.ndarray]:
@@ -316,42 +280,90 @@ def plot_residuals(
     freqs: np.ndarray,
     lsts: np.ndarray,
     path: str | Path,
+    *,
+    title: str | None = None,
+    total: int | None = None,
+    shown: int | None = None,
+    channels: np.ndarray | None = None,
 ) -> Path:
-    """Waterfalls of normalised residuals ``(R - model) / sigma`` (colour range +-5).
+    """Write :func:`residuals_figure` to ``path``; return it."""
+    fig = residuals_figure(
+        labels, residuals, freqs, lsts, title=title, total=total, shown=shown, channels=channels
+    )
+    return save_figure(fig, path)
+
+
+def residuals_figure(
+    labels: list[str],
+    residuals: np.ndarray,
+    freqs: np.ndarray,
+    lsts: np.ndarray,
+    *,
+    title: str | None = None,
+    total: int | None = None,
+    shown: int | None = None,
+    channels: np.ndarray | None = None,
+) -> Any:
+    """Waterfalls of normalised residuals ``(R - model) / sigma``.
+
+    The colour range is symmetric, ``+-`` the 99th percentile of ``|residual|`` over the
+    finite values in ``channels`` (flagged channels are NaN, drawn grey).
 
     Parameters
     ----------
     labels
-        One label per waterfall.
+        One label per waterfall (which antenna and pol).
     residuals
         ``(K, Ntime, Nfreq)``.
     freqs, lsts
         Axes (Hz, hours).
-    path
-        Output image.
+    title
+        Figure title (the run: files, JDs, antennas).
+    total
+        Antenna-pols there are; more than ``shown`` writes 'showing <shown> of <total>'.
+    shown
+        Antenna-pols the waterfalls show (default ``K``; 1 for one antenna-pol before and
+        after a change).
+    channels
+        ``(Nfreq,)`` mask of the channels setting the colour range (default: all).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
     """
+    import matplotlib
+
     k = len(labels)
-    height = 2.6 * k + 0.6
+    height = 2.6 * k + 1.2
     fig = _pyplot().figure(figsize=(9, height))
     # a fixed grid (constrained layout took 0.5 s of a HERA file's 1.1 s figure)
     grid = fig.add_gridspec(
-        k, 2, width_ratios=[1.0, 0.025], left=0.09, right=0.91, wspace=0.04, hspace=0.5,
-        bottom=0.45 / height, top=1 - 0.3 / height,
+        k, 2, width_ratios=[1.0, 0.025], left=0.09, right=0.9, wspace=0.04, hspace=0.5,
+        bottom=0.55 / height, top=1 - 0.95 / height,
     )  # fmt: skip
     axes = [fig.add_subplot(grid[i, 0]) for i in range(k)]
     fmhz = freqs / 1e6
+    scaled = residuals if channels is None else residuals[..., channels]
+    vmax = max(symmetric_limit(scaled), 1.0)
+    cmap = matplotlib.colormaps["RdBu_r"].with_extremes(bad="0.8")
     for row, (ax, label, res) in enumerate(zip(axes, labels, residuals, strict=True)):
-        mesh = channel_image(ax, fmhz, res, cmap="RdBu_r", vmin=-5, vmax=5)
+        mesh = channel_image(ax, fmhz, res, cmap=cmap, vmin=-vmax, vmax=vmax)
         ticks = np.unique(np.linspace(0, lsts.size - 1, 6).astype(int))
         ax.set_yticks(ticks, [f"{lsts[i]:.2f}" for i in ticks])
         rms = float(np.sqrt(np.nanmean(res**2))) if np.any(np.isfinite(res)) else float("nan")
-        ax.set(ylabel="LST [h]", title=f"{label}: normalised residuals (rms {rms:.2f})")
-        fig.colorbar(mesh, cax=fig.add_subplot(grid[row, 1]), label="(R - model) / sigma")
+        ax.set(ylabel="LST [h]", title=f"{label}: normalised residuals (rms {rms:.3g})")
+        fig.colorbar(mesh, cax=fig.add_subplot(grid[row, 1]), label=RESIDUAL_LABEL)
     axes[-1].set_xlabel("frequency [MHz]")
-    return save_figure(fig, path)
+    note = f"colour range +-{vmax:.3g} sigma (99th percentile of |residual|)"
+    fig.suptitle((title + "\n" if title else "") + note, fontsize=9)
+    shown = k if shown is None else shown
+    showing_note(fig, shown, total or shown)
+    return fig
 
 
-def plot_gain_series(steps: list[dict[str, Any]], path: str | Path) -> Path | None:
+def plot_gain_series(
+    steps: list[dict[str, Any]], path: str | Path, title: str | None = None
+) -> Path | None:
     """Plot a diagnosis's per-integration gain series against LST.
 
     One panel per ``gain_jitter`` / ``antenna_gain_jitter`` step, one line per
@@ -363,6 +375,8 @@ def plot_gain_series(steps: list[dict[str, Any]], path: str | Path) -> Path | No
         ``diagnosis.json`` steps; those with a ``series`` are drawn, one panel each.
     path
         Output image.
+    title
+        Figure title (the run: files, JDs, antennas).
 
     Returns
     -------
@@ -398,4 +412,6 @@ def plot_gain_series(steps: list[dict[str, Any]], path: str | Path) -> Path | No
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7, ncol=4, loc="upper right")
     axes[-1].set_xlabel("LST [h]")
+    if title:
+        fig.suptitle(title, fontsize=9)
     return save_figure(fig, path)

@@ -19,7 +19,7 @@ from autocal.core.observation import Observation
 from autocal.diagnosis.extended_fit import ExtendedFit
 from autocal.diagnosis.impact import NEGLIGIBLE_G_FRACTION, NEGLIGIBLE_TRXR_K
 from autocal.diagnosis.normal_equations import IDENTIFIABLE_RESOLUTION, MIN_IDENTIFIABLE
-from autocal.plots import plot_gain_series, plot_residuals
+from autocal.plots import plot_gain_series, plot_residuals, run_title
 
 logger = logging.getLogger(__name__)
 
@@ -203,11 +203,19 @@ def _time_change_text(impact: dict[str, Any]) -> str:
     return f"; in time: {', '.join(parts)}" if parts else ""
 
 
-def write_diagnosis(diag: Diagnosis, out_dir: str | Path, obs: Observation | None = None) -> Path:
+def write_diagnosis(
+    diag: Diagnosis,
+    out_dir: str | Path,
+    obs: Observation | None = None,
+    *,
+    stems: tuple[str, ...] = (),
+) -> Path:
     """Write ``diagnosis.json``, ``summary.txt`` and plots.
 
     The plots: residual waterfalls before/after each step, and ``gain_series.png`` (the
-    per-integration gain series of ``gain_jitter`` / ``antenna_gain_jitter`` steps).
+    per-integration gain series of ``gain_jitter`` / ``antenna_gain_jitter`` steps). The
+    waterfalls are of the first antenna and pol; their panels name them, their title the
+    files, JD range and antennas, and they say 'showing 1 of M antenna-pols'.
 
     Parameters
     ----------
@@ -217,6 +225,8 @@ def write_diagnosis(diag: Diagnosis, out_dir: str | Path, obs: Observation | Non
         Output folder (created).
     obs
         The observation (axes of the residual plots); without it the plots use indices.
+    stems
+        Input file stems, named in the plots' titles.
 
     Returns
     -------
@@ -228,20 +238,29 @@ def write_diagnosis(diag: Diagnosis, out_dir: str | Path, obs: Observation | Non
     (out / "diagnosis.json").write_text(json.dumps(_jsonable(diag.to_dict()), indent=2))
     (out / "summary.txt").write_text(summary_text(diag))
     snaps = diag.residual_snapshots
+    shown, title, total = "antenna index 0, pol index 0", None, None
+    if obs is not None:
+        shown = f"ant {obs.antennas[0]} {obs.pols[0]}"
+        title = run_title(obs.jds, obs.antennas, obs.pols, stems)
+        total = len(obs.antennas) * len(obs.pols)
     for i in range(1, len(snaps)):
         before, after = snaps[i - 1], snaps[i]
         nt, nf = after[1].shape
         freqs = obs.freqs if obs is not None else np.arange(nf) * 1e6
         lsts = obs.lsts if obs is not None else np.arange(nt, dtype=float)
         plot_residuals(
-            [before[0], after[0]],
+            [f"{shown}, {before[0]}", f"{shown}, {after[0]}"],
             np.stack([before[1], after[1]]),
             freqs,
             lsts,
             out / f"residuals_step{i}.png",
+            title=f"{title}\nstep {i}: before and after" if title else f"step {i}",
+            total=total,
+            shown=1,
         )
     if len(snaps) == 1 and obs is not None:
-        plot_residuals([snaps[0][0]], snaps[0][1][None], obs.freqs, obs.lsts, out / "residuals.png")
-    plot_gain_series(diag.steps, out / "gain_series.png")
+        plot_residuals([f"{shown}, {snaps[0][0]}"], snaps[0][1][None], obs.freqs, obs.lsts,
+                       out / "residuals.png", title=title, total=total)  # fmt: skip
+    plot_gain_series(diag.steps, out / "gain_series.png", title=title)
     logger.info("wrote diagnosis to %s", out)
     return out

@@ -51,6 +51,7 @@ from autocal.diagnosis.stepwise import diagnose
 from autocal.diagnosis.trials import ALPHA, BIC_THRESHOLD
 from autocal.fit.priors import parse_trxr_prior
 from autocal.pipeline.config import PipelineError, check_prior_spec, check_ranges
+from autocal.plots import file_stems
 
 logger = logging.getLogger(__name__)
 
@@ -356,7 +357,7 @@ def run_diagnosis(
     summary = _summary(config, obs, paths, templates, epoch, diag)
 
     def write(staging: Path) -> None:
-        report.write_diagnosis(diag, staging, obs)
+        report.write_diagnosis(diag, staging, obs, stems=file_stems(paths))
 
     products = _publish(out, write, summary, timings, t0, t3, check_stop)
     logger.info("wrote %d products to %s", len(products), out)

@@ -27,7 +27,8 @@ from autocal.io.calsol_write import write_calfits, write_calh5
 from autocal.io.products import write_solution
 from autocal.pipeline.config import CalibrationConfig, PipelineError
 from autocal.pipeline.passes import PassesResult
-from autocal.plots import plot_residuals, plot_solution
+from autocal.plots import band_core, file_stems, plot_residuals, run_title
+from autocal.solution_plots import plot_data_model, plot_delay_spectra, plot_solution
 
 #: File name of each product of a solution (``CalibrationConfig.products``).
 PRODUCT_FILES: dict[str, str] = {
@@ -35,6 +36,14 @@ PRODUCT_FILES: dict[str, str] = {
     "calfits": "solution.calfits",
     "hdf5": "solution.h5",
     "png": "solution.png",
+}
+
+#: The figures ``autocal calibrate`` writes beside ``solution.png`` (with the ``png``
+#: product): summary key -> file name.
+FIGURE_FILES: dict[str, str] = {
+    "residuals_png": "residuals.png",
+    "delay_png": "delay_spectra.png",
+    "data_model_png": "data_model.png",
 }
 
 #: Name of the run's JSON summary in the output folder.
@@ -47,6 +56,7 @@ def write_solution_products(
     products: Sequence[str],
     *,
     overwrite: bool = False,
+    stems: tuple[str, ...] = (),
 ) -> dict[str, str]:
     """Write a solution's products into ``out`` (:data:`PRODUCT_FILES`; each atomically).
 
@@ -64,6 +74,8 @@ def write_solution_products(
         Any of :data:`PRODUCT_FILES`' names.
     overwrite
         Replace existing files; otherwise an existing one is a ``FileExistsError``.
+    stems
+        Input file stems, named in the figure's title.
 
     Returns
     -------
@@ -89,7 +101,7 @@ def write_solution_products(
         else:
             if path.exists() and not overwrite:
                 raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
-            plot_solution(solution, path)
+            plot_solution(solution, path, stems=stems)
         written[name] = str(path)
     return written
 
@@ -118,6 +130,67 @@ def waterfall_residuals(
     return labels, resid.reshape(-1, *resid.shape[2:]), lsts[centre]
 
 
+def data_model_curves(
+    solution: Solution, run: PassesResult, lsts: np.ndarray, core: np.ndarray
+) -> dict[str, Any]:
+    """Return the data and model curves of :func:`~autocal.solution_plots.data_model_figure`.
+
+    Of the data and of the fitted model: weighted means over time (``(K, Nfreq)``), and
+    per waterfall row (``(K, Nbins)``) the mean over the channels in ``core`` with data in
+    every row of the row's weighted means.
+    """
+    wf = run.waterfall
+    ns = wf.shape[0]
+    model_sum = np.einsum("spbfm,spfm->spbf", wf[..., 2:], solution.coeffs[:ns])
+    data_sum, wsum = wf[..., 0], wf[..., 1]
+    flat = (-1, data_sum.shape[-1])
+    flagged = solution.flags[:ns]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        wf_t = wsum.sum(axis=2)
+        data = np.where(wf_t > 0, data_sum.sum(axis=2) / wf_t, np.nan)
+        model = np.where(wf_t > 0, model_sum.sum(axis=2) / wf_t, np.nan)
+        # the channels inside the band with data in every row (a set changing from row to
+        # row makes the mean jump); any with data in the row if no channel has it in all
+        band = (core & ~flagged)[:, :, None, :] & (wsum > 0)
+        always = band.all(axis=2, keepdims=True)
+        use = np.where(always.any(axis=-1, keepdims=True), always & band, band)
+        count = np.count_nonzero(use, axis=-1)
+        per_bin = np.where(use, wsum, 1.0)
+        data_t = np.where(use, data_sum / per_bin, 0.0).sum(axis=-1) / count
+        model_t = np.where(use, model_sum / per_bin, 0.0).sum(axis=-1) / count
+    labels = [f"ant {a} {p}" for a in solution.antennas[:ns].tolist() for p in solution.pols]
+    centre = np.minimum(np.arange(wf.shape[2]) * run.bin_size + run.bin_size // 2, lsts.size - 1)
+    return {
+        "labels": labels,
+        "freqs": solution.freqs,
+        "lsts": lsts[centre],
+        "data": np.where(flagged, np.nan, data).reshape(flat),
+        "model": np.where(flagged, np.nan, model).reshape(flat),
+        "data_t": data_t.reshape(len(labels), -1),
+        "model_t": model_t.reshape(len(labels), -1),
+    }
+
+
+def write_figures(
+    solution: Solution, run: PassesResult, config: CalibrationConfig, lsts: np.ndarray, out: Path
+) -> None:
+    """Write :data:`FIGURE_FILES` into ``out``: residuals, delay spectra, data vs model."""
+    stems = file_stems(config.inputs)
+    core = band_core(solution.G, solution.flags)
+    total = solution.antennas.size * len(solution.pols)
+    labels, resid, bin_lsts = waterfall_residuals(solution, run, config, lsts)
+    head = run_title(solution.jds, solution.antennas, solution.pols, stems)
+    path = out / FIGURE_FILES["residuals_png"]
+    plot_residuals(
+        labels, resid, solution.freqs, bin_lsts, path, title=head, total=total, channels=core
+    )
+    plot_delay_spectra(solution, out / FIGURE_FILES["delay_png"], stems=stems)
+    curves = data_model_curves(solution, run, lsts, core)
+    title = f"{head}\ndata vs {solution.model.kind} model"
+    path = out / FIGURE_FILES["data_model_png"]
+    plot_data_model(curves, path, title=title, total=total, core=core)
+
+
 def write_products(
     config: CalibrationConfig,
     solution: Solution,
@@ -133,14 +206,13 @@ def write_products(
     out.mkdir(parents=True, exist_ok=True)
     staging = out / f".staging-{os.getpid()}-{time.time_ns()}"
     staging.mkdir()
-    names = dict(PRODUCT_FILES)
+    names = {**PRODUCT_FILES, **FIGURE_FILES}
     written: dict[str, str] = {}
     try:
-        write_solution_products(solution, staging, config.products)
+        stems = file_stems(config.inputs)
+        write_solution_products(solution, staging, config.products, stems=stems)
         if "png" in config.products:
-            labels, resid, bin_lsts = waterfall_residuals(solution, run, config, lsts)
-            plot_residuals(labels, resid, solution.freqs, bin_lsts, staging / "residuals.png")
-            names["residuals_png"] = "residuals.png"
+            write_figures(solution, run, config, lsts, staging)
         if config.reference:
             reference = read_reference_gains(config.reference)
             comparison = compare(solution, reference, **(comparison_inputs or {}))

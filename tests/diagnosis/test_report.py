@@ -5,22 +5,42 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import autocal.plots
 from autocal.diagnosis.report import Diagnosis, summary_text, write_diagnosis
 from autocal.diagnosis.stepwise import diagnose
 from tests.diagnosis.simulated import PRIOR_SIGMA, hidden
 
 
-def test_write_diagnosis(setup, tmp_path: Path):
+def test_write_diagnosis(setup, tmp_path: Path, monkeypatch):
     obs, tpl = setup
     diag = diagnose(
         hidden(obs, tpl.total - tpl.cmb), tpl, trxr_prior=150.0, trxr_prior_sigma=PRIOR_SIGMA
     )
-    out = write_diagnosis(diag, tmp_path / "diag", obs)
+    figures = {}
+    save = autocal.plots.save_figure
+
+    def keep(fig, path):
+        figures[Path(path).name] = fig
+        return save(fig, path)
+
+    monkeypatch.setattr(autocal.plots, "save_figure", keep)
+    out = write_diagnosis(diag, tmp_path / "diag", obs, stems=("zen.1.HH",))
     doc = json.loads((out / "diagnosis.json").read_text())
     assert doc["effects"] == ["missing_cmb"]
     step = doc["steps"][0]
     assert {"name", "parameters", "statistic", "delta", "gap_before", "gap_after"} <= set(step)
     assert (out / "residuals_step1.png").stat().st_size > 1000
+    # the waterfalls say which antenna and pol they show, of how many, from which run
+    fig = figures["residuals_step1.png"]
+    shown = f"ant {obs.antennas[0]} {obs.pols[0]}"
+    titles = [ax.get_title() for ax in fig.axes if ax.images]
+    assert titles[0].startswith(f"{shown}, initial model")
+    assert titles[1].startswith(f"{shown}, after missing_cmb")
+    total = len(obs.antennas) * len(obs.pols)
+    notes = " ".join(t.get_text() for t in fig.texts)
+    assert (f"showing 1 of {total} antenna-pols" in notes) == (total > 1)
+    head = fig._suptitle.get_text()
+    assert head.startswith("zen.1.HH | JD ") and f"{obs.jds.min():.5f}" in head
     assert "missing_cmb" in (out / "summary.txt").read_text()
 
 

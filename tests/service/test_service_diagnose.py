@@ -313,7 +313,7 @@ def test_run_diagnosis_publishes_all_or_nothing(
     (out / "notes.txt").write_text("mine")
     real = autocal.diagnosis.report.write_diagnosis
 
-    def half_then_fail(diag: Any, out_dir: Path, obs: Any = None) -> Path:
+    def half_then_fail(diag: Any, out_dir: Path, obs: Any = None, **kw: Any) -> Path:
         (Path(out_dir) / "diagnosis.json").write_text('{"effects": [')
         raise OSError("disk full")
 
@@ -325,9 +325,9 @@ def test_run_diagnosis_publishes_all_or_nothing(
     # cancelled after the products were staged: still nothing published
     calls: list[str] = []
 
-    def write_then_cancel(diag: Any, out_dir: Path, obs: Any = None) -> Path:
+    def write_then_cancel(diag: Any, out_dir: Path, obs: Any = None, **kw: Any) -> Path:
         calls.append("write")
-        return real(diag, out_dir, obs)
+        return real(diag, out_dir, obs, **kw)
 
     monkeypatch.setattr(autocal.diagnosis.report, "write_diagnosis", write_then_cancel)
     from autocal.pipeline.config import PipelineError
