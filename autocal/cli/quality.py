@@ -19,7 +19,7 @@ from autocal.compare.report import OUTPUT_NAMES
 from autocal.core.files import atomic_path
 from autocal.fit.solution import Solution
 from autocal.fit.solve import FLAG_REASONS
-from autocal.pipeline.products import PRODUCT_FILES, SUMMARY_NAME
+from autocal.pipeline.products import FIGURE_FILES, PRODUCT_FILES, SUMMARY_NAME
 
 #: Exit status of a run whose solution is fully or mostly flagged (products are written).
 EXIT_FLAGGED = 3
@@ -27,7 +27,7 @@ EXIT_FLAGGED = 3
 MOSTLY_FLAGGED = 0.5
 #: Every file name ``autocal calibrate`` writes into ``--out``.
 OWNED_NAMES = frozenset(
-    {*PRODUCT_FILES.values(), "residuals.png", SUMMARY_NAME, *OUTPUT_NAMES.values()}
+    {*PRODUCT_FILES.values(), *FIGURE_FILES.values(), SUMMARY_NAME, *OUTPUT_NAMES.values()}
 )
 
 
