@@ -24,6 +24,11 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("data", type=Path, nargs="+", help="UVH5 file(s) of one observation")
     p.add_argument("--out", required=True, type=Path, help="calibrated UVH5 file to write")
     p.add_argument(
+        "--antennas",
+        help="comma-separated antenna numbers: calibrate only the baselines between them "
+        "(default: every antenna of the data, which the solution must cover)",
+    )
+    p.add_argument(
         "--overwrite",
         action="store_true",
         help="replace --out if it is a calibrated UVH5 file autocal apply wrote",
@@ -33,9 +38,13 @@ def add(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
+    from autocal.cli.args import parse_int_list
     from autocal.pipeline.apply import apply_solution
 
-    result = apply_solution(args.solution, args.data, args.out, overwrite=args.overwrite)
+    antennas = None if args.antennas is None else parse_int_list(args.antennas, "antennas")
+    result = apply_solution(
+        args.solution, args.data, args.out, antennas=antennas, overwrite=args.overwrite
+    )
     print(
         f"calibrated {result.nbls} baseline(s) x {result.ntimes} integration(s) x "
         f"{result.nfreqs} channel(s), pols {','.join(result.pols)}; vis_units "

@@ -115,13 +115,21 @@ def read_gains(path: str | Path) -> Any:
     return uvc
 
 
-def read_visibilities(paths: Sequence[str | Path]) -> Any:
+def read_visibilities(paths: Sequence[str | Path], antennas: Sequence[int] | None = None) -> Any:
     """Read UVH5 files (autos and any cross-correlations) into one pyuvdata ``UVData``.
+
+    Parameters
+    ----------
+    paths
+        The files.
+    antennas
+        Keep only the baselines between these antennas (``None``: all).
 
     Raises
     ------
     ApplyError
-        If no file is given, a file is missing, or pyuvdata cannot read or join them.
+        If no file is given, a file is missing, the antenna selection keeps nothing, or
+        pyuvdata cannot read or join them.
     """
     paths = [Path(p) for p in paths]
     if not paths:
@@ -129,9 +137,21 @@ def read_visibilities(paths: Sequence[str | Path]) -> Any:
     for path in paths:
         if not path.is_file():
             raise ApplyError(f"data file {path} does not exist: check the path")
+    select = {} if antennas is None else {"antenna_nums": [int(a) for a in antennas]}
     try:
         with _log_warnings("reading the data"):
-            return UVData.from_file([str(p) for p in paths] if len(paths) > 1 else str(paths[0]))
+            return UVData.from_file(
+                [str(p) for p in paths] if len(paths) > 1 else str(paths[0]), **select
+            )
+    except ValueError as err:
+        if antennas is not None:
+            raise ApplyError(
+                f"the antenna selection {list(antennas)} keeps no data ({err}); give "
+                "antennas the data have"
+            ) from err
+        raise ApplyError(
+            f"pyuvdata cannot read the data (ValueError: {err}); give UVH5 files of one observation"
+        ) from err
     except Exception as err:  # pyuvdata raises many types for odd files
         raise ApplyError(
             f"pyuvdata cannot read the data ({type(err).__name__}: {err}); give UVH5 "
@@ -167,7 +187,7 @@ def check_coverage(uvd: Any, uvc: Any) -> None:
     if missing.size:
         raise ApplyError(
             f"the solution has no gains for antenna(s) {missing.tolist()} of the data "
-            f"(it has {sorted(int(a) for a in uvc.ant_array)}): select those antennas out of "
+            f"(it has {sorted(int(a) for a in uvc.ant_array)}): select antennas with --antennas "
             "the data or calibrate them"
         )
     orient = uvc.telescope.get_x_orientation_from_feeds()
@@ -234,6 +254,7 @@ def apply_solution(
     data: Sequence[str | Path],
     out: str | Path,
     *,
+    antennas: Sequence[int] | None = None,
     overwrite: bool = False,
 ) -> ApplyResult:
     """Calibrate UVH5 visibilities with a gain solution and write a calibrated UVH5 file.
@@ -247,6 +268,9 @@ def apply_solution(
         UVH5 files of one observation (autos and any cross-correlations).
     out
         The calibrated UVH5 file to write.
+    antennas
+        Calibrate only the baselines between these antennas (``None``: every antenna of
+        the data, each of which the solution must cover).
     overwrite
         Replace ``out`` if it is a calibrated UVH5 file autocal wrote.
 
@@ -265,7 +289,7 @@ def apply_solution(
     data_paths = [Path(p) for p in data]
     check_output(out, overwrite)
     uvc = read_gains(solution)
-    uvd = read_visibilities(data_paths)
+    uvd = read_visibilities(data_paths, antennas)
     check_coverage(uvd, uvc)
     try:
         with _log_warnings("calibrating"):

@@ -54,3 +54,17 @@ def test_bad_input_is_one_line_and_exit_2(real, tmp_path, capsys, which, message
     assert err.startswith("autocal apply: error:") and message in err
     assert err.count("\n") == 1 and "Traceback" not in err
     assert (not out.exists()) if which != "foreign" else out.read_text() == "someone else's file"
+
+
+def test_antennas_select_the_baselines_to_calibrate(real, tmp_path, capsys) -> None:
+    """The raw file has crosses to antennas 24 and 25 without autos (no gains): --antennas 23
+    keeps antenna 23's baselines, so the antenna refusal gives way to the next check (this
+    solution covers 150-160 MHz only); an antenna the data lack is a clear error."""
+    out = tmp_path / "out.uvh5"
+    args = ["apply", str(real.calfits), str(real.raw), "--out", str(out)]
+    assert main([*args, "--antennas", "23"]) == EXIT_USER_ERROR
+    err = capsys.readouterr().err
+    assert "not channels of the solution" in err and "no gains for antenna" not in err
+    assert main([*args, "--antennas", "99"]) == EXIT_USER_ERROR
+    assert "antenna selection [99] keeps no data" in capsys.readouterr().err
+    assert not out.exists()
