@@ -5,7 +5,7 @@ One import calibrates::
     import autocal
 
     sol = autocal.calibrate("zen.2458116.30448.HH.uvh5", antennas=[23])
-    print(sol)  # model, axes, ranges and medians
+    sol  # shown in a notebook: model, axes, ranges and medians (repr)
     sol.write("cal116", products=["calh5", "hdf5"])
 
 ``autocal.calibrate`` is the function ``autocal calibrate``, the job service and nightly

@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
     from tqdm import tqdm
 
-    from autocal.cli.quality import EXIT_FLAGGED, flag_quality, record_quality, remove_stale
+    from autocal.cli.quality import EXIT_FLAGGED, remove_stale
     from autocal.pipeline.calibrate import calibrate, read_summary
     from autocal.pipeline.config import CalibrationConfig
 
@@ -89,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
             bar.refresh()
 
         # autocal.calibrate: the notebook's, the service's and nightly's function
-        solution = calibrate(
+        calibrate(
             config,
             out=args.out,
             progress=progress,
@@ -100,8 +100,7 @@ def run(args: argparse.Namespace) -> int:
     summary = read_summary(args.out)
     for path in remove_stale(args.out, summary["products"]):
         print(f"removed {path} (a product of an earlier run)")
-    quality = flag_quality(solution)
-    record_quality(args.out, quality)
+    quality = summary["quality"]
     print(json.dumps(summary["solution"], indent=2))
     separation = summary.get("separation") or []
     shown = (

@@ -52,6 +52,7 @@ from autocal.pipeline.products import (
     write_products,
     write_summary,
 )
+from autocal.pipeline.quality import flag_quality
 from autocal.pipeline.scaleout import dask_client
 from autocal.pipeline.sources import (
     Source,
@@ -213,6 +214,7 @@ def _calibrate(
     summary = {
         "solution": solution.describe(),
         "separation": separation,
+        "quality": flag_quality(solution),
         "comparison": comparison_summary(products),
         "config": config.model_dump(mode="json"),
         "provenance": provenance,
@@ -415,7 +417,7 @@ def calibrate(
     --------
     >>> import autocal
     >>> sol = autocal.calibrate("zen.2458116.30448.HH.uvh5", antennas=[23])  # doctest: +SKIP
-    >>> print(sol)  # doctest: +SKIP
+    >>> sol  # doctest: +SKIP
     """
     cfg, observation = _config_for(inputs, config, options)
     result = run_calibration(
