@@ -2,7 +2,8 @@
 
 :func:`compute_tsky` resolves names (sky models, beams, sites), checks the grids, chooses
 the method (the ring-FFT engine, :mod:`autocal.tsky.ringfft`, or the brute-force
-reference, :mod:`autocal.tsky.brute`) and reads/writes the on-disk cache
+reference, :mod:`autocal.tsky.brute`), gives both the sky band-limited to what the
+HEALPix grid resolves (:mod:`autocal.tsky.bandlimit`) and reads/writes the on-disk cache
 (:mod:`autocal.tsky.cache`) of the engine's LST-free output
 (:class:`~autocal.tsky.result.TskyHarmonics`: Tsky's Fourier series in LST), from which a
 table for any LSTs is one inverse FFT.
@@ -26,6 +27,7 @@ from autocal.sky.beam_base import Beam
 from autocal.sky.beam_names import get_beam
 from autocal.sky.models import SkyModel, get_sky
 from autocal.tsky import cache as tsky_cache
+from autocal.tsky.bandlimit import band_limited_components
 from autocal.tsky.brute import tsky_brute
 from autocal.tsky.horizon import HORIZON_WIDTH_DEG
 from autocal.tsky.result import (
@@ -162,6 +164,7 @@ def _describe(req: _Request, tg: np.ndarray) -> dict[str, Any]:
         "method": req.method,
         "engine_version": ENGINE_VERSION,
         "cmb": "included once (2.725 K)",
+        "sky_band_limit": f"lmax {2 * req.nside} (autocal.tsky.bandlimit)",
         "frame": "apparent equatorial of epoch (TETE); LST = apparent sidereal time",
         "azimuth_convention": "east of north",
     }
@@ -191,7 +194,7 @@ def _harmonics(req: _Request, lst_free: dict[str, Any], cache: bool) -> TskyHarm
 def _compute_harmonics(req: _Request, lst_free: dict[str, Any]) -> TskyHarmonics:
     """Compute the harmonics by the ring-FFT engine, described by ``lst_free``."""
     t0 = time.perf_counter()
-    comps = req.sky.components(req.freqs, nside=req.nside, epoch=req.epoch)
+    comps = band_limited_components(req.sky, req.freqs, req.nside, req.epoch)
     computed = tsky_harmonics(
         comps, req.beam, req.site, req.horizon_width_deg, progress=req.progress
     )
@@ -214,7 +217,7 @@ def _table(
 ) -> TskyResult:
     """Compute the table directly (never cached): brute force, or the engine with components."""
     t0 = time.perf_counter()
-    comps = req.sky.components(req.freqs, nside=req.nside, epoch=req.epoch)
+    comps = band_limited_components(req.sky, req.freqs, req.nside, req.epoch)
     if req.method == "fft":
         result = tsky_fft(
             comps,

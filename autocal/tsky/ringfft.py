@@ -55,7 +55,7 @@ from autocal.tsky.synthesis import lst_radians, synthesise
 logger = logging.getLogger(__name__)
 
 #: Bump when the numerical method changes, so cached tables are recomputed.
-ENGINE_VERSION = "ringfft-2"
+ENGINE_VERSION = "ringfft-3"  # 3: compute_tsky band-limits the sky (tsky.bandlimit)
 
 
 def progress_disabled(progress: bool | None) -> bool | None:
