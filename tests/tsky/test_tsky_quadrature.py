@@ -55,6 +55,7 @@ def _max_error(beam_name: str, freqs: np.ndarray) -> float:
 
 
 @pytest.mark.data
+@pytest.mark.slow
 def test_engine_at_nside_64_matches_quadrature_dipole(data_root):
     err = _max_error("dipole", np.array([100e6, 200e6]))
     assert err <= TOL_DIPOLE_K, f"max |engine - quadrature| = {err:.4f} K"
