@@ -2,10 +2,11 @@
 
 The tolerance comes from ``benchmarks/tsky_accuracy.py`` (results in
 ``benchmarks/results/tsky_accuracy.md``): the quadrature at 0.2 degrees is within
-0.02 K of the 0.1-degree one (and that within ~0.006 K of 0.05 degrees), and the target
-for the engine at nside 64 is 0.05 K, so the engine must be within 0.05 + 0.02 K of the
-0.2-degree quadrature. The engine with the sky sampled at the pixel centres (before
-:mod:`autocal.tsky.bandlimit`) is 0.2 K (dipole, 100 MHz) and 1 K (HERA, 150 MHz) off.
+0.017 K (dipole) and 0.040 K (HERA) of the 0.1-degree one on 24 LSTs (and that within
+0.001 / 0.006 K of 0.05 degrees), and the target for the engine at nside 64 is 0.05 K, so
+the engine must be within 0.05 K plus that of the 0.2-degree quadrature. The engine with
+the sky sampled at the pixel centres (before :mod:`autocal.tsky.bandlimit`) is 0.09 K
+(dipole) and 1.07 K (HERA) off on these LSTs.
 """
 
 from __future__ import annotations
@@ -21,10 +22,10 @@ from autocal.tsky.horizon import horizon_weight
 from autocal.tsky.quadrature import topocentric_grid, tsky_quadrature
 from autocal.tsky.result import TskyError
 
-#: max |quadrature(0.2 deg) - quadrature(0.1 deg)| measured (0.017 K dipole, 0.029 K HERA
-#: on 8 LSTs; 0.02 K rounded for the dipole) plus the engine's 0.05 K target.
+#: max |quadrature(0.2 deg) - quadrature(0.1 deg)| measured (0.017 K dipole, 0.040 K HERA
+#: on 24 LSTs, rounded up) plus the engine's 0.05 K target.
 TOL_DIPOLE_K = 0.05 + 0.02
-TOL_HERA_K = 0.05 + 0.03
+TOL_HERA_K = 0.05 + 0.04
 LSTS = np.array([0.0, 6.0, 12.0, 18.0])
 
 
