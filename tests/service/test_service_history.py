@@ -236,3 +236,28 @@ def test_the_endpoints_answer_with_values_and_404s_that_list_what_exists(
     assert {o["antenna"] for o in night["outliers"]} == {3} and len(night["antennas"]) == 10
     answer = client.get("/nights/2459999")
     assert answer.status_code == 404 and str(NIGHTS[0]) in answer.json()["detail"]
+
+
+def test_autocal_nightly_prints_the_nights_outliers(tmp_path: Path, monkeypatch, capsys) -> None:
+    from autocal.cli.main import main
+    from autocal.service.settings import get_settings
+
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / f"zen.{NIGHTS[-1]}.40000.HH.uvh5").write_bytes(b"x")  # grouped by name only
+    monkeypatch.setenv("AUTOCAL_STATE_DIR", str(tmp_path / "state"))
+    monkeypatch.setenv("AUTOCAL_DATA_ROOTS", str(data))
+    monkeypatch.delenv("AUTOCAL_DATABASE_URL", raising=False)
+    get_settings.cache_clear()
+    try:
+        store = JobStore(get_settings().resolved_database_url())
+        _fill(store, {(NIGHTS[-1], 6): {"G": 30.0}})
+        store.engine.dispose()
+        argv = ["nightly", "--night", str(NIGHTS[-1]), "--beam", "dipole", "--wait", "0"]
+        assert main(argv) == 0
+    finally:
+        get_settings.cache_clear()
+    out = capsys.readouterr().out
+    assert "1 job(s) not finished yet" in out
+    assert "outlier antenna 6 ee (array): G = 30" in out
+    assert "outlier antenna 6 ee (history): G = 30" in out
