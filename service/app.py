@@ -34,6 +34,7 @@ from autocal.service.routers import (
     monitoring,
     nightly,
     problems_message,
+    ui,
     uploads,
 )
 from autocal.service.schemas import ApiError
@@ -199,4 +200,5 @@ def create_app(settings: Settings | None = None, store: JobStore | None = None) 
     for module in modules:
         app.include_router(module.router)
     app.state.api_routes = [route for module in modules for route in module.router.routes]
+    app.include_router(ui.router)  # the monitoring web page (HTML, not in the schema)
     return app
