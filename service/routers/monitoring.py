@@ -74,7 +74,7 @@ def get_antenna_history(
         int | None, Query(alias="to", ge=0, le=10**8, description="last night (JD)")
     ] = None,
 ) -> AntennaHistory:
-    """Return an antenna's values night by night: G, |g|, Trxr with sigmas, chi2/dof, bands."""
+    """Return an antenna's values night by night: G, ``|g|``, Trxr with sigmas, chi2/dof, bands."""
     if night_from is not None and night_to is not None and night_from > night_to:
         raise ApiError(
             422,

@@ -235,7 +235,7 @@ def night_page(store: StoreDep, night: Annotated[int, PathParam(ge=0, le=10**8)]
 def antenna_page(
     store: StoreDep, antenna: Annotated[int, PathParam(ge=0, le=10**6)]
 ) -> HTMLResponse:
-    """Render an antenna's history: |g|, Trxr and G against night, per band, with errors."""
+    """Render an antenna's history: ``|g|``, Trxr and G against night, per band, with errors."""
     try:
         items = antenna_history(store, antenna)
     except MonitoringError as err:
