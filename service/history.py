@@ -128,7 +128,7 @@ def observation_name(config: dict[str, Any]) -> str:
     if not inputs:
         return "unknown"
     more = f" (+{len(inputs) - 1} files)" if len(inputs) > 1 else ""
-    return f"{inputs[0]}{more}"
+    return f"{inputs[0][: 255 - len(more)]}{more}"  # the column holds 256 characters
 
 
 def _median(values: np.ndarray) -> float | None:
