@@ -196,9 +196,9 @@ def create_app(settings: Settings | None = None, store: JobStore | None = None) 
     app.add_middleware(CatchAllMiddleware)
     # outermost: an oversized body is refused before it is read, before authentication
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
-    modules = (jobs, uploads, nightly, health, monitoring)
+    # ui: the monitoring web page (HTML, left out of the schema)
+    modules = (jobs, uploads, nightly, health, monitoring, ui)
     for module in modules:
         app.include_router(module.router)
     app.state.api_routes = [route for module in modules for route in module.router.routes]
-    app.include_router(ui.router)  # the monitoring web page (HTML, not in the schema)
     return app

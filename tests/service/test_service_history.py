@@ -261,3 +261,15 @@ def test_autocal_nightly_prints_the_nights_outliers(tmp_path: Path, monkeypatch,
     assert "1 job(s) not finished yet" in out
     assert "outlier antenna 6 ee (array): G = 30" in out
     assert "outlier antenna 6 ee (history): G = 30" in out
+
+
+def test_the_page_is_read_only_and_out_of_the_schema(store, tmp_path: Path) -> None:
+    from fastapi.testclient import TestClient
+
+    from autocal.service.app import create_app
+
+    client = TestClient(create_app(Settings(state_dir=tmp_path, api_token="t"), store))
+    answer = client.post("/ui")
+    assert answer.status_code == 405 and answer.headers["allow"] == "GET"
+    assert not [p for p in client.get("/openapi.json").json()["paths"] if p.startswith("/ui")]
+    assert "no night yet" in client.get("/ui").text  # an empty store: a page, not an error
