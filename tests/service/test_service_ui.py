@@ -92,7 +92,7 @@ def server(state: Path) -> Iterator[str]:
         )  # fmt: skip
     base = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + 300  # a loaded machine imports slowly
         while True:
             try:
                 if httpx.get(f"{base}/health", timeout=2).status_code == 200:
