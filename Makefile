@@ -8,7 +8,7 @@ export AUTOCAL_DATA_DIR
 DEMO_OUT ?= demo-output
 PYTEST_ARGS ?=
 
-.PHONY: install demo test docs lint format bench bench-night clean
+.PHONY: install demo demo-nightly test docs lint format bench bench-night clean
 
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,13 @@ install: $(VENV)/.installed
 demo: install
 	$(VENV)/bin/autocal info
 	PATH="$(abspath $(VENV))/bin:$$PATH" MPLBACKEND=Agg $(PY) scripts/demo.py
+
+# Monitoring across nights: the API and a worker on SQLite calibrate the real nights JD
+# 2458043/44/45 (7 antennas) submitted with POST /nightly, then print each night's outliers
+# and the monitoring page's URL; in a terminal the page is served until Ctrl-C
+# (scripts/demo_nightly.py; DEMO_SERVE_S=seconds otherwise).
+demo-nightly: install
+	PATH="$(abspath $(VENV))/bin:$$PATH" MPLBACKEND=Agg $(PY) scripts/demo_nightly.py
 
 test: install
 	$(VENV)/bin/ruff check .

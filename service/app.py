@@ -31,8 +31,10 @@ from autocal.service.routers import (
     describe_problem,
     health,
     jobs,
+    monitoring,
     nightly,
     problems_message,
+    ui,
     uploads,
 )
 from autocal.service.schemas import ApiError
@@ -194,7 +196,8 @@ def create_app(settings: Settings | None = None, store: JobStore | None = None) 
     app.add_middleware(CatchAllMiddleware)
     # outermost: an oversized body is refused before it is read, before authentication
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
-    modules = (jobs, uploads, nightly, health)
+    # ui: the monitoring web page (HTML, left out of the schema)
+    modules = (jobs, uploads, nightly, health, monitoring, ui)
     for module in modules:
         app.include_router(module.router)
     app.state.api_routes = [route for module in modules for route in module.router.routes]

@@ -40,6 +40,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from autocal.service.history import record_job_safely
 from autocal.service.settings import Settings, get_settings
 from autocal.service.store import JobState, JobStore
 
@@ -333,7 +334,10 @@ class Worker:
         logger.info("job %s (%s) attempt %d: started", run.job_id, job["kind"], run.attempt)
         run.log(f"attempt {run.attempt} started by worker {self.worker_id}")
         try:
-            return self._execute(run, job)
+            state = self._execute(run, job)
+            if state == JobState.succeeded.value:  # the per-antenna history across nights
+                record_job_safely(self.store, run.job_id)
+            return state
         finally:
             run.stop()
             logging.getLogger().removeHandler(handler)

@@ -131,6 +131,14 @@ def add(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--once", action="store_true", help="--watch: one pass, then exit")
     p.add_argument("--json", action="store_true", help="print the submission result as JSON")
+    p.add_argument(
+        "--wait",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="with --night: wait up to this long for the night's jobs (run by workers) to "
+        "finish, then print the night's outliers",
+    )
     cal = p.add_argument_group("calibration options (default: those of autocal calibrate)")
     add_calibration_arguments(cal)
     p.set_defaults(func=run)
@@ -237,6 +245,8 @@ def run(args: argparse.Namespace) -> int:
     """Run the command."""
     if args.interval <= 0 or args.settle < 0:
         raise CliError("--interval must be positive and --settle not negative")
+    if args.wait is not None and (args.wait < 0 or args.watch is not None):
+        raise CliError("--wait goes with --night and takes a number of seconds >= 0")
     if args.watch is not None:
         if args.folder is not None:
             raise CliError("--folder goes with --night; --watch already names the folder")
@@ -255,5 +265,38 @@ def run(args: argparse.Namespace) -> int:
         roots = [folder] if folder is not None else get_settings().resolved_data_roots()
         night = latest_night(roots)
         logger.info("--night last: %d", night)
-    _report(_submit(args, night=night, folder=folder), args.json)
+    result = _submit(args, night=night, folder=folder)
+    _report(result, args.json)
+    if result.get("night") is not None and not args.json:
+        _report_outliers(int(result["night"]), result, args.wait)
     return 0
+
+
+def _report_outliers(night: int, result: dict[str, Any], wait_s: float | None) -> None:
+    """Print the night's outliers (after waiting for its jobs with ``--wait``)."""
+    from autocal.service.monitoring import outliers_of_night
+    from autocal.service.settings import get_settings
+    from autocal.service.store import FINAL_STATES, JobStore
+
+    store = JobStore(get_settings().resolved_database_url())
+    try:
+        ids = [o["job_id"] for o in result.get("observations") or [] if o.get("job_id")]
+        deadline = time.monotonic() + (wait_s or 0.0)
+        while True:
+            jobs = [store.get(i) for i in ids]
+            pending = [j for j in jobs if j is not None and j["state"] not in FINAL_STATES]
+            if not pending or time.monotonic() >= deadline:
+                break
+            time.sleep(min(2.0, max(deadline - time.monotonic(), 0.0)))
+        outliers = outliers_of_night(store, night)
+    finally:
+        store.engine.dispose()
+    if pending:
+        print(f"night {night}: {len(pending)} job(s) not finished yet; outliers so far:")
+    failed = [j for j in jobs if j is not None and j["state"] == "failed"]
+    for job in failed:
+        print(f"  failed job {job['id']}: {job.get('error') or ''}")
+    if not outliers:
+        print(f"night {night}: no outlier antenna")
+    for o in outliers:
+        print(f"  outlier antenna {o['antenna']} {o['pol']} ({o['test']}): {o['reason']}")
