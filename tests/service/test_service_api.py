@@ -45,7 +45,7 @@ with warnings.catch_warnings():  # starlette's notice about httpx2, raised at im
     warnings.filterwarnings("ignore", message=".*httpx2")
     from fastapi.testclient import TestClient
 
-TOKEN = "secret"
+TOKEN = "test-token-0123456789abcdef-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 HH = "zen.2458116.30448.HH.uvh5"
 

@@ -32,7 +32,7 @@ with warnings.catch_warnings():  # starlette's notice about httpx2, raised at im
     warnings.filterwarnings("ignore", message=".*httpx2")
     from fastapi.testclient import TestClient
 
-TOKEN = "secret"
+TOKEN = "test-token-0123456789abcdef-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 SKY = "powerlaw:gsm2008@408:-2.55"
 SIM = "zen.2458098.50000.sim.uvh5"
