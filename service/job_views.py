@@ -20,7 +20,7 @@ from autocal.service.schemas import JobDetail, JobLinks, JobSummary, JobTimings,
 from autocal.service.settings import Settings
 
 #: An absolute POSIX path inside a text (a slash after a start, space, quote or bracket).
-_ABSOLUTE = re.compile(r"(?<![\w.~/])/(?:[^\s'\"(),;:\[\]{}]+/)*([^\s'\"(),;:\[\]{}/]*)")
+_ABSOLUTE = re.compile(r"(?<![\w.~/>])/(?:[^\s'\"(),;:\[\]{}]+/)*([^\s'\"(),;:\[\]{}/]*)")
 #: A worker id (``host:pid:tag``) as written in messages by the store.
 _WORKER = re.compile(r"\bworker \S+:\d+:[0-9a-f]{6}\b")
 
@@ -49,11 +49,11 @@ class Redactor:
         return _ABSOLUTE.sub(lambda m: f".../{m.group(1)}" if m.group(1) else "...", value)
 
     def value(self, value: Any) -> Any:
-        """Return a JSON-like value with every string passed through :meth:`text`."""
+        """Return a JSON-like value with every string (keys too) passed through :meth:`text`."""
         if isinstance(value, str):
             return self.text(value)
         if isinstance(value, dict):
-            return {key: self.value(item) for key, item in value.items()}
+            return {self.value(key): self.value(item) for key, item in value.items()}
         if isinstance(value, (list, tuple)):
             return [self.value(item) for item in value]
         if isinstance(value, Path):

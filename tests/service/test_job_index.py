@@ -12,9 +12,15 @@ from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import pytest
-from sqlalchemy import Column, MetaData, Table, create_engine, event, inspect, text
+from sqlalchemy import Column, MetaData, Table, create_engine, event, inspect, update
 
-from autocal.service.job_index import CursorError, decode_cursor, encode_cursor, list_page
+from autocal.service.job_index import (
+    CursorError,
+    JobAntenna,
+    decode_cursor,
+    encode_cursor,
+    list_page,
+)
 from autocal.service.migrations import STEPS, applied_migrations, apply_migrations
 from autocal.service.store import Job, JobStore
 from tests.service.test_service_store import database_url
@@ -118,19 +124,16 @@ def test_pages_cover_every_matching_job_once_newest_first(
 ) -> None:
     jobs = _fill(store, 23)
     # jobs created at the same instant are ordered by id, so no page boundary loses one
+    same = datetime(2026, 1, 1, tzinfo=UTC)
+    tied = [job["id"] for job in jobs[5:12]]
     with store.engine.begin() as conn:
-        same = datetime(2026, 1, 1, tzinfo=UTC)
-        for job in jobs[5:12]:
-            conn.execute(
-                text("UPDATE jobs SET created_at = :t WHERE id = :i"), {"t": same, "i": job["id"]}
-            )
-            conn.execute(
-                text("UPDATE job_antennas SET created_at = :t WHERE job_id = :i"),
-                {"t": same, "i": job["id"]},
-            )
+        conn.execute(update(Job).where(Job.id.in_(tied)).values(created_at=same))
+        conn.execute(
+            update(JobAntenna).where(JobAntenna.job_id.in_(tied)).values(created_at=same)
+        )
     expected = [j["id"] for j in store.list(limit=1000, **filters)]
     seen, after = [], None
-    while True:
+    for _ in range(len(jobs) + 1):
         page, after = store.page(limit=4, after=after, **filters)
         seen += [j["id"] for j in page]
         if after is None:
