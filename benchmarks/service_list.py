@@ -19,11 +19,11 @@ import tempfile
 import time
 import tracemalloc
 import uuid
+from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
-from collections.abc import Iterator
 
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, insert, text
@@ -45,7 +45,9 @@ def _rows(count: int, start: int) -> list[dict[str, Any]]:
                 "id": uuid.uuid4().hex,
                 "kind": "calibrate",
                 "state": STATES[i % len(STATES)],
-                "config": {"inputs": [f"/data/hera/night/zen.{2459000 + i}.{j}.uvh5" for j in range(4)]},
+                "config": {
+                    "inputs": [f"/data/hera/night/zen.{2459000 + i}.{j}.uvh5" for j in range(4)]
+                },
                 "night": 2459000 + i // 50,
                 "antennas": [i % 350, (i + 1) % 350],
                 "created_at": t0 + timedelta(seconds=i),

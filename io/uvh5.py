@@ -37,8 +37,8 @@ from autocal.core.files import atomic_path, file_checksum
 from autocal.core.observation import Observation, ObservationError
 from autocal.io.pyuvdata_helpers import uvdata_class, warnings_to_log
 from autocal.io.uvh5_blocks import iter_uvh5_blocks
-from autocal.io.uvh5_integrity import DataIntegrityError, file_integrity
 from autocal.io.uvh5_chunks import ReadStats
+from autocal.io.uvh5_integrity import DataIntegrityError, file_integrity
 from autocal.io.uvh5_meta import (
     FileMeta,
     UVH5FormatError,

@@ -140,5 +140,3 @@ def submit_diagnosis(
         len(config.inputs),
     )
     return job, created
-
-

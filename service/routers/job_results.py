@@ -70,7 +70,6 @@ UNITS = {
 }
 
 
-
 def _product_path(settings: Settings, job: dict[str, Any], name: str) -> Path:
     """Return a product file of a job, refusing anything outside the job's folder."""
     products = job.get("products") or {}

@@ -60,6 +60,7 @@ logger = logging.getLogger(__name__)
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 
+
 def _misplaced_error(body: JobCreate) -> ApiError:
     """422 naming the options the body's kind does not accept."""
     problems = []
@@ -153,7 +154,9 @@ def create_job(
     except errors as err:
         raise (diagnose_api_error(err) if body.kind == "diagnose" else as_api_error(err)) from None
     response.headers["Location"] = f"/jobs/{job['id']}"
-    return JobAccepted(id=job["id"], state=job["state"], created=created, links=job_links(job["id"]))
+    return JobAccepted(
+        id=job["id"], state=job["state"], created=created, links=job_links(job["id"])
+    )
 
 
 @router.get("", response_model=JobList, responses=api_errors(401, 422, 429))
@@ -210,7 +213,9 @@ def list_jobs(
     next_url = None
     if next_cursor is not None:
         query = {k: v for k, v in filters.items() if v is not None}
-        next_url = f"{request.url.path}?{urlencode({**query, 'limit': limit, 'cursor': next_cursor})}"
+        next_url = (
+            f"{request.url.path}?{urlencode({**query, 'limit': limit, 'cursor': next_cursor})}"
+        )
     redactor = redactor_for(reader, settings)
     return JobList(
         items=[job_summary(j, redactor) for j in jobs],
@@ -255,5 +260,3 @@ def cancel_job(job_id: JobId, store: StoreDep) -> JobDetail:
     except StoreError as err:
         raise ApiError(409, str(err)) from None
     return job_detail(job)
-
-

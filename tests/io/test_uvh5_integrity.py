@@ -35,9 +35,7 @@ def _with_fletcher32(plain: Path, path: Path) -> Path:
         src.copy("Header", dst)
         data = dst.create_group("Data")
         for name, dset in src["Data"].items():
-            data.create_dataset(
-                name, data=dset[()], chunks=dset.chunks or True, fletcher32=True
-            )
+            data.create_dataset(name, data=dset[()], chunks=dset.chunks or True, fletcher32=True)
     return path
 
 
@@ -60,9 +58,7 @@ def test_a_checksummed_file_reads_and_says_so(tmp_path: Path) -> None:
     report = file_integrity(path)
     assert report["status"] == "checksummed"
     assert report["checksummed"] == {"visdata": True, "flags": True, "nsamples": True}
-    np.testing.assert_array_equal(
-        read_uvh5(path).data, read_uvh5(tmp_path / "plain.uvh5").data
-    )
+    np.testing.assert_array_equal(read_uvh5(path).data, read_uvh5(tmp_path / "plain.uvh5").data)
 
 
 @pytest.mark.parametrize("dataset", ["Data/visdata", "Data/nsamples"])

@@ -122,9 +122,10 @@ def test_each_named_token_writes_and_the_job_records_its_name(client: TestClient
     detail = client.get(first.json()["links"]["self"], headers=_bearer(ALICE)).json()
     assert detail["submitted_by"] == "nightly"
     second = client.post("/jobs", json={**body, "force": True}, headers=_bearer(ALICE))
-    assert client.get(f"/jobs/{second.json()['id']}", headers=_bearer(ALICE)).json()[
-        "submitted_by"
-    ] == "alice"
+    assert (
+        client.get(f"/jobs/{second.json()['id']}", headers=_bearer(ALICE)).json()["submitted_by"]
+        == "alice"
+    )
 
 
 def test_failed_authentications_are_limited_per_client(tmp_path: Path) -> None:

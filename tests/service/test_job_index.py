@@ -77,7 +77,7 @@ def _plan(store: JobStore, **filters: object) -> str:
     """SQLite's query plan of the listing statement with ``filters``."""
     statements: list[tuple[str, object]] = []
 
-    def capture(_conn, _cursor, statement, parameters, _context, _many) -> None:  # noqa: ANN001
+    def capture(_conn, _cursor, statement, parameters, _context, _many) -> None:
         if "FROM jobs" in statement and "ORDER BY" in statement:
             statements.append((statement, parameters))
 
@@ -119,18 +119,14 @@ def test_the_listing_walks_an_index_without_sorting(
     "filters",
     [{}, {"state": "queued"}, {"kind": "calibrate"}, {"night": 2459002}, {"antenna": 3}],
 )
-def test_pages_cover_every_matching_job_once_newest_first(
-    store: JobStore, filters: dict
-) -> None:
+def test_pages_cover_every_matching_job_once_newest_first(store: JobStore, filters: dict) -> None:
     jobs = _fill(store, 23)
     # jobs created at the same instant are ordered by id, so no page boundary loses one
     same = datetime(2026, 1, 1, tzinfo=UTC)
     tied = [job["id"] for job in jobs[5:12]]
     with store.engine.begin() as conn:
         conn.execute(update(Job).where(Job.id.in_(tied)).values(created_at=same))
-        conn.execute(
-            update(JobAntenna).where(JobAntenna.job_id.in_(tied)).values(created_at=same)
-        )
+        conn.execute(update(JobAntenna).where(JobAntenna.job_id.in_(tied)).values(created_at=same))
     expected = [j["id"] for j in store.list(limit=1000, **filters)]
     seen, after = [], None
     for _ in range(len(jobs) + 1):

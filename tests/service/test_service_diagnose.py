@@ -132,7 +132,7 @@ def test_diagnose_job_end_to_end(
     assert response.status_code == 202, response.text
     job_id = response.json()["id"]
     assert response.json()["created"] is True
-    job = client.get(f"/jobs/{job_id}").json()
+    job = client.get(f"/jobs/{job_id}", headers=AUTH).json()
     assert job["kind"] == "diagnose" and job["state"] == "queued"
     assert job["config"]["inputs"] == [str((data / SIM).resolve())]
     DiagnoseConfig(**job["config"])  # the stored configuration is a valid DiagnoseConfig
@@ -262,7 +262,7 @@ def test_failing_input_fails_the_job_with_a_reason_and_no_products(
 ) -> None:
     job_id = _submit(client, inputs=[JUNK]).json()["id"]
     assert worker.run_once() is True
-    job = client.get(f"/jobs/{job_id}").json()
+    job = client.get(f"/jobs/{job_id}", headers=AUTH).json()
     assert job["state"] == "failed", job
     error = job["error"]
     assert str((data / JUNK).resolve()) in error

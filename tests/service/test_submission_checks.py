@@ -52,13 +52,13 @@ def client(tmp_path: Path, data: Path) -> Iterator[TestClient]:
     store.engine.dispose()
 
 
-def _submit(client: TestClient, **body: object):  # noqa: ANN202
+def _submit(client: TestClient, **body: object):
     body.setdefault("inputs", [NAME])
     body.setdefault("beam", "dipole")
     return client.post("/jobs", json=body, headers=AUTH)
 
 
-def _refused(response, field: str) -> str:  # noqa: ANN001
+def _refused(response, field: str) -> str:
     assert response.status_code == 422, response.text
     assert [e["field"] for e in response.json()["errors"]] == [f"body.{field}"]
     return response.json()["detail"]
