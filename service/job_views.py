@@ -21,8 +21,8 @@ from autocal.service.settings import Settings
 
 #: An absolute POSIX path inside a text (a slash after a start, space, quote or bracket).
 _ABSOLUTE = re.compile(r"(?<![\w.~/>])/(?:[^\s'\"(),;:\[\]{}]+/)*([^\s'\"(),;:\[\]{}/]*)")
-#: A worker id (``host:pid:tag``) as written in messages by the store.
-_WORKER = re.compile(r"\bworker \S+:\d+:[0-9a-f]{6}\b")
+#: A worker id (``host:pid:tag``), alone (provenance) or after "worker " (store messages).
+_WORKER = re.compile(r"(?:\bworker )?\b[\w.-]+:\d+:[0-9a-f]{6}\b")
 
 
 class Redactor:

@@ -193,7 +193,7 @@ def test_anonymous_reads_hide_server_paths_worker_and_log(
         __import__("autocal.service.store", fromlist=["JobState"]).JobState.failed,
         error=f"worker {worker} failed on {data / HH} with /usr/lib/x.so and "
         f"{settings.state_dir.resolve() / 'jobs' / job_id}/summary.json",
-        provenance={"inputs": {str(data / HH): "ab12"}},
+        provenance={"inputs": {str(data / HH): "ab12"}, "service": {"worker": worker}},
     )
     full = client.get(f"/jobs/{job_id}", headers=_bearer(ALICE)).json()
     assert full["worker"] == worker
@@ -208,6 +208,6 @@ def test_anonymous_reads_hide_server_paths_worker_and_log(
     assert anonymous["config"]["inputs"] == [HH]  # relative to the data root, resubmittable
     assert HH in anonymous["error"] and f"<state>/jobs/{job_id}/summary.json" in anonymous["error"]
     assert ".../x.so" in anonymous["error"]
-    assert anonymous["provenance"]["inputs"] == {HH: "ab12"}
+    assert anonymous["provenance"] == {"inputs": {HH: "ab12"}, "service": {"worker": "a worker"}}
     listed = client.get("/jobs").json()["items"][0]
     assert "node7" not in str(listed) and str(data) not in str(listed)

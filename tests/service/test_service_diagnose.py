@@ -154,7 +154,7 @@ def test_diagnose_job_end_to_end(
     assert early.status_code == 409 and "queued" in early.json()["detail"]
 
     assert worker.run_once() is True
-    job = client.get(f"/jobs/{job_id}").json()
+    job = client.get(f"/jobs/{job_id}", headers=AUTH).json()
     assert job["state"] == "succeeded", job
     assert job["progress"] == 1.0 and job["error"] is None
     # the hidden effect is a linear gain drift: it must be named as such
