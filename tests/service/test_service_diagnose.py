@@ -165,6 +165,7 @@ def test_diagnose_job_end_to_end(
     path = str((data / SIM).resolve())
     assert prov["inputs"][path] and prov["input_bytes"][path] == (data / SIM).stat().st_size
     assert prov["autocal_version"] and prov["service"]["worker"] == "inproc"
+    assert prov["integrity"][path]["status"] == "unchecked"  # written without HDF5 checksums
     assert set(job["result"]["timings_s"]) >= {"read_s", "templates_s", "diagnose_s", "total_s"}
 
     response = client.get(f"/jobs/{job_id}/results")
