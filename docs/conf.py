@@ -200,7 +200,7 @@ def write_openapi() -> None:
     from autocal.service.store import JobStore
 
     with tempfile.TemporaryDirectory() as tmp:
-        settings = Settings(state_dir=tmp, api_token="docs-build")
+        settings = Settings(state_dir=tmp, api_token="docs-build-token-not-a-secret-0123456789")
         store = JobStore(f"sqlite:///{tmp}/jobs.sqlite")
         try:
             spec = create_app(settings, store).openapi()

@@ -38,6 +38,7 @@ from autocal.core.observation import Observation, ObservationError
 from autocal.io.pyuvdata_helpers import uvdata_class, warnings_to_log
 from autocal.io.uvh5_blocks import iter_uvh5_blocks
 from autocal.io.uvh5_chunks import ReadStats
+from autocal.io.uvh5_integrity import DataIntegrityError, file_integrity
 from autocal.io.uvh5_meta import (
     FileMeta,
     UVH5FormatError,
@@ -198,6 +199,12 @@ def _read_data(
                 freq_chans=None if chans.size == meta.freqs.size else np.sort(chans),
             )
     except Exception as err:
+        if isinstance(err, OSError) and file_integrity(meta.path)["status"] != "unchecked":
+            raise DataIntegrityError(
+                f"{meta.path}: reading its checksummed data failed ({err}); a chunk failed "
+                "its HDF5 Fletcher-32 checksum or the file is damaged: copy it again from "
+                "the archive, or leave it out"
+            ) from err
         raise UVH5FormatError(
             f"pyuvdata failed to read the auto-correlations of {meta.path}: "
             f"{type(err).__name__}: {err}; the file may be corrupt"

@@ -28,6 +28,7 @@ from autocal.core.files import file_checksum
 from autocal.core.observation import Observation
 from autocal.errors import AutocalError
 from autocal.io.uvh5_chunks import Buffers, CountingFile, ReadStats, RepeatedChunks, read_rows
+from autocal.io.uvh5_integrity import data_set_integrity, log_unchecked, read_error
 from autocal.io.uvh5_meta import (
     FileMeta,
     UVH5File,
@@ -243,6 +244,7 @@ class _BlockReader:
             self.datasets = [h5["Data/visdata"], h5["Data/flags"], h5["Data/nsamples"]]
         except KeyError as err:
             raise UVH5FormatError(f"{meta.path} lacks a UVH5 data set: {err}") from err
+        log_unchecked(meta.path, data_set_integrity(h5))
         if self.datasets[0].dtype.names is None and self.datasets[0].dtype.kind != "c":
             raise UVH5FormatError(
                 f"{meta.path}: visdata has data type {self.datasets[0].dtype}, not complex"
@@ -278,12 +280,9 @@ class _BlockReader:
                     arrays[key] = read_rows(
                         dset, rows, self.chans, self.pols, self.stats, bufs, rep
                     )
-                except OSError as err:  # a chunk that does not decode, a short file
-                    raise UVH5FormatError(
-                        f"{self.meta.path}: cannot read {dset.name} for integrations "
-                        f"{t0}-{t1 - 1} ({err}); the file is corrupt or truncated: "
-                        "copy it again from the archive, or leave it out"
-                    ) from err
+                except OSError as err:  # a chunk failing its checksum, not decoding, short
+                    what = f"integrations {t0}-{t1 - 1}"
+                    raise read_error(self.meta.path, dset, what, err) from err
         self.stats.bytes_read += self.raw.nread - self.counted
         self.counted = self.raw.nread
         return arrays, rows

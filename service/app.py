@@ -30,6 +30,7 @@ from autocal.service.routers import (
     MAX_ERRORS,
     describe_problem,
     health,
+    job_results,
     jobs,
     monitoring,
     nightly,
@@ -40,6 +41,7 @@ from autocal.service.routers import (
 from autocal.service.schemas import ApiError
 from autocal.service.settings import Settings, get_settings
 from autocal.service.store import JobStore
+from autocal.service.tokens import FailedAuthLimiter, checked_tokens
 
 logger = logging.getLogger(__name__)
 
@@ -47,7 +49,9 @@ DESCRIPTION = """
 Calibrate radio-telescope auto-correlations as jobs: submit an observation (files under
 the data roots or uploads), follow its progress, fetch the solution (G, |g|, Trxr with
 uncertainties per antenna, polarisation and channel) and download the products.
-Write endpoints need `Authorization: Bearer <AUTOCAL_API_TOKEN>`.
+Write endpoints need `Authorization: Bearer <token>` (one of the named tokens the operator
+configured); reads too when the service runs with `AUTOCAL_READ_AUTH=1`. Anonymous reads
+show jobs without server paths, worker names or logs.
 """
 
 
@@ -171,10 +175,11 @@ def create_app(settings: Settings | None = None, store: JobStore | None = None) 
         The application; ``app.state.settings`` and ``app.state.store`` hold the above.
     """
     settings = settings if settings is not None else get_settings()
+    tokens = checked_tokens(settings)  # TokenConfigError: refuse to start
     owns_store = store is None
     store = store if store is not None else JobStore(settings.resolved_database_url())
-    if not settings.api_token:
-        logger.warning("AUTOCAL_API_TOKEN is not set: write endpoints refuse every request")
+    if not tokens:
+        logger.warning("no API token is configured: write endpoints refuse every request")
 
     @asynccontextmanager
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
@@ -191,13 +196,15 @@ def create_app(settings: Settings | None = None, store: JobStore | None = None) 
     )
     app.state.settings = settings
     app.state.store = store
+    app.state.tokens = tokens
+    app.state.auth_limiter = FailedAuthLimiter(settings.auth_failures, settings.auth_window_s)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_middleware(CatchAllMiddleware)
     # outermost: an oversized body is refused before it is read, before authentication
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
     # ui: the monitoring web page (HTML, left out of the schema)
-    modules = (jobs, uploads, nightly, health, monitoring, ui)
+    modules = (jobs, job_results, uploads, nightly, health, monitoring, ui)
     for module in modules:
         app.include_router(module.router)
     app.state.api_routes = [route for module in modules for route in module.router.routes]

@@ -134,6 +134,9 @@ def build_config(
         For paths outside the allowed roots or missing.
     autocal.sky.models.SkyModelError
         For an unknown sky model.
+    autocal.service.submission_checks.SubmissionError
+        For a file listed twice, a frequency range outside the data's band or a sky that
+        would flag every channel.
     """
     opts = checked_options(CalibrationConfig, settings, inputs, options)
     if opts.get("reference"):
@@ -147,8 +150,20 @@ def build_config(
     if "hdf5" not in products:
         products.append("hdf5")
     opts["products"] = products
-    resolved = [str(resolve_input(str(p), settings)) for p in inputs]
-    return CalibrationConfig(inputs=resolved, **opts)
+    resolved = [resolve_input(str(p), settings) for p in inputs]
+    check_submission(resolved, opts)
+    return CalibrationConfig(inputs=[str(p) for p in resolved], **opts)
+
+
+def check_submission(inputs: Sequence[Path], opts: Mapping[str, Any]) -> None:
+    """Run the checks of :mod:`autocal.service.submission_checks` on a calibration."""
+    from autocal.service.submission_checks import check_band, check_distinct, check_sky_varies
+
+    check_distinct(inputs, "inputs")
+    if opts.get("reference"):
+        check_distinct(opts["reference"], "reference")
+    check_band(inputs, opts.get("freq_range_mhz"))
+    check_sky_varies(opts.get("sky"), opts.get("trxr_prior"))
 
 
 def job_key(kind: str, config: CalibrationConfig) -> str:
@@ -186,6 +201,7 @@ def submit_calibration(
     *,
     kind: str = "calibrate",
     force: bool = False,
+    submitted_by: str | None = None,
 ) -> tuple[dict[str, Any], bool]:
     """Queue a calibration of one observation, idempotently.
 
@@ -203,6 +219,8 @@ def submit_calibration(
         The job kind.
     force
         Queue a new job even if an identical one is queued, running or succeeded.
+    submitted_by
+        The name of the API token that asked for it.
 
     Returns
     -------
@@ -220,6 +238,7 @@ def submit_calibration(
         dedupe_key=key,
         force=force,
         max_attempts=settings.max_attempts,
+        submitted_by=submitted_by,
     )
     logger.info(
         "%s job %s (%s, %d input(s))",
@@ -401,6 +420,7 @@ def submit_nightly(
     folder: str | Path | None = None,
     force: bool = False,
     options: Mapping[str, Any] | None = None,
+    submitted_by: str | None = None,
 ) -> dict[str, Any]:
     """Submit one calibration job per observation of a night or folder, idempotently.
 
@@ -420,6 +440,8 @@ def submit_nightly(
     options
         Calibration options shared by every job (:class:`CalibrationConfig` fields other
         than ``inputs``).
+    submitted_by
+        The name of the API token that asked for the jobs.
 
     Returns
     -------
@@ -439,7 +461,9 @@ def submit_nightly(
     observations = find_observations(settings, night=night, folder=folder)
     entries = []
     for group in observations:
-        job, created = submit_calibration(store, settings, group.paths, options, force=force)
+        job, created = submit_calibration(
+            store, settings, group.paths, options, force=force, submitted_by=submitted_by
+        )
         entries.append(
             {
                 "night": group.night,

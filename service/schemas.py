@@ -399,10 +399,18 @@ class JobDetail(JobSummary):
     """Everything about one job."""
 
     max_attempts: int
-    worker: str | None
+    worker: str | None = Field(
+        ..., description="host:pid:tag of the worker running it (null for anonymous readers)"
+    )
+    submitted_by: str | None = Field(
+        None, description="name of the API token that submitted it (null for anonymous readers)"
+    )
     cancel_requested: bool
     error: str | None
     log_tail: list[str]
+    log_hidden: bool = Field(
+        False, description="true when the log tail is withheld: send the API token to see it"
+    )
     config: dict[str, Any]
     provenance: dict[str, Any] | None
     result: dict[str, Any] | None
@@ -416,6 +424,13 @@ class JobList(BaseModel):
     count: int
     limit: int
     offset: int
+    next_cursor: str | None = Field(
+        None,
+        description="opaque cursor of the next page (pass it as ?cursor=); null on the last page",
+    )
+    next: str | None = Field(
+        None, description="URL of the next page (the same filters and the cursor); null at the end"
+    )
 
 
 class AntennaPolResult(BaseModel):

@@ -11,7 +11,15 @@ variable                         meaning (default)
 ``AUTOCAL_DATA_ROOTS``           input paths must lie under one of these folders
                                  (JSON list or ``:``-separated; default: the data folder)
 ``AUTOCAL_API_TOKEN``            token required by write endpoints (``Authorization:
-                                 Bearer <token>``); unset = writes refused
+                                 Bearer <token>``), named ``default``; unset and no
+                                 other token = writes refused
+``AUTOCAL_API_TOKENS``           named tokens, ``name=token`` separated by commas
+``AUTOCAL_API_TOKENS_FILE``      a file of ``name=token`` lines (``#`` comments)
+``AUTOCAL_MIN_TOKEN_LENGTH``     shortest accepted token; shorter refuses to start (32)
+``AUTOCAL_READ_AUTH``            1: read endpoints need a token too (0)
+``AUTOCAL_AUTH_FAILURES``        failed authentications per client within the window
+                                 before it is answered 429 (10)
+``AUTOCAL_AUTH_WINDOW_S``        that window, in seconds (60)
 ``AUTOCAL_MAX_UPLOAD_BYTES``     largest accepted upload (2 GiB)
 ``AUTOCAL_HEARTBEAT_S``          worker heartbeat interval (10)
 ``AUTOCAL_STALE_AFTER_S``        a running job without heartbeat for this long is
@@ -46,6 +54,12 @@ class Settings(BaseSettings):
     database_url: str = ""
     data_roots: Annotated[list[Path], NoDecode] = Field(default_factory=list)
     api_token: str = ""
+    api_tokens: str = ""
+    api_tokens_file: Path | None = None
+    min_token_length: int = Field(32, ge=1)
+    read_auth: bool = False
+    auth_failures: int = Field(10, ge=1)
+    auth_window_s: float = Field(60.0, gt=0)
     max_upload_bytes: int = Field(2 * 1024**3, gt=0)
     max_body_bytes: int = Field(4 * 1024**2, gt=0)
     heartbeat_s: float = Field(10.0, gt=0)

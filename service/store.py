@@ -104,6 +104,8 @@ class Job(Base):
     products: Mapped[dict[str, str] | None] = mapped_column(JSON, nullable=True)
     provenance: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
     completions: Mapped[int] = mapped_column(Integer, default=0)
+    # the name of the API token that submitted the job (None: nightly runner, CLI, tests)
+    submitted_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
 
     def to_dict(self) -> dict[str, Any]:
         """Return a plain dictionary of the record (datetimes as ISO strings)."""
@@ -144,9 +146,13 @@ class JobStore:
 
     def _create_tables(self) -> None:
         """Create the table; tolerate another process creating it at the same moment."""
+        from autocal.service import job_index  # noqa: F401  # registers its table
+        from autocal.service.migrations import apply_migrations
+
         for attempt in range(5):
             try:
                 Base.metadata.create_all(self.engine)
+                apply_migrations(self.engine)
                 return
             except (IntegrityError, OperationalError, ProgrammingError):
                 if attempt == 4:
@@ -181,11 +187,13 @@ class JobStore:
         dedupe_key: str | None = None,
         force: bool = False,
         max_attempts: int = 3,
+        submitted_by: str | None = None,
     ) -> tuple[dict[str, Any], bool]:
         """Queue a job; return ``(job, created)``.
 
         With ``dedupe_key``, an existing job with the same key that is not failed or
         cancelled is returned instead of a new one (``created`` false), unless ``force``.
+        ``submitted_by`` records the name of the API token that asked for it.
         """
         if dedupe_key is not None and not force:
             existing = self._active_duplicate(dedupe_key)
@@ -193,7 +201,7 @@ class JobStore:
                 return existing, False
         try:
             return self._insert(
-                config, kind, night, antennas, dedupe_key, force, max_attempts
+                config, kind, night, antennas, dedupe_key, force, max_attempts, submitted_by
             ), True
         except IntegrityError:
             # A concurrent identical submission won the race: return its job.
@@ -221,7 +229,10 @@ class JobStore:
         dedupe_key: str | None,
         force: bool,
         max_attempts: int,
+        submitted_by: str | None = None,
     ) -> dict[str, Any]:
+        from autocal.service.job_index import JobAntenna, antenna_rows
+
         with self.session() as s:
             job = Job(
                 id=uuid.uuid4().hex,
@@ -234,8 +245,11 @@ class JobStore:
                 dedupe_active=None if force else dedupe_key,
                 created_at=_now(),
                 max_attempts=max_attempts,
+                submitted_by=submitted_by,
             )
             s.add(job)
+            s.flush()
+            s.add_all(JobAntenna(**row) for row in antenna_rows(job.id, job.created_at, antennas))
             s.flush()
             return job.to_dict()
 
@@ -255,19 +269,20 @@ class JobStore:
         limit: int = 100,
         offset: int = 0,
     ) -> list[dict[str, Any]]:
-        """Jobs, newest first, optionally filtered."""
+        """Jobs, newest first, optionally filtered (one page: :meth:`page`)."""
+        return self.page(
+            state=state, night=night, antenna=antenna, kind=kind, limit=limit, offset=offset
+        )[0]
+
+    def page(
+        self, *, limit: int = 100, after: tuple[datetime, str] | None = None, **filters: Any
+    ) -> tuple[list[dict[str, Any]], tuple[datetime, str] | None]:
+        """One page of jobs and the key after it (:func:`autocal.service.job_index.list_page`)."""
+        from autocal.service.job_index import list_page
+
         with self.session() as s:
-            query = select(Job).order_by(Job.created_at.desc())
-            if state is not None:
-                query = query.where(Job.state == state)
-            if night is not None:
-                query = query.where(Job.night == night)
-            if kind is not None:
-                query = query.where(Job.kind == kind)
-            jobs = [j.to_dict() for j in s.scalars(query)]
-        if antenna is not None:
-            jobs = [j for j in jobs if j["antennas"] is None or antenna in j["antennas"]]
-        return jobs[offset : offset + limit]
+            jobs, key = list_page(s, limit=limit, after=after, **filters)
+            return [j.to_dict() for j in jobs], key
 
     def count(self, state: str | None = None) -> int:
         """Count jobs (in a state)."""

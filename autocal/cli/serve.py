@@ -15,7 +15,8 @@ def add(sub: argparse._SubParsersAction) -> None:
         help="run the REST job service (jobs are run by `autocal worker` processes)",
         description="Run the autocal REST API with uvicorn. Settings come from AUTOCAL_* "
         "environment variables (AUTOCAL_DATABASE_URL, AUTOCAL_STATE_DIR, AUTOCAL_DATA_ROOTS, "
-        "AUTOCAL_API_TOKEN, ...). The API only queues jobs: start one or more "
+        "AUTOCAL_API_TOKENS, ...), checked before it starts (a token shorter than "
+        "AUTOCAL_MIN_TOKEN_LENGTH is refused). The API only queues jobs: start one or more "
         "`autocal worker` processes against the same database to run them.",
     )
     p.add_argument("--host", default="127.0.0.1", help="bind address (127.0.0.1)")
@@ -33,6 +34,22 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def check_settings() -> None:
+    """Read the service settings and check the tokens, before uvicorn starts.
+
+    Raises
+    ------
+    pydantic.ValidationError
+        A malformed ``AUTOCAL_*`` value (the CLI prints one line naming it).
+    autocal.service.tokens.TokenConfigError
+        Unusable tokens: too short, malformed, repeated, or read auth without a token.
+    """
+    from autocal.service.settings import Settings
+    from autocal.service.tokens import checked_tokens
+
+    checked_tokens(Settings())
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
     import uvicorn
@@ -43,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--port {args.port}: give a TCP port between 1 and 65535")
     if args.workers < 1:
         raise CliError(f"--workers {args.workers}: give at least 1")
+    check_settings()
     uvicorn.run(
         APP_FACTORY,
         factory=True,

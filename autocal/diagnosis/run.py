@@ -50,6 +50,7 @@ from autocal.diagnosis.report import Diagnosis
 from autocal.diagnosis.stepwise import diagnose
 from autocal.diagnosis.trials import ALPHA, BIC_THRESHOLD
 from autocal.fit.priors import parse_trxr_prior
+from autocal.io.uvh5_integrity import input_integrity
 from autocal.pipeline.config import PipelineError, check_prior_spec, check_ranges
 from autocal.plots import file_stems
 
@@ -398,6 +399,7 @@ def _summary(
         "inputs": obs.meta.get("sha256", {}),
         "input_bytes": {str(p): p.stat().st_size for p in paths},
         "input_format": "uvh5",
+        "integrity": input_integrity("uvh5", paths),
         "sky": tsky_meta.get("sky"),
         "beam": tsky_meta.get("beam"),
         "site": obs.site.describe(),

@@ -44,6 +44,7 @@ from autocal.fit.sums import NormalSums
 from autocal.fit.total_uncertainty import TotalUncertainty, total_uncertainty
 from autocal.io.miriad import read_miriad
 from autocal.io.uvh5 import read_uvh5
+from autocal.io.uvh5_integrity import input_integrity
 from autocal.pipeline.config import CalibrationConfig, PipelineError, Progress, read_selection
 from autocal.pipeline.passes import PassesResult, solution_of, sum_passes
 from autocal.pipeline.products import (
@@ -306,6 +307,7 @@ def _provenance(
         "autocal_version": __version__,
         "inputs": run.checksums,
         "input_format": source.kind,
+        "integrity": input_integrity(source.kind, run.checksums),
         "sky": tsky_meta.get("sky"),
         "beam": tsky_meta.get("beam"),
         "site": source.site.describe(),

@@ -16,6 +16,7 @@ from autocal.service.nightly import NightlyError
 from autocal.service.paths import InputPathError
 from autocal.service.schemas import ApiError
 from autocal.service.store import JobStore
+from autocal.service.submission_checks import SubmissionError
 
 #: Problems listed in the message of a 422 (all are in ``errors``, up to MAX_ERRORS).
 MAX_LISTED = 10
@@ -89,4 +90,7 @@ def as_api_error(err: Exception) -> ApiError:
         )
     if isinstance(err, (InputPathError, NightlyError)):
         return ApiError(err.status_code, str(err))
+    if isinstance(err, SubmissionError):
+        problem = {"field": f"body.{err.field}", "message": str(err), "type": "submission_check"}
+        return ApiError(422, str(err), errors=[problem])
     return ApiError(422, str(err))

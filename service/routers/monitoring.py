@@ -19,6 +19,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Query
 from fastapi import Path as PathParam
 
+from autocal.service.auth import read_access
 from autocal.service.monitoring import (
     MonitoringError,
     antenna_history,
@@ -36,7 +37,8 @@ from autocal.service.routers import app_store
 from autocal.service.schemas import ApiError, ErrorBody, json_safe
 from autocal.service.store import JobStore
 
-router = APIRouter(tags=["monitoring"])
+# reads follow AUTOCAL_READ_AUTH like the job reads (autocal.service.auth.read_access)
+router = APIRouter(tags=["monitoring"], dependencies=[Depends(read_access)])
 
 StoreDep = Annotated[JobStore, Depends(app_store)]
 Night = Annotated[int, Query(ge=0, le=10**8, description="integer JD")]

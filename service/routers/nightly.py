@@ -15,6 +15,7 @@ from autocal.service.routers import app_store, as_api_error
 from autocal.service.schemas import ErrorBody, NightlyAccepted, NightlyCreate
 from autocal.service.settings import Settings
 from autocal.service.store import JobStore
+from autocal.service.submission_checks import SubmissionError
 from autocal.sky.models import SkyModelError
 
 router = APIRouter(tags=["nightly"])
@@ -24,12 +25,12 @@ router = APIRouter(tags=["nightly"])
     "/nightly",
     status_code=202,
     response_model=NightlyAccepted,
-    dependencies=[Depends(require_token)],
     responses={
         code: {"model": ErrorBody, "description": text}
         for code, text in {
             400: "a malformed path",
             401: "missing or wrong API token",
+            429: "too many failed authentications; see Retry-After",
             403: "folder or option path outside the allowed folders",
             404: "no zen.<JD>.*uvh5* files found",
             422: "neither night nor folder, or invalid options; each bad field is named",
@@ -41,6 +42,7 @@ def create_nightly(
     body: NightlyCreate,
     store: Annotated[JobStore, Depends(app_store)],
     settings: Annotated[Settings, Depends(app_settings)],
+    caller: Annotated[str, Depends(require_token)],
 ) -> NightlyAccepted:
     """Find the night's UVH5 files, group them into observations, submit one job each.
 
@@ -57,7 +59,15 @@ def create_nightly(
             folder=body.folder,
             force=body.force,
             options=body.options(),
+            submitted_by=caller,
         )
-    except (ValidationError, InputPathError, NightlyError, SkyModelError, PipelineError) as err:
+    except (
+        ValidationError,
+        InputPathError,
+        NightlyError,
+        SkyModelError,
+        PipelineError,
+        SubmissionError,
+    ) as err:
         raise as_api_error(err) from None
     return NightlyAccepted(**report)

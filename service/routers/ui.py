@@ -29,6 +29,7 @@ from fastapi import APIRouter, Depends
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse
 
+from autocal.service.auth import read_access
 from autocal.service.monitoring import (
     MonitoringError,
     antenna_history,
@@ -41,7 +42,9 @@ from autocal.service.routers import app_store
 from autocal.service.store import JobStore
 from autocal.service.ui_svg import history_svg, state_svg
 
-router = APIRouter(include_in_schema=False)
+# the page follows AUTOCAL_READ_AUTH like the API reads: with it set, only clients that send
+# the token (e.g. through a proxy that adds it) see the page
+router = APIRouter(include_in_schema=False, dependencies=[Depends(read_access)])
 StoreDep = Annotated[JobStore, Depends(app_store)]
 STATIC = Path(__file__).resolve().parent.parent / "static"
 STATIC_FILES = {"ui.css": "text/css", "ui.js": "text/javascript"}

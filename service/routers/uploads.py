@@ -176,6 +176,7 @@ def _too_large(limit: int) -> ApiError:
         for code, text in {
             400: "malformed multipart body or no file part",
             401: "missing or wrong API token",
+            429: "too many failed authentications; see Retry-After",
             413: "the file exceeds AUTOCAL_MAX_UPLOAD_BYTES",
             415: "not multipart/form-data",
             503: "writes disabled: no API token configured",

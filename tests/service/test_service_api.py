@@ -45,7 +45,7 @@ with warnings.catch_warnings():  # starlette's notice about httpx2, raised at im
     warnings.filterwarnings("ignore", message=".*httpx2")
     from fastapi.testclient import TestClient
 
-TOKEN = "secret"
+TOKEN = "test-token-0123456789abcdef-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 HH = "zen.2458116.30448.HH.uvh5"
 
@@ -56,6 +56,8 @@ def _settings(tmp_path: Path, data: Path | None = None, **kwargs: object) -> Set
         "database_url": f"sqlite:///{tmp_path / 'jobs.sqlite'}",
         "data_roots": [data if data is not None else tmp_path / "data"],
         "api_token": TOKEN,
+        # these tests send many wrong tokens on purpose (test_auth.py tests the limit)
+        "auth_failures": 1_000_000,
     }
     values.update(kwargs)
     return Settings(**values)
@@ -186,7 +188,7 @@ def test_submit_get_list_cancel(client: TestClient, data: Path) -> None:
     assert response.headers["location"] == f"/jobs/{job_id}"
     assert accepted["links"]["results"] == f"/jobs/{job_id}/results"
 
-    job = client.get(f"/jobs/{job_id}").json()
+    job = client.get(f"/jobs/{job_id}", headers=AUTH).json()  # a token holder sees paths
     assert job["state"] == "queued" and job["night"] == 2458116
     assert job["antennas"] == [23, 24]
     assert job["config"]["inputs"] == [str((data / HH).resolve())]
@@ -206,6 +208,16 @@ def test_submit_get_list_cancel(client: TestClient, data: Path) -> None:
     assert client.get("/jobs", params={"kind": "calibrate", "limit": 1}).json()["count"] == 1
     assert client.get("/jobs", params={"offset": 1}).json()["count"] == 1
     assert client.get("/jobs", params={"state": "running"}).json()["items"] == []
+    # pages: the cursor of one leads to the next, with the same filters
+    page = client.get("/jobs", params={"limit": 1, "kind": "calibrate"}).json()
+    assert page["items"][0]["id"] == other  # newest first
+    assert page["next"] == f"/jobs?kind=calibrate&limit=1&cursor={page['next_cursor']}"
+    last = client.get(page["next"]).json()
+    assert [j["id"] for j in last["items"]] == [job_id] and last["next_cursor"] is None
+    bad = client.get("/jobs", params={"cursor": "not-a-cursor"})
+    assert bad.status_code == 422 and bad.json()["errors"][0]["field"] == "query.cursor"
+    both = client.get("/jobs", params={"cursor": page["next_cursor"], "offset": 1})
+    assert both.status_code == 422 and both.json()["errors"][0]["field"] == "query.offset"
 
     cancelled = client.post(f"/jobs/{job_id}/cancel", headers=AUTH)
     assert cancelled.status_code == 202 and cancelled.json()["state"] == "cancelled"
@@ -369,7 +381,7 @@ def test_paths_outside_the_roots_are_refused(client: TestClient, tmp_path: Path,
     # a symlink staying inside a root is fine (stored resolved)
     ok = _submit(client, inputs=["sub/inside"])
     assert ok.status_code == 202
-    config = client.get(f"/jobs/{ok.json()['id']}").json()["config"]
+    config = client.get(f"/jobs/{ok.json()['id']}", headers=AUTH).json()["config"]
     assert config["inputs"] == [str((data / HH).resolve())]
     missing = _submit(client, inputs=["zen.2458116.99999.HH.uvh5"])
     assert missing.status_code == 400 and "does not exist" in missing.json()["detail"]
@@ -459,7 +471,7 @@ def test_receiver_priors_are_read_and_checked_at_submission(
     assert _submit(client, kind=kind, trxr_prior=True).status_code == 422
     good = _submit(client, kind=kind, trxr_prior="good.csv", trxr_prior_sigma_k=3)
     assert good.status_code == 202, good.text
-    config = client.get(f"/jobs/{good.json()['id']}").json()["config"]
+    config = client.get(f"/jobs/{good.json()['id']}", headers=AUTH).json()["config"]
     assert config["trxr_prior"] == str((data / "good.csv").resolve())
     number = _submit(client, kind=kind, trxr_prior=150, force=True)
     assert number.status_code == 202, number.text
@@ -518,7 +530,7 @@ def test_upload_then_submit_by_id(client: TestClient, settings: Settings) -> Non
 
     job = _submit(client, inputs=[upload["upload_id"]])
     assert job.status_code == 202
-    record = client.get(f"/jobs/{job.json()['id']}").json()
+    record = client.get(f"/jobs/{job.json()['id']}", headers=AUTH).json()
     assert record["config"]["inputs"] == [upload["path"]] and record["night"] == 2458118
     same = _submit(client, inputs=[f"upload:{upload['upload_id']}"]).json()
     assert same["created"] is False
@@ -917,7 +929,7 @@ def test_nightly_on_the_real_data_is_idempotent(tmp_path: Path, data_root: Path)
         ]
         assert hh["kind"] == "HH.uvh5" and all(Path(f).parent == autos for f in hh["files"])
         assert xrs["kind"] == "xx.HH.XRS_downselected.uvh5" and len(xrs["files"]) == 2
-        job = client.get(f"/jobs/{hh['job_id']}").json()
+        job = client.get(f"/jobs/{hh['job_id']}", headers=AUTH).json()
         assert job["night"] == 2458116 and job["config"]["inputs"] == hh["files"]
         assert job["config"]["beam"] == "dipole"
 

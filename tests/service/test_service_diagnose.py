@@ -32,7 +32,7 @@ with warnings.catch_warnings():  # starlette's notice about httpx2, raised at im
     warnings.filterwarnings("ignore", message=".*httpx2")
     from fastapi.testclient import TestClient
 
-TOKEN = "secret"
+TOKEN = "test-token-0123456789abcdef-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 SKY = "powerlaw:gsm2008@408:-2.55"
 SIM = "zen.2458098.50000.sim.uvh5"
@@ -132,7 +132,7 @@ def test_diagnose_job_end_to_end(
     assert response.status_code == 202, response.text
     job_id = response.json()["id"]
     assert response.json()["created"] is True
-    job = client.get(f"/jobs/{job_id}").json()
+    job = client.get(f"/jobs/{job_id}", headers=AUTH).json()
     assert job["kind"] == "diagnose" and job["state"] == "queued"
     assert job["config"]["inputs"] == [str((data / SIM).resolve())]
     DiagnoseConfig(**job["config"])  # the stored configuration is a valid DiagnoseConfig
@@ -154,7 +154,7 @@ def test_diagnose_job_end_to_end(
     assert early.status_code == 409 and "queued" in early.json()["detail"]
 
     assert worker.run_once() is True
-    job = client.get(f"/jobs/{job_id}").json()
+    job = client.get(f"/jobs/{job_id}", headers=AUTH).json()
     assert job["state"] == "succeeded", job
     assert job["progress"] == 1.0 and job["error"] is None
     # the hidden effect is a linear gain drift: it must be named as such
@@ -165,6 +165,7 @@ def test_diagnose_job_end_to_end(
     path = str((data / SIM).resolve())
     assert prov["inputs"][path] and prov["input_bytes"][path] == (data / SIM).stat().st_size
     assert prov["autocal_version"] and prov["service"]["worker"] == "inproc"
+    assert prov["integrity"][path]["status"] == "unchecked"  # written without HDF5 checksums
     assert set(job["result"]["timings_s"]) >= {"read_s", "templates_s", "diagnose_s", "total_s"}
 
     response = client.get(f"/jobs/{job_id}/results")
@@ -262,7 +263,7 @@ def test_failing_input_fails_the_job_with_a_reason_and_no_products(
 ) -> None:
     job_id = _submit(client, inputs=[JUNK]).json()["id"]
     assert worker.run_once() is True
-    job = client.get(f"/jobs/{job_id}").json()
+    job = client.get(f"/jobs/{job_id}", headers=AUTH).json()
     assert job["state"] == "failed", job
     error = job["error"]
     assert str((data / JUNK).resolve()) in error
