@@ -52,6 +52,10 @@ class _ConfigureAfterImport(importlib.abc.Loader):
     def __init__(self, loader: importlib.abc.Loader) -> None:
         self._loader = loader
 
+    def __getattr__(self, name: str) -> Any:
+        # get_code (runpy), is_package, get_resource_reader...: the module's own loader's.
+        return getattr(self._loader, name)
+
     def create_module(self, spec: importlib.machinery.ModuleSpec) -> ModuleType | None:
         return self._loader.create_module(spec)
 

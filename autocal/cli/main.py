@@ -142,9 +142,10 @@ def user_error_message(err: BaseException) -> str | None:
     str or None
         The message to print, or ``None`` when ``err`` is not a user error.
     """
-    from pydantic import ValidationError
-
-    if isinstance(err, ValidationError):
+    # A ValidationError comes from pydantic, so it is loaded when there is one (and it is
+    # not imported for a usage error: reporting one loads no library).
+    pydantic = sys.modules.get("pydantic")
+    if pydantic is not None and isinstance(err, pydantic.ValidationError):
         from autocal.cli.args import validation_message
 
         return validation_message(err)
