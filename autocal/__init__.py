@@ -26,14 +26,18 @@ module's import returns).
 from __future__ import annotations
 
 import importlib
-import importlib.abc
-import importlib.machinery
 import sys
 from collections.abc import Sequence
 from types import ModuleType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from autocal.errors import AutocalError
+
+if TYPE_CHECKING:
+    # importlib.abc imports importlib.resources, tempfile and random (~50 ms): the hook
+    # below follows the finder and loader protocols without subclassing their ABCs.
+    from importlib.abc import Loader
+    from importlib.machinery import ModuleSpec
 
 #: autocal modules :func:`autocal.core.offline.configure_offline` imports: it runs only
 #: when none of them is half-way through its own import (one of them may be what imported
@@ -46,17 +50,17 @@ _EXECUTING: set[str] = set()
 _offline_state = {"configured": False, "configuring": False}
 
 
-class _ConfigureAfterImport(importlib.abc.Loader):
+class _ConfigureAfterImport:
     """A module's own loader, then :func:`_configure_when_ready` once the module is loaded."""
 
-    def __init__(self, loader: importlib.abc.Loader) -> None:
+    def __init__(self, loader: Loader) -> None:
         self._loader = loader
 
     def __getattr__(self, name: str) -> Any:
         # get_code (runpy), is_package, get_resource_reader...: the module's own loader's.
         return getattr(self._loader, name)
 
-    def create_module(self, spec: importlib.machinery.ModuleSpec) -> ModuleType | None:
+    def create_module(self, spec: ModuleSpec) -> ModuleType | None:
         return self._loader.create_module(spec)
 
     def exec_module(self, module: ModuleType) -> None:
@@ -72,7 +76,7 @@ class _ConfigureAfterImport(importlib.abc.Loader):
         _configure_when_ready()
 
 
-class _OfflineImportHook(importlib.abc.MetaPathFinder):
+class _OfflineImportHook:
     """Configure astropy offline right after it is first imported, without importing it here.
 
     Finds nothing itself: for ``astropy`` and autocal's own modules it asks the finders
@@ -83,7 +87,7 @@ class _OfflineImportHook(importlib.abc.MetaPathFinder):
 
     def find_spec(
         self, fullname: str, path: Sequence[str] | None, target: ModuleType | None = None
-    ) -> importlib.machinery.ModuleSpec | None:
+    ) -> ModuleSpec | None:
         if fullname != "astropy" and not fullname.startswith("autocal."):
             return None
         finders = sys.meta_path[sys.meta_path.index(self) + 1 :] if self in sys.meta_path else []

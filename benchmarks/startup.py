@@ -4,9 +4,10 @@ Target (issue 25, item 5): parsing arguments and reporting a usage error take <=
 fresh process. Each case is run ``--runs`` times as a new ``python -m autocal ...`` process
 (``python -c "import autocal"`` for the import alone, ``python -c pass`` for the interpreter
 itself), the cases interleaved round by round so that a change of load hits all of them;
-min / median / max wall times, the load average before and after, and ``-X importtime``'s
-cumulative figures for the top-level imports of one ``--help`` run (CPU-bound import time of
-each package, less sensitive to other processes than wall time) go to
+min / median / max wall times, the CPU time of each process (user + system, from ``wait4``:
+what other processes on a shared machine inflate least), the load average before and after,
+and ``-X importtime``'s cumulative figures (wall clock) for the imports of one ``--help`` run
+go to
 ``benchmarks/results/startup.md`` and ``.json``::
 
     python benchmarks/startup.py                 # this checkout, 7 runs per case
@@ -66,16 +67,24 @@ def _environ(pythonpath: str | None) -> dict[str, str]:
     return env
 
 
-def time_once(args: list[str], status: int, env: dict[str, str], cwd: str) -> float:
-    """Wall time of one fresh process (s); checks its exit status."""
+def time_once(args: list[str], status: int, env: dict[str, str], cwd: str) -> tuple[float, float]:
+    """Wall time and CPU time (user + system, from ``wait4``) of one fresh process (s)."""
     start = time.perf_counter()
-    done = subprocess.run(
-        [sys.executable, *args], env=env, cwd=cwd, capture_output=True, text=True, timeout=300
+    proc = subprocess.Popen(
+        [sys.executable, *args],
+        env=env,
+        cwd=cwd,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
     )
+    _, code, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - start
-    if done.returncode != status:
-        raise SystemExit(f"{args}: exit {done.returncode}, expected {status}\n{done.stderr}")
-    return wall
+    stderr = proc.stderr.read().decode() if proc.stderr else ""
+    if os.waitstatus_to_exitcode(code) != status:
+        raise SystemExit(
+            f"{args}: exit {os.waitstatus_to_exitcode(code)}, expected {status}\n{stderr}"
+        )
+    return wall, usage.ru_utime + usage.ru_stime
 
 
 def import_times(env: dict[str, str], cwd: str, top: int = 12) -> list[dict]:
@@ -110,15 +119,20 @@ def measure(runs: int, pythonpath: str | None) -> dict:
     cwd = "/tmp"  # not the checkout: only PYTHONPATH decides which autocal is imported
     load_before = os.getloadavg()
     walls: dict[str, list[float]] = {name: [] for name in CASES}
+    cpus: dict[str, list[float]] = {name: [] for name in CASES}
     for _ in range(runs):
         for name, (args, status) in CASES.items():
-            walls[name].append(time_once(args, status, env, cwd))
+            wall, cpu = time_once(args, status, env, cwd)
+            walls[name].append(wall)
+            cpus[name].append(cpu)
     load_after = os.getloadavg()
     rows = {
         name: {
             "min_s": min(w),
             "median_s": statistics.median(w),
             "max_s": max(w),
+            "cpu_min_s": min(cpus[name]),
+            "cpu_median_s": statistics.median(cpus[name]),
             "runs": len(w),
         }
         for name, w in walls.items()
@@ -149,13 +163,14 @@ def markdown(reports: dict[str, dict]) -> str:
             f"{report['machine']['cpus']} cores, Python {report['machine']['python']}; "
             f"load average {lb[0]:.1f} before, {la[0]:.1f} after (the machine is shared).",
             "",
-            "| case | min s | median s | max s | runs |",
-            "|---|---|---|---|---|",
+            "| case | wall min s | wall median s | wall max s | CPU min s | CPU median s | runs |",
+            "|---|---|---|---|---|---|---|",
         ]
         for name, row in report["rows"].items():
             lines.append(
                 f"| {name} | {row['min_s']:.2f} | {row['median_s']:.2f} | {row['max_s']:.2f} "
-                f"| {row['runs']} |"
+                f"| {row.get('cpu_min_s', float('nan')):.2f} "
+                f"| {row.get('cpu_median_s', float('nan')):.2f} | {row['runs']} |"
             )
         lines += ["", "`-X importtime` of one `autocal --help` (largest cumulative, ms):", ""]
         lines += ["| module | cumulative ms | self ms |", "|---|---|---|"]
