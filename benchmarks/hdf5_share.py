@@ -44,10 +44,9 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 import autocal  # noqa: E402
-import autocal.io.uvh5_blocks as uvh5_blocks  # noqa: E402
+import autocal.pipeline.partials as partials  # noqa: E402
 from autocal.fit.model import FitModel  # noqa: E402
 from autocal.io.uvh5_meta import scan_uvh5  # noqa: E402
-from autocal.pipeline.partials import FileTask, PartialSpec, compute_partial  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "hdf5_share.json"
@@ -99,17 +98,18 @@ def main() -> None:
     parser.add_argument("--file", type=Path, required=True, help="one night file (UVH5)")
     parser.add_argument("--results", type=Path, default=RESULTS)
     args = parser.parse_args()
-    uvh5_blocks.iter_uvh5_blocks = functools.partial(uvh5_blocks.iter_uvh5_blocks, prefetch=False)
+    # the pipeline's reader (bound in autocal.pipeline.partials) with every stage in this thread
+    partials.iter_uvh5_blocks = functools.partial(partials.iter_uvh5_blocks, prefetch=False)
 
     file = scan_uvh5([str(args.file)])[0]
     tsky = np.full((len(file.pols), file.lsts.size, file.freqs.size), 300.0)  # any values
     selection = {"antennas": None, "pols": None, "freq_range": None, "lst_range": None}
-    spec = PartialSpec(FitModel.for_lsts(file.lsts), "radiometer", selection, 2, 1)
-    task = FileTask(0, file, 0, file.lsts, tsky)
+    spec = partials.PartialSpec(FitModel.for_lsts(file.lsts), "radiometer", selection, 2, 1)
+    task = partials.FileTask(0, file, 0, file.lsts, tsky)
     out = Path(tempfile.mkdtemp(prefix="autocal-hdf5-share-"))
 
     def partial() -> object:
-        return compute_partial(spec, task)
+        return partials.compute_partial(spec, task)
 
     def calibrate() -> object:
         folder = out / f"run-{time.monotonic_ns()}"
