@@ -10,8 +10,8 @@ numba's compilation):
 
 * ``compute_partial``: the per-file work of the pipeline (read block by block + normal
   sums), as ``benchmarks/night.py``'s profile and the README's "HDF5 68 %" figure;
-* ``calibrate``: the whole ``autocal.calibrate(file, out=...)`` of the file (scan, Tsky from
-  the cache, sums, solve, products calh5 + hdf5 + png).
+* with ``--calibrate``, also the whole ``autocal.calibrate(file, out=..., products=["calh5",
+  "hdf5"])`` of the file (scan, Tsky from the cache, sums, solve, total uncertainty, products).
 
 "HDF5" is reported twice: the time inside h5py's dataset reads (``Dataset.read_direct`` and
 ``Dataset.__getitem__``: HDF5 reading and gzip decoding of the stored data, including the
@@ -97,6 +97,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--file", type=Path, required=True, help="one night file (UVH5)")
     parser.add_argument("--results", type=Path, default=RESULTS)
+    parser.add_argument(
+        "--calibrate", action="store_true", help="also profile the whole autocal.calibrate call"
+    )
     args = parser.parse_args()
     # the pipeline's reader (bound in autocal.pipeline.partials) with every stage in this thread
     partials.iter_uvh5_blocks = functools.partial(partials.iter_uvh5_blocks, prefetch=False)
@@ -113,24 +116,22 @@ def main() -> None:
 
     def calibrate() -> object:
         folder = out / f"run-{time.monotonic_ns()}"
-        return autocal.calibrate(str(args.file), out=folder)
+        return autocal.calibrate(str(args.file), out=folder, products=["calh5", "hdf5"])
 
     partial()  # warm-up: page cache, numba's compilation
-    calibrate()  # warm-up: Tsky into the cache
-    report = {
-        "file": str(args.file),
-        "load_start": os.getloadavg(),
-        "compute_partial": {
-            "cpu": profiled(partial, time.process_time),
-            "wall": profiled(partial, time.perf_counter),
-        },
-        "calibrate": {
+    report: dict = {"file": str(args.file), "load_start": os.getloadavg()}
+    report["compute_partial"] = {"cpu": profiled(partial, time.process_time)}
+    print(json.dumps(report), flush=True)
+    report["compute_partial"]["wall"] = profiled(partial, time.perf_counter)
+    print(json.dumps(report), flush=True)
+    if args.calibrate:
+        calibrate()  # warm-up: Tsky into the cache
+        report["calibrate"] = {
             "cpu": profiled(calibrate, time.process_time),
             "wall": profiled(calibrate, time.perf_counter),
-        },
-        "load_end": os.getloadavg(),
-        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-    }
+        }
+    report["load_end"] = os.getloadavg()
+    report["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     args.results.parent.mkdir(parents=True, exist_ok=True)
     args.results.write_text(json.dumps(report, indent=2))
     print(json.dumps(report, indent=2))
