@@ -9,10 +9,11 @@ functions into autocal's Tsky cache (``AUTOCAL_CACHE_DIR``, default ``/tmp/autoc
 autocal-cache``), which ``autocal calibrate`` then reads, and written as the ``.npz`` the
 user script loads. Each command runs as a fresh process (``python benchmarks/user_script.py
 FILE ...`` and ``python -m autocal calibrate FILE --out DIR``, all products, and again with
-``--products hdf5``, the nearest to the script's ``.npz``); wall time and peak RSS
-(``ru_maxrss`` of the child from ``wait4``). One unmeasured run of each first (page cache,
-numba's cache), then ``--repeats`` rounds with the commands interleaved; the median is
-reported. The two fits are not the same estimator (autocal: radiometer weights, flags and
+``--products hdf5``, the nearest to the script's ``.npz``); wall time, CPU time and peak RSS
+(``ru_maxrss`` of the child from ``wait4``; the driver itself stays small, since a child's
+``ru_maxrss`` starts from its parent's RSS at the fork). One unmeasured run of each
+first (page cache, numba's cache), then ``--repeats`` rounds with the commands
+interleaved; the median is reported. The two fits are not the same estimator (autocal: radiometer weights, flags and
 checks; the script: unweighted least squares), so their G are compared only as a check that
 both solved the same problem (median ``|G_user / G_autocal - 1|``)::
 
@@ -140,7 +141,16 @@ def measure(
     with tempfile.TemporaryDirectory(prefix="autocal-user-vs-") as tmp:
         work = Path(tmp)
         tsky_file = work / "tsky.npz"
-        tsky = write_tsky(path, tsky_file)
+        # in a child process: a child's ru_maxrss starts from its parent's RSS at the fork,
+        # so the parent must stay small (no beam maps or sky in it)
+        done = subprocess.run(
+            [sys.executable, __file__, "_tsky", str(path), str(tsky_file)],
+            env=env,
+            check=True,
+            capture_output=True,
+            text=True,
+        )
+        tsky = json.loads(done.stdout.strip().splitlines()[-1])
         print(f"Tsky {tsky['shape']} in {tsky['seconds']:.1f} s", flush=True)
         for name, argv in commands(path, tsky_file, work).items():
             if warmup and name in variants:
@@ -209,6 +219,9 @@ def markdown(reports: dict[str, dict]) -> str:
 
 
 def main() -> None:
+    if len(sys.argv) == 4 and sys.argv[1] == "_tsky":
+        print(json.dumps(write_tsky(Path(sys.argv[2]), Path(sys.argv[3]))))
+        return
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--file", type=Path, help=f"UVH5 file (default: data folder's {DEFAULT_FILE})"
