@@ -13,9 +13,9 @@ FILE ...`` and ``python -m autocal calibrate FILE --out DIR``, all products, and
 (``ru_maxrss`` of the child from ``wait4``; the driver itself stays small, since a child's
 ``ru_maxrss`` starts from its parent's RSS at the fork). One unmeasured run of each
 first (page cache, numba's cache), then ``--repeats`` rounds with the commands
-interleaved; the median is reported. The two fits are not the same estimator (autocal: radiometer weights, flags and
-checks; the script: unweighted least squares), so their G are compared only as a check that
-both solved the same problem (median ``|G_user / G_autocal - 1|``)::
+interleaved; the median is reported. The two fits are not the same estimator (autocal:
+radiometer weights, flags and checks; the script: unweighted least squares), so their G are
+compared only as a check that both solved the same problem (median ``|G_user / G_autocal - 1|``)::
 
     python benchmarks/user_vs_autocal.py                       # the real HERA file
     python benchmarks/user_vs_autocal.py --file /tmp/autocal-night-350x1536x192/zen.*.uvh5 \\
