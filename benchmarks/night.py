@@ -412,7 +412,7 @@ def profile_file(path: str) -> dict:
     """
     from pyinstrument import Profiler
 
-    import autocal.io.uvh5_blocks as uvh5_blocks
+    import autocal.pipeline.partials as partials
     from autocal.fit.model import FitModel
     from autocal.io.uvh5_meta import scan_uvh5
     from autocal.pipeline.partials import FileTask, PartialSpec, compute_partial
@@ -424,17 +424,17 @@ def profile_file(path: str) -> dict:
     task = FileTask(0, file, 0, file.lsts, tsky)
     pipelined = compute_partial(spec, task).seconds  # as the pipeline runs (warms the cache)
     # pyinstrument samples the calling thread: run every stage there (no prefetch threads)
-    real = uvh5_blocks.iter_uvh5_blocks
-    uvh5_blocks.iter_uvh5_blocks = functools.partial(real, prefetch=False)
+    real = partials.iter_uvh5_blocks  # the name the pipeline calls is bound there
+    partials.iter_uvh5_blocks = functools.partial(real, prefetch=False)
     try:
         profiler = Profiler(interval=0.005)
         profiler.start()
         partial = compute_partial(spec, task)
         profiler.stop()
     finally:
-        uvh5_blocks.iter_uvh5_blocks = real
+        partials.iter_uvh5_blocks = real
     parts = {
-        "_read_rows": "HDF5 reads + decompression",
+        "read_rows": "HDF5 reads + decompression",
         "iter_uvh5_blocks": "block reader total (incl. HDF5)",
         "file_checksum": "SHA-256 of the file",
         "accumulate": "autocal.fit.sums.accumulate (normal sums)",

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-import autocal.io.uvh5_blocks as uvh5_blocks
+import autocal.pipeline.partials as partials
 from autocal.core.files import file_sha256 as _file_sha256
 from autocal.fit.model import FitModel
 from autocal.io.uvh5_meta import scan_uvh5
@@ -58,14 +58,15 @@ def main() -> None:
     selection = {"antennas": None, "pols": None, "freq_range": None, "lst_range": None}
     spec = PartialSpec(FitModel.for_lsts(file.lsts), "radiometer", selection, 2, 1)
     task = FileTask(0, file, 0, file.lsts, tsky)
-    real = uvh5_blocks.iter_uvh5_blocks
+    # the pipeline's reader is the name bound in autocal.pipeline.partials: patch it there
+    real = partials.iter_uvh5_blocks
     seconds: dict[str, list[float]] = {name: [] for name in CONFIGS}
     reference = None
     try:
         for _ in range(args.repeats):
             for name, options in CONFIGS.items():
                 # the pipeline asks for reuse_buffers=True: the options here take precedence
-                uvh5_blocks.iter_uvh5_blocks = lambda *a, _o=options, **k: real(*a, **{**k, **_o})
+                partials.iter_uvh5_blocks = lambda *a, _o=options, **k: real(*a, **{**k, **_o})
                 _file_sha256.cache_clear()  # every run hashes the file, as a fresh process
                 t0 = time.perf_counter()
                 sums = compute_partial(spec, task).sums
@@ -78,7 +79,7 @@ def main() -> None:
                 ):
                     raise SystemExit(f"{name}: the normal sums differ from the plain read's")
     finally:
-        uvh5_blocks.iter_uvh5_blocks = real
+        partials.iter_uvh5_blocks = real
     print(f"{path.name}, {args.repeats} interleaved repeats; normal sums identical in all")
     print("| reader | best [s] | median [s] |")
     print("|---|---|---|")

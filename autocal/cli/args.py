@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import sys
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from autocal.errors import AutocalError
+
+if TYPE_CHECKING:
+    import numpy as np
 
 #: What ``--sky`` accepts (every command that computes Tsky).
 SKY_HELP = "gsm2008 | gsm2016 | lfsm | haslam | uniform:T0 | powerlaw:BASE@NU0MHZ:BETA"
@@ -107,6 +108,8 @@ def parse_freq_range_mhz(text: str, what: str, legacy_unit: str | None = None) -
     values = [parse_freq_mhz(v, what, legacy_unit=legacy_unit) for v in items]
     if not values:
         raise CliError(f"--{what} is empty")
+    import numpy as np  # deferred: parsing the command line does not need numpy
+
     return np.array(values)
 
 
@@ -125,6 +128,8 @@ def parse_range(text: str, what: str, unit: str) -> np.ndarray:
     numpy.ndarray
         The values.
     """
+    import numpy as np  # deferred: parsing the command line does not need numpy
+
     try:
         if ":" in text:
             parts = text.split(":")

@@ -62,6 +62,14 @@ def add(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
+    # Options checked here first: a usage error is reported before the science stack loads.
+    if args.dask_workers is not None and args.dask_workers < 1:
+        raise CliError("--dask-workers must be at least 1")
+    if args.dask_workers is not None and args.dask is None:
+        raise CliError("--dask-workers needs --dask local")
+    if args.block_size is not None and args.block_size < 1:
+        raise CliError("--block-size must be at least 1 integration")
+    settings = calibration_settings(args)
     from pydantic import ValidationError
     from tqdm import tqdm
 
@@ -69,18 +77,11 @@ def run(args: argparse.Namespace) -> int:
     from autocal.pipeline.calibrate import calibrate, read_summary
     from autocal.pipeline.config import CalibrationConfig
 
-    settings = calibration_settings(args)
     refuse_edges_options(settings, args.inputs)
     try:
         config = CalibrationConfig(inputs=[str(p) for p in args.inputs], **settings)
     except ValidationError as err:
         raise CliError(validation_message(err)) from None
-    if args.dask_workers is not None and args.dask_workers < 1:
-        raise CliError("--dask-workers must be at least 1")
-    if args.dask_workers is not None and args.dask is None:
-        raise CliError("--dask-workers needs --dask local")
-    if args.block_size is not None and args.block_size < 1:
-        raise CliError("--block-size must be at least 1 integration")
     with tqdm(total=100, desc="calibrate", unit="%", disable=None) as bar:
 
         def progress(fraction: float, message: str) -> None:

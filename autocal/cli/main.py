@@ -32,6 +32,7 @@ import argparse
 import logging
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 from autocal.cli.args import CliError, parse_range
 from autocal.errors import AutocalError
@@ -49,9 +50,31 @@ __all__ = [
 logger = logging.getLogger("autocal.cli.main")
 
 
+class VersionAction(argparse.Action):
+    """``--version``: print ``autocal VERSION`` and exit.
+
+    argparse's own ``version`` action needs the text when the parser is built; looking the
+    version up in the package metadata costs ~0.1 s, so it is done only when asked for.
+    """
+
+    def __init__(self, option_strings: Sequence[str], dest: str, **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        from autocal import __version__
+
+        sys.stdout.write(f"autocal {__version__}\n")  # on standard output, as argparse's
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Build the argument parser."""
-    from autocal import __version__
     from autocal.cli import (
         apply,
         calibrate,
@@ -70,7 +93,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="autocal",
         description="Calibrate radio-telescope auto-correlations against sky models.",
     )
-    parser.add_argument("--version", action="version", version=f"autocal {__version__}")
+    parser.add_argument(
+        "--version", action=VersionAction, help="show the version of autocal and exit"
+    )
     parser.add_argument(
         "-v", "--verbose", action="count", default=0, help="more log output (-v info, -vv debug)"
     )
@@ -117,9 +142,10 @@ def user_error_message(err: BaseException) -> str | None:
     str or None
         The message to print, or ``None`` when ``err`` is not a user error.
     """
-    from pydantic import ValidationError
-
-    if isinstance(err, ValidationError):
+    # A ValidationError comes from pydantic, so it is loaded when there is one (and it is
+    # not imported for a usage error: reporting one loads no library).
+    pydantic = sys.modules.get("pydantic")
+    if pydantic is not None and isinstance(err, pydantic.ValidationError):
         from autocal.cli.args import validation_message
 
         return validation_message(err)

@@ -23,13 +23,31 @@ from autocal.cli.args import (
     parse_str_list,
 )
 
+#: The defaults of :class:`~autocal.pipeline.config.CalibrationConfig` that ``--help`` shows.
+#: A copy, so that building the parser does not import the configuration (which imports the
+#: fit and, through it, scipy and pyuvdata: ~1 s of a fresh process); the options test checks
+#: that it equals the configuration's own defaults (``tests/cli/test_cli_startup.py``).
+HELP_DEFAULTS: dict[str, Any] = {
+    "sky": "gsm2008",
+    "beam": "hera",
+    "tgnd_k": 300.0,
+    "nside": 64,
+    "model": "constant",
+    "order": 1,
+    "weights": "radiometer",
+    "passes": "auto",
+    "inflate_errors": True,
+    "trxr_prior_sigma_k": 10.0,
+    "antennas": None,
+    "products": ["calh5", "hdf5", "png"],
+    "input_format": "auto",
+    "edges_r": "q",
+    "edges_bin": 64,
+}
 
-def _default(name: str) -> str:
-    """Return the configuration's default of a field, as ``--help`` shows it."""
-    from autocal.pipeline.config import CalibrationConfig
 
-    field = CalibrationConfig.model_fields[name]
-    value = field.get_default(call_default_factory=True)
+def default_text(value: Any) -> str:
+    """Return how ``--help`` shows a configuration default (``default: ...``)."""
     if value is None:
         return "default: all"
     if isinstance(value, list):
@@ -37,6 +55,11 @@ def _default(name: str) -> str:
     if isinstance(value, bool):
         value = "on" if value else "off"
     return f"default: {value}"
+
+
+def _default(name: str) -> str:
+    """Return the configuration's default of a field, as ``--help`` shows it."""
+    return default_text(HELP_DEFAULTS[name])
 
 
 def add_calibration_arguments(group: argparse._ActionsContainer) -> None:
@@ -182,12 +205,6 @@ def calibration_settings(args: argparse.Namespace) -> dict[str, Any]:
     CliError
         When an option is invalid.
     """
-    from pydantic import ValidationError
-
-    from autocal.cli.args import validation_message
-    from autocal.fit.priors import prior_value
-    from autocal.pipeline.config import CalibrationConfig
-
     parsers = {
         "antennas": lambda v: parse_int_list(v, "antennas"),
         "pols": lambda v: parse_str_list(v, "pols"),
@@ -196,7 +213,7 @@ def calibration_settings(args: argparse.Namespace) -> dict[str, Any]:
         "lst_range_h": lambda v: parse_pair(v, "lst-range", "hours"),
         "passes": lambda v: v if v == "auto" else int(v),
         "reference": lambda v: [str(p) for p in v],
-        "trxr_prior": prior_value,
+        "trxr_prior": _prior_value,
     }
     settings: dict[str, Any] = {}
     for name in calibration_dests():
@@ -204,11 +221,25 @@ def calibration_settings(args: argparse.Namespace) -> dict[str, Any]:
         if value is not None:
             settings[name] = parsers.get(name, lambda v: v)(value)
     refuse_inapplicable(settings)
+    # Only the configuration's own checks need it (and the fit and scipy with it): options
+    # the checks above refuse are reported without loading the science stack.
+    from pydantic import ValidationError
+
+    from autocal.cli.args import validation_message
+    from autocal.pipeline.config import CalibrationConfig
+
     try:
         CalibrationConfig(inputs=["-"], **settings)
     except ValidationError as err:
         raise CliError(validation_message(err, "options")) from None
     return settings
+
+
+def _prior_value(text: str) -> Any:
+    """Parse ``--trxr-prior`` (:func:`autocal.fit.priors.prior_value`, imported when given)."""
+    from autocal.fit.priors import prior_value  # deferred: imports the fit and scipy
+
+    return prior_value(text)
 
 
 def refuse_inapplicable(settings: dict[str, Any]) -> None:
