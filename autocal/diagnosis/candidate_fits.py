@@ -18,7 +18,6 @@ import math
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from autocal.core.observation import Observation
 from autocal.diagnosis.bandpass import fit_cable_reflection
@@ -67,12 +66,6 @@ TIMING_MAX_S = LST_STEP_H * 3600.0 / SIDEREAL_RATE
 #: Most times one search re-fits its model from a candidate's better minimum
 #: (:func:`escape_local_minimum`).
 MAX_RESTARTS = 2
-
-#: Significance below which the data reject ``missing_cmb``'s point hypothesis (factor
-#: fixed at +-1) against its free factor: chi^2_1 survival of the two fits' chi^2
-#: difference, over the overdispersion (:func:`_cmb_hypothesis`). The usual 99 % level:
-#: a real missing CMB is refused this way once in a hundred.
-CMB_HYPOTHESIS_ALPHA = 0.01
 
 
 def try_candidates(
@@ -228,7 +221,6 @@ def try_model_effect(
         or _beyond_timing_range(eff, trial)
         or _smooth_jitter(ctx, state, eff, trial, step)
         or _own_parameters_insignificant(state, eff, trial, ctx.settings.bic_threshold)
-        or _explained_by_sky_scale(ctx, state, eff, trial)
     )
     if refusal is not None:
         state.fail(*refusal)
@@ -329,59 +321,6 @@ def _own_parameters_insignificant(
     return None
 
 
-#: Changes of Tsky constant in time: over a short span they are nearly degenerate with an
-#: error of the sky's brightness scale (:func:`_explained_by_sky_scale`).
-TIME_CONSTANT_TSKY = ("sky_offset", "missing_cmb", "ground_temperature")
-
-
-def _explained_by_sky_scale(
-    ctx: SearchContext, state: SearchState, eff: Effect, trial: ExtendedFit
-) -> tuple[str, str] | None:
-    """Refuse a time-constant Tsky change that a sky-scale error explains as well.
-
-    ``G`` and a constant offset are told apart only by how the sky varies in time; a sky
-    model whose time variation is wrong by a fraction ``eta`` (a scale error of the
-    sky's varying part) moves a fitted offset by about ``eta (Tsky + Trxr)``: over half
-    an hour, where the sky varies by ~1 %, a model good to 1e-4 of Tsky in its variation
-    makes a 5 K offset. So a ``sky_offset``, ``missing_cmb`` or ``ground_temperature`` is
-    named only when it still pays for its parameters with ``sky_scale`` free alongside (a
-    nuisance parameter); over a day the two separate and a real offset passes.
-    """
-    if eff.name not in TIME_CONSTANT_TSKY or any(a.name == "sky_scale" for a in state.active):
-        return None
-    scale = next((c for c in ctx.candidates if c.name == "sky_scale"), None)
-    if scale is None:
-        return None
-    try:
-        with_scale = fit_extended(
-            state.obs,
-            ctx.tpl,
-            [*state.active, scale],
-            weights=state.weights,
-            start=state.current.params,
-            **ctx.prior_kw,
-        )
-        both = fit_extended(
-            state.obs,
-            ctx.tpl,
-            [*state.active, scale, eff],
-            weights=state.weights,
-            start={**with_scale.params, **trial.params},
-            **ctx.prior_kw,
-        )
-    except (DiagnoseError, np.linalg.LinAlgError):
-        return None  # no verdict: the candidate is judged on its own
-    penalty = eff.nfree * math.log(state.current.ndata)
-    stat = (with_scale.chi2 - both.chi2) / max(1.0, both.reduced_chi2) - penalty
-    if stat > ctx.settings.bic_threshold:
-        return None
-    return eff.label, (
-        f"a sky-scale error explains it as well (Delta BIC {stat:.3g} with sky_scale free "
-        "alongside): over this span a constant offset and an error of the sky's time "
-        "variation are nearly degenerate"
-    )
-
-
 def _cmb_hypothesis(
     ctx: SearchContext, state: SearchState, eff: Effect, trial: ExtendedFit
 ) -> ModelTrial | None:
@@ -412,20 +351,6 @@ def _cmb_hypothesis(
         start=trial.params,
         **ctx.prior_kw,
     )
-    # the hypothesis must be one the data allow: a CMB-shaped offset of twice the CMB
-    # is not a missing CMB but an offset of another origin (a sky model wrong in its
-    # time shape biases every time-constant term over a short span)
-    mismatch = (fixed_fit.chi2 - trial.chi2) / max(1.0, trial.reduced_chi2)
-    p_fixed = float(stats.chi2.sf(max(mismatch, 0.0), 1))
-    if p_fixed < CMB_HYPOTHESIS_ALPHA:
-        state.fail(
-            "missing_cmb",
-            f"the free CMB factor {trial.params[eff.name][0]:.3g} +- "
-            f"{trial.sigmas[eff.name][0]:.2g} is inconsistent with the hypothesis "
-            f"{m:+.0f} (chi2 {mismatch:.3g} for 1, p {p_fixed:.2g} < "
-            f"{CMB_HYPOTHESIS_ALPHA:g}): an offset of another origin, not a missing CMB",
-        )
-        return None
     return ModelTrial(
         effect=eff,
         delta_chi2=current.chi2 - fixed_fit.chi2,
