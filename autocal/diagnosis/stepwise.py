@@ -154,18 +154,17 @@ def diagnose(
         return _search_once(obs, tpl, candidates, settings, (trxr_prior, trxr_prior_sigma), report)
 
     nflag0 = int(obs.flags.sum())
-    own_flags = obs.flags
     diag = search_once(obs)
     rounds = 0
     # outliers are judged on the residuals of the *final* model, so that structure an
     # effect explains is never mistaken for RFI; then the search is repeated without them.
-    # Each round's flags are recomputed from the data's own flags on the latest model (a
-    # sample an earlier, worse model flagged is judged again), not accumulated
+    # The flags accumulate over the rounds. Recomputed from the data's own flags on each
+    # round's model instead (flag_outliers(base_flags=...)), JD 2458116 ended with 1.5 %
+    # flagged instead of 2.1 %, chi2/dof 6629 at the start of the last search and an absurd
+    # noise drift accepted: a round's bad model can unflag RFI
     while flag_rfi and rounds < OUTLIER_ROUNDS and diag.final_fit is not None:
         search += 1
-        flags = flag_outliers(
-            obs, diag.final_fit, threshold=outlier_threshold, base_flags=own_flags
-        )
+        flags = flag_outliers(obs, diag.final_fit, threshold=outlier_threshold)
         if np.array_equal(flags, obs.flags):
             break
         obs = dataclasses.replace(obs, flags=flags)
