@@ -10,6 +10,7 @@ extras. Usage::
 
     python scripts/diagnose_independent_suite.py --out docs/results/diagnose_independent
     python scripts/diagnose_independent_suite.py --out /tmp/x --only clean_day --keep
+    python scripts/diagnose_independent_suite.py --out OUT --merge A/suite.json B/suite.json
 
 writes ``suite.json`` (every case: hidden effects and true parameters, named effects,
 exact or not, extras, misses, initial/final reduced chi2, the diagnosis's steps with their
@@ -302,6 +303,47 @@ def select(cases: list[ie.Case], only: list[str] | None, count: int | None) -> l
     return cases
 
 
+def merge(paths: list[Path], out: Path) -> int:
+    """Merge runs of disjoint selections into one ``suite.json`` / ``suite.md`` in ``out``.
+
+    The cases are put in the suite's order; a case found in two runs is an error. The
+    settings are the first run's (they must agree on the prior and the template nside).
+    """
+    runs = [json.loads(Path(p).read_text()) for p in paths]
+    order = {c.name: i for i, c in enumerate(ie.suite_plan())}
+    rows: dict[str, dict[str, Any]] = {}
+    for run in runs:
+        for key in ("prior_sigma_k", "nside", "dnu_dt"):
+            if run["settings"][key] != runs[0]["settings"][key]:
+                print(f"runs differ in {key}: not merged", file=sys.stderr)
+                return 2
+        for row in run["cases"]:
+            name = row["case"]["name"]
+            if name in rows:
+                print(f"case {name} is in two runs: not merged", file=sys.stderr)
+                return 2
+            rows[name] = row
+    merged = sorted(rows.values(), key=lambda r: order.get(r["case"]["name"], len(order)))
+    settings = dict(runs[0]["settings"])
+    settings["selection"] = {"merged": [str(p) for p in paths]}
+    settings["wall_time_s"] = round(max(r["settings"]["wall_time_s"] for r in runs), 1)
+    result = {
+        "generated": max(r["generated"] for r in runs),
+        "settings": settings,
+        "summary": summarise(merged),
+        "cases": merged,
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "suite.json").write_text(json.dumps(result, indent=2, allow_nan=False) + "\n")
+    (out / "suite.md").write_text(markdown(result))
+    s = result["summary"]
+    print(
+        f"merged {len(merged)} cases: correct {s['correct']}/{s['cases']}, exact "
+        f"{s['exact']}/{s['cases']}; wrote {out / 'suite.json'} and {out / 'suite.md'}"
+    )
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the suite (or a selection) and write ``suite.json`` and ``suite.md``."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -324,7 +366,18 @@ def main(argv: list[str] | None = None) -> int:
         "--keep", action="store_true", help="keep data and diagnosis products in OUT/cases"
     )
     parser.add_argument("--list", action="store_true", help="list the cases and exit")
+    parser.add_argument(
+        "--merge",
+        nargs="+",
+        type=Path,
+        default=None,
+        metavar="SUITE_JSON",
+        help="instead of running: merge the suite.json of runs of disjoint selections "
+        "(e.g. the suite run in shards, one process each) into OUT's suite.json and suite.md",
+    )
     args = parser.parse_args(argv)
+    if args.merge:
+        return merge(args.merge, args.out)
 
     cases = select(ie.suite_plan(), args.only, args.cases)
     if args.list:

@@ -714,6 +714,8 @@ def _step_row(step: dict[str, Any]) -> dict[str, Any]:
         "gap_after": _gap(step.get("gap_after")),
         "negligible": step.get("negligible"),
         "product_impact": _impact(step.get("product_impact")),
+        "final_negligible": step.get("final_negligible"),
+        "final_product_impact": _impact(step.get("final_product_impact")),
         "dropped_in_backward_pass": step.get("dropped_in_backward_pass"),
         "superseded_by": step.get("superseded_by"),
         "per_feed": step.get("per_feed"),
@@ -722,10 +724,16 @@ def _step_row(step: dict[str, Any]) -> dict[str, Any]:
 
 
 def _impact(impact: dict[str, Any] | None) -> dict[str, Any] | None:
-    """The median and largest change of ``G`` and ``Trxr`` in total sigma."""
+    """The median and largest change of ``G`` and ``Trxr`` in total sigma, and the median
+    absolute change (relative for ``G``, kelvin for ``Trxr``)."""
     if not impact:
         return None
-    keys = ("median_change_over_sigma", "max_change_over_sigma")
+    keys = (
+        "median_change_over_sigma",
+        "max_change_over_sigma",
+        "median_abs_relative_change",
+        "median_abs_change_K",
+    )
     return {
         name: {k: impact[name].get(k) for k in keys}
         for name in ("G", "Trxr")

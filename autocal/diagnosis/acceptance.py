@@ -115,8 +115,12 @@ def _accept_feed_gains(
         shared = current.gain_factor / np.mean(current.gain_factor)
     else:
         shared = feed.factors.mean(axis=(0, 1))
-    obs = dataclasses.replace(state.obs, data=state.obs.data / (feed.factors / shared)[..., None])
+    departures = feed.factors / shared
+    obs = dataclasses.replace(state.obs, data=state.obs.data / departures[..., None])
     state.obs = obs
+    state.feed_departures = (
+        departures if state.feed_departures is None else state.feed_departures * departures
+    )
     new = fit_extended(
         obs, ctx.tpl, state.active, weights=state.weights, start=current.params, **ctx.prior_kw
     )
@@ -242,7 +246,7 @@ def params_dict(eff: Effect, fit: ExtendedFit) -> dict[str, dict[str, float]]:
 
 def retest_accepted(
     ctx: SearchContext, state: SearchState, when: str, keep: Effect | None = None
-) -> None:
+) -> dict[str, ExtendedFit]:
     """Drop accepted effects that the others now explain (backward elimination).
 
     An effect accepted early may be explained away by later ones (a per-integration gain
@@ -250,12 +254,21 @@ def retest_accepted(
     longer costs Delta BIC > ``bic_threshold`` is dropped, one at a time, the model refitted
     after each (``state.active`` and ``state.current`` updated). ``keep`` (the effect just
     accepted) is not re-tested.
+
+    Returns
+    -------
+    dict
+        ``{effect name: the model without it}`` for every effect kept, fitted at the last
+        pass (what :func:`final_impacts` compares the final model with); empty with a
+        single effect.
     """
     obs, tpl, w, prior_kw = state.obs, ctx.tpl, state.weights, ctx.prior_kw
     active, current = state.active, state.current
     changed = True
+    withouts: dict[str, ExtendedFit] = {}
     while changed and len(active) > 1:
         changed = False
+        withouts = {}
         chat_f = max(1.0, current.reduced_chi2)
         for eff in list(active):
             if eff is keep:
@@ -265,6 +278,7 @@ def retest_accepted(
                 without = fit_extended(obs, tpl, rest, weights=w, start=current.params, **prior_kw)
             except (DiagnoseError, np.linalg.LinAlgError):
                 continue
+            withouts[eff.name] = without.detached()
             stat = (without.chi2 - current.chi2) / chat_f - eff.nfree * math.log(current.ndata)
             if stat < ctx.settings.bic_threshold:
                 logger.info("re-test at %s: %s dropped (Delta BIC %.1f)", when, eff.name, stat)
@@ -276,6 +290,43 @@ def retest_accepted(
                 changed = True
                 break
     state.active, state.current = active, current
+    # after a drop that left a single effect, the last pass's fits are of an older model
+    return {} if changed else withouts
+
+
+def final_impacts(ctx: SearchContext, state: SearchState, withouts: dict[str, ExtendedFit]) -> None:
+    """Judge every kept effect's impact on the products in the final joint model.
+
+    A step's ``product_impact`` compares the model before and after it; effects accepted
+    later change what it moves (a drift accepted next to a sky scale shares part of its
+    effect on ``G`` with a timing offset accepted after it). The verdict that counts is the
+    final model's, with and without the effect (``withouts``, the last re-test's fits):
+    recorded as the step's ``final_product_impact``, and the effect moved between the
+    named effects and the "detected, negligible" ones when its final verdict differs.
+    """
+    diag, current = state.diag, state.current
+    for st in diag.steps:
+        without = withouts.get(st["name"])
+        if without is None or "dropped_in_backward_pass" in st or st.get("superseded_by"):
+            continue
+        impact = product_impact(without, current, ctx.sigma_g, ctx.sigma_t)
+        negligible = is_negligible(impact, (without.chi2 - current.chi2) / current.ndata)
+        st["final_product_impact"] = impact
+        st["final_negligible"] = negligible
+        if negligible == bool(st.get("negligible")):
+            continue
+        st["negligible"] = negligible
+        source, target = (
+            (diag.effects, diag.negligible) if negligible else (diag.negligible, diag.effects)
+        )
+        if st["name"] in source:
+            source.remove(st["name"])
+            target.append(st["name"])
+        logger.info(
+            "%s is %s in the final model",
+            st["name"],
+            "negligible" if negligible else "no longer negligible",
+        )
 
 
 def _mark_dropped(diag: Diagnosis, eff: Effect, stat: float, when: str) -> None:

@@ -22,6 +22,7 @@ import numpy as np
 from autocal.core.observation import Observation
 from autocal.diagnosis.bandpass import fit_cable_reflection
 from autocal.diagnosis.consistency import WALD_SHORTFALL, wald_statistic
+from autocal.diagnosis.dispersion import robust_overdispersion
 from autocal.diagnosis.effects import LST_STEP_H, SIDEREAL_RATE, Effect, SkyTemplates
 from autocal.diagnosis.errors import DiagnoseError
 from autocal.diagnosis.extended_fit import ExtendedFit, fit_extended
@@ -30,7 +31,6 @@ from autocal.diagnosis.jitter import (
     JITTER_SMOOTH_ORDER,
     feed_departures_rough,
     jitter_is_significant,
-    robust_overdispersion,
     sky_time_shapes,
 )
 from autocal.diagnosis.normal_equations import MIN_IDENTIFIABLE
@@ -144,11 +144,13 @@ def try_feed_gains(ctx: SearchContext, state: SearchState, eff: Effect) -> FeedT
     elif "antenna_gain_jitter" in state.feed_accepted:
         return None
     if obs.nant * len(obs.pols) > FEED_JITTER_MAX_FEEDS:
-        state.fail(
-            eff.name,
-            f"not tested: {obs.nant * len(obs.pols)} antenna-pols (at most "
-            f"{FEED_JITTER_MAX_FEEDS}, one fit each; select fewer antennas)",
+        why = (
+            f"{obs.nant * len(obs.pols)} antenna-pols, more than the "
+            f"{FEED_JITTER_MAX_FEEDS} it fits one by one (a fit each, every step); "
+            "diagnose a selection of antennas (--antennas) to test it"
         )
+        state.fail(eff.name, f"not tested: {why}")
+        state.diag.not_tested[eff.name] = why
         return None
     try:
         feed = fit_feed_gains(obs, ctx.tpl, active, state.current, state.weights, ctx.prior_kw, eff)
@@ -306,9 +308,8 @@ def _own_parameters_insignificant(
         wald is not None
         and dchi_own / chat_own - penalty > bic_threshold
         and wald / chat_own - penalty <= bic_threshold
-        # the diagonal Wald of correlated parameters (a diurnal sine and cosine)
-        # falls short of Delta chi2 a little even for a linear model: only a
-        # large shortfall is the other parameters moving
+        # equal to Delta chi2 for a model linear in the effect: only a large
+        # shortfall is the other parameters moving
         and wald < WALD_SHORTFALL * dchi_own
     ):
         return eff.label, (

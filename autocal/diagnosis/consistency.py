@@ -26,24 +26,37 @@ from autocal.diagnosis.trials import ModelTrial, Trial
 logger = logging.getLogger(__name__)
 
 
-#: A candidate is refused on its own parameters only when their (diagonal) Wald
-#: statistic is below this fraction of its Delta chi2 (:func:`wald_statistic`).
+#: A candidate is refused on its own parameters only when their Wald statistic is below
+#: this fraction of its Delta chi2 (:func:`wald_statistic`): for a model linear in them
+#: the two are equal, so a large shortfall is the other parameters moving along a nearly
+#: degenerate valley of a model that is not linear in them.
 WALD_SHORTFALL = 0.5
 
 
 def wald_statistic(fit: ExtendedFit, eff: Effect) -> float | None:
-    """Return ``sum (value / sigma)^2`` of an effect's free parameters in a fit.
+    """Return the Wald statistic ``v^T C^-1 v`` of an effect's free parameters in a fit.
 
-    The Wald statistic with the covariance's diagonal: for a model linear in the effect's
-    parameters it equals the fit's Delta chi2 when the parameters are uncorrelated. A
-    Delta chi2 far above it means the improvement came from the other parameters moving
-    (the model is not linear in them), not from this effect. ``None`` for a fixed effect.
+    ``v`` the effect's values, ``C`` the full covariance block of them
+    (:attr:`.ExtendedFit.covariances`, correlations between them included: a diurnal
+    sine and cosine, a drift's Legendre terms), inverted as a correlation matrix (a
+    pseudo-inverse where it is singular). For a model linear in the effect's parameters
+    it equals the fit's Delta chi2; a Delta chi2 far above it means the improvement came
+    from the other parameters moving (the model is not linear in them), not from this
+    effect. Falls back on the diagonal, ``sum (v / sigma)^2``, when the block is missing or
+    not finite. ``None`` for a fixed effect.
     """
     if eff.fixed is not None or not eff.nfree or eff.name not in fit.params:
         return None
     values = np.asarray(fit.params[eff.name], float)
     sigmas = np.asarray(fit.sigmas[eff.name], float)
     ok = np.isfinite(values) & np.isfinite(sigmas) & (sigmas > 0)
+    cov = fit.covariances.get(eff.name)
+    if cov is not None and cov.shape == (values.size, values.size) and ok.all():
+        scale = np.sqrt(np.diag(cov))
+        if np.all(np.isfinite(cov)) and np.all(scale > 0):
+            z = values / scale
+            corr = cov / np.outer(scale, scale)
+            return float(z @ np.linalg.pinv(corr, rcond=1e-12, hermitian=True) @ z)
     return float(np.sum((values[ok] / sigmas[ok]) ** 2))
 
 
@@ -183,7 +196,10 @@ def band_consistency(
             return None
         if half.identifiable.get(eff.name, 0.0) < MIN_IDENTIFIABLE:
             return None
-        halves.append(half)
+        # its parameters are all the comparison needs: without the half's copy of the
+        # data, one half-band copy at a time is alive (run.HALF_BAND_BYTES_PER_SAMPLE)
+        halves.append(half.detached())
+        del sub, sub_w
     out = _compare_halves(eff, halves, fit)
     if out is None:
         return None

@@ -94,6 +94,10 @@ class ExtendedFit:
         degenerate with ``(G, n)``).
     iterations
         Gauss-Newton iterations used.
+    covariances
+        ``{effect name: (k, k) covariance block of its free parameters}`` (the full block,
+        off-diagonal terms included; empty ``(0, 0)`` for a fixed effect, infinite when
+        the effect is not identifiable).
     gain_factor, noise_factor
         ``(Ntime,)`` the achromatic factors of ``G`` and ``n`` over time
         (``G(t) = G gain_factor(t)``, ``n(t) = n noise_factor(t)``; ones without drift or
@@ -116,6 +120,7 @@ class ExtendedFit:
     nparam: int
     identifiable: dict[str, float]
     iterations: int
+    covariances: dict[str, np.ndarray] = field(default_factory=dict)
     gain_factor: np.ndarray | None = None
     noise_factor: np.ndarray | None = None
     source: ModelSource | None = field(default=None, repr=False)
@@ -355,12 +360,14 @@ def _result(obs: Observation, prob: FitProblem, minimum: _Minimum) -> ExtendedFi
     ndata = prob.used + (nchan if prob.prior else 0)
     params: dict[str, np.ndarray] = {}
     sigmas: dict[str, np.ndarray] = {}
+    covariances: dict[str, np.ndarray] = {}
     sig_all = np.sqrt(np.abs(np.diag(cov))) if nfree else np.zeros(0)
     for eff, sl in blocks:
         params[eff.name] = prob.values(eff, sl, p).copy()
         sigmas[eff.name] = (
             np.zeros(len(eff.params)) if eff.fixed is not None else sig_all[sl].copy()
         )
+        covariances[eff.name] = np.zeros((0, 0)) if eff.fixed is not None else cov[sl, sl].copy()
     source = ModelSource(
         obs=obs,
         weights=prob.weights,
@@ -383,6 +390,7 @@ def _result(obs: Observation, prob: FitProblem, minimum: _Minimum) -> ExtendedFi
         nparam=2 * nchan + nfree,
         identifiable=minimum.identifiable,
         iterations=minimum.iterations,
+        covariances=covariances,
         gain_factor=np.asarray(st.gfac, float).copy(),
         noise_factor=np.asarray(st.nfac, float).copy(),
         source=source,

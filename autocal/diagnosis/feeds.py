@@ -15,6 +15,11 @@ from typing import Any
 import numpy as np
 
 from autocal.core.observation import Observation
+from autocal.diagnosis.dispersion import (
+    ROBUST_SAMPLES,
+    pooled_overdispersion,
+    squared_residual_sample,
+)
 from autocal.diagnosis.effects import Effect, SkyTemplates
 from autocal.diagnosis.errors import DiagnoseError
 from autocal.diagnosis.extended_fit import ExtendedFit, fit_extended
@@ -43,6 +48,12 @@ class FeedGainFit:
         Data (with prior rows) and parameters of the per-antenna-pol model.
     values
         ``(Nant, Npol, k)`` each antenna-pol's fitted parameters.
+    bulk_overdispersion
+        The overdispersion of the bulk of the antenna-pols' residuals pooled (median
+        squared normalised residual over that of chi-square with one degree of freedom,
+        :func:`~autocal.diagnosis.dispersion.pooled_overdispersion`): the yardstick of
+        their departures' test, which a few outliers do not inflate as they inflate
+        :attr:`reduced_chi2`. ``nan`` until computed.
     """
 
     factors: np.ndarray
@@ -53,6 +64,7 @@ class FeedGainFit:
     ndata: int
     nparam: int
     values: np.ndarray | None = None
+    bulk_overdispersion: float = float("nan")
 
     @property
     def reduced_chi2(self) -> float:
@@ -100,6 +112,7 @@ def fit_feed_gains(
     sigmas = np.zeros_like(factors)
     values = np.zeros((obs.nant, len(obs.pols), basis.shape[0]))
     chi2, ndata, nparam, skipped = 0.0, 0, 0, 0
+    squares: list[np.ndarray] = []
     for ia, ant in enumerate(obs.antennas):
         for ip, pol in enumerate(obs.pols):
             sub = obs.select(antennas=[int(ant)], pols=[pol])
@@ -122,6 +135,9 @@ def fit_feed_gains(
             chi2 += fit.chi2
             ndata += fit.ndata
             nparam += fit.nparam
+            # pooled over antenna-pols: ~ROBUST_SAMPLES in all
+            per_feed = ROBUST_SAMPLES // (obs.nant * len(obs.pols))
+            squares.append(squared_residual_sample(fit, per_feed))
     nfeeds = obs.nant * len(obs.pols)
     return FeedGainFit(
         factors=factors,
@@ -132,6 +148,7 @@ def fit_feed_gains(
         ndata=ndata,
         nparam=nparam,
         values=values,
+        bulk_overdispersion=pooled_overdispersion(squares, chi2 / max(ndata - nparam, 1)),
     )
 
 

@@ -123,7 +123,12 @@ def product_sigmas(
 
 
 def product_impact(
-    before: ExtendedFit, after: ExtendedFit, sigma_g: np.ndarray, sigma_t: np.ndarray
+    before: ExtendedFit,
+    after: ExtendedFit,
+    sigma_g: np.ndarray,
+    sigma_t: np.ndarray,
+    *,
+    after_feed_factors: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Return how ``G`` and ``Trxr`` move between two models, against the total errors.
 
@@ -133,6 +138,10 @@ def product_impact(
         Fits without and with the effect(s).
     sigma_g, sigma_t
         ``(Nant, Npol, Nfreq)`` total 1-sigma of ``G`` and ``Trxr`` (:func:`product_sigmas`).
+    after_feed_factors
+        ``(Nant, Npol, Ntime)`` each antenna-pol's own gain factors on top of ``after``'s
+        shared one (accepted per-antenna gains, divided out of the data ``after`` was
+        fitted to), or ``None``.
 
     Returns
     -------
@@ -141,17 +150,25 @@ def product_impact(
         the median change (relative for ``G``, kelvin for ``Trxr``) and the channels
         compared (time means: a jitter's ``G`` is its reference integration's);
         ``significant`` when the median change exceeds one total sigma. ``G_time``: the rms
-        and largest change of ``G(t) / <G>`` (achromatic); ``Trxr_time``: the largest
-        change over time of ``Trxr(t) - <Trxr>`` in kelvin, median channel and worst.
+        and largest change of ``G(t) / <G>`` (achromatic; with ``after_feed_factors``
+        over every antenna-pol's ``G(t)``); ``Trxr_time``: the largest change over time of
+        ``Trxr(t) - <Trxr>`` in kelvin, median channel and worst.
     """
     out: dict[str, Any] = {}
     gs_b, ns_b = _time_shapes(before)
     gs_a, ns_a = _time_shapes(after)
+    gain_a = _mean_factor(after.gain_factor)
+    if after_feed_factors is not None:
+        # every antenna-pol's G(t): the shared factor times its own
+        shared = np.ones(1) if after.gain_factor is None else np.asarray(after.gain_factor)
+        per_feed = np.asarray(after_feed_factors, float) * shared
+        gain_a = np.mean(per_feed, axis=-1)[..., None]  # (A, P, 1) against G's (A, P, F)
+        gs_a = per_feed / np.mean(per_feed, axis=-1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         # the time-mean products (a jitter's G is that of its reference integration)
         g_b, g_a = (
             before.G * _mean_factor(before.gain_factor),
-            after.G * _mean_factor(after.gain_factor),
+            after.G * gain_a,
         )
         t_b, t_a = (
             before.Trxr * _mean_factor(before.noise_factor),

@@ -3,22 +3,21 @@
 A ``gain_jitter`` fit absorbs any achromatic time structure; :func:`jitter_is_significant`
 names it only when what a smooth function of time or of the sky (:func:`sky_time_shapes`)
 leaves of the series pays for its parameters, against the bulk's scatter
-(:func:`robust_overdispersion`). :func:`feed_departures_rough` applies the same test to
-every antenna-pol's departure from the common series (``antenna_gain_jitter``).
+(:func:`~autocal.diagnosis.dispersion.robust_overdispersion`). :func:`feed_departures_rough`
+applies the same test to every antenna-pol's departure from the common series
+(``antenna_gain_jitter``).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from autocal.core.observation import Observation
 from autocal.diagnosis.effects import DIURNAL_MIN_SPAN_H, SkyTemplates, diurnal_basis, time_basis
-from autocal.diagnosis.extended_fit import ExtendedFit, residual_pieces
+from autocal.diagnosis.extended_fit import ExtendedFit
 from autocal.diagnosis.feeds import FeedGainFit
 from autocal.diagnosis.trials import BIC_THRESHOLD
 from autocal.fit.model import unwrap_lsts
@@ -159,43 +158,6 @@ def _smooth_basis(
     return basis[: max(1, min(basis.shape[0], int(good.sum()) - 2))]
 
 
-#: Median of a chi-square variable with one degree of freedom.
-_CHI2_1_MEDIAN = float(stats.chi2.ppf(0.5, 1))
-
-
-def robust_overdispersion(fit: ExtendedFit) -> float:
-    """Return the fit's overdispersion from the median squared normalised residual.
-
-    ``median(r^2) / 0.455`` (the median of chi-square with one degree of freedom): the
-    scatter of the bulk of the data, which a few strong outliers (RFI not yet flagged, on
-    the first search) do not inflate as they inflate ``chi^2 / dof``. Used by the
-    ``gain_jitter`` test, whose verdict would otherwise rest on the RFI.
-    """
-    squares = []
-    for _, res in residual_pieces(fit):
-        flat = np.asarray(res).ravel()
-        # a whole HERA file has 2e8 residuals: a regular subsample of ~4e6 is plenty
-        stride = max(1, flat.size * max(1, fit_nchunks(fit)) // ROBUST_SAMPLES)
-        while stride > 1 and math.gcd(stride, np.shape(res)[-1]) != 1:
-            stride += 1  # not a comb of the same channels
-        sub = flat[::stride]
-        squares.append(sub[np.isfinite(sub)] ** 2)
-    values = np.concatenate(squares) if squares else np.zeros(0)
-    if not values.size:
-        return fit.reduced_chi2
-    return float(np.median(values) / _CHI2_1_MEDIAN)
-
-
-#: Residuals :func:`robust_overdispersion` takes the median of, at most (about).
-ROBUST_SAMPLES = 1 << 22
-
-
-def fit_nchunks(fit: Any) -> int:
-    """Return the number of antenna chunks a fit streams its residuals in (1 for arrays)."""
-    source = getattr(fit, "source", None)
-    return len(source.chunks) if source is not None else 1
-
-
 def sky_time_shapes(tpl: SkyTemplates) -> np.ndarray:
     """Return ``(3, Ntime)`` time shapes of the model sky.
 
@@ -216,7 +178,9 @@ def feed_departures_rough(
     The test :func:`jitter_is_significant` applies to ``gain_jitter``, applied to every
     antenna-pol's series divided by the common one and summed over antenna-pols: what a
     smooth function of time explains (one antenna's gain drifting against the others) is
-    not jitter.
+    not jitter. The remainders are judged against the scatter of the bulk of the
+    antenna-pols' residuals (:attr:`.FeedGainFit.bulk_overdispersion`, a median), not their
+    ``chi^2 / dof``, which a few outliers inflate.
     """
     shared = current.gain_factor / np.mean(current.gain_factor)
     shapes = sky_time_shapes(tpl)
@@ -229,7 +193,7 @@ def feed_departures_rough(
                 obs.lsts,
                 shapes,
                 ndata=current.ndata,
-                overdispersion=feed.reduced_chi2,
+                overdispersion=feed.bulk_overdispersion,
             )
             total += test.rough_delta_bic
     return float(total)

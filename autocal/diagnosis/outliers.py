@@ -8,6 +8,8 @@ and searches again.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 from scipy.ndimage import median_filter
 
@@ -66,6 +68,30 @@ def running_median(x: np.ndarray, window: int, axis: int) -> np.ndarray:
     return p[4]
 
 
+def model_residual_pieces(
+    fit: ExtendedFit, flags: np.ndarray
+) -> Iterator[tuple[slice, np.ndarray]]:
+    """Yield ``(antenna slice, normalised residuals)`` of a fit wherever ``flags`` is false.
+
+    ``(R - model) sqrt(dnu dt N) / model``: the radiometer normalisation of the fit's own
+    model, so that samples the fit did not use (flagged by an earlier round of
+    :func:`flag_outliers`) get residuals too. NaN where ``flags`` is set, the data are not
+    finite or the channel has no ``(G, n)`` solution.
+    """
+    src = fit.source
+    if src is None:
+        raise ValueError("the fit is detached from its data: no residuals")
+    obs = src.obs
+    width = obs.channel_width[None, None, None, :]
+    tint = obs.integration_time[None, None, :, None]
+    for sl, model in fit.model_chunks():
+        bt = width * (tint * obs.nsamples[sl])
+        usable = ~flags[sl] & np.isfinite(obs.data[sl]) & src.chan_ok[sl][:, :, None, :]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            res = (obs.data[sl] - model) * np.sqrt(bt) / np.abs(model)
+        yield sl, np.where(usable & np.isfinite(res), res, np.nan)
+
+
 def flag_outliers(
     obs: Observation,
     fit: ExtendedFit,
@@ -73,6 +99,7 @@ def flag_outliers(
     threshold: float = 6.0,
     window: int = 9,
     max_fraction: float = 0.5,
+    base_flags: np.ndarray | None = None,
 ) -> np.ndarray:
     """Flag narrow-band or impulsive outliers (RFI) in the residuals of a fit.
 
@@ -99,15 +126,24 @@ def flag_outliers(
         Integrations and channels of the running medians.
     max_fraction
         Fraction of flagged samples above which a whole channel or integration is flagged.
+    base_flags
+        The flags the outliers are added to, ``(Nant, Npol, Ntime, Nfreq)``. Given (the
+        observation's own flags, before any outlier round), every sample they leave is
+        judged afresh on the fit's model (:func:`model_residual_pieces`), those flagged by
+        an earlier round included: the flags are recomputed, not accumulated, so a bad
+        first model does not leave its flags behind. ``None``: ``obs.flags``, and only the
+        samples the fit used are judged.
 
     Returns
     -------
     numpy.ndarray
         ``(Nant, Npol, Ntime, Nfreq)`` flags (the observation's own included).
     """
+    base = obs.flags if base_flags is None else np.asarray(base_flags, bool)
+    pieces = residual_pieces(fit) if base_flags is None else model_residual_pieces(fit, base)
     dev = np.empty(obs.shape, weights_dtype(obs.shape))
     usable = np.zeros(obs.shape, bool)
-    for sl, res in residual_pieces(fit):
+    for sl, res in pieces:
         ok = np.isfinite(res)
         usable[sl] = ok
         # high-pass in time, then in frequency: what a fit bent by an outlier spreads over
@@ -117,14 +153,14 @@ def flag_outliers(
         hp = hp - running_median(hp, window, axis=3)
         dev[sl] = np.where(ok, hp, np.nan)
     if not usable.any():
-        return obs.flags.copy()
+        return base.copy()
     centre = np.nanmedian(dev)
     np.subtract(dev, centre, out=dev)
     np.abs(dev, out=dev)  # in place: |deviation from the centre|
     sigma = 1.4826 * np.nanmedian(dev)
     if not np.isfinite(sigma) or sigma <= 0:
-        return obs.flags.copy()
-    flags = obs.flags.copy()
+        return base.copy()
+    flags = base.copy()
     for sl in antenna_chunks(obs.shape):
         ok = usable[sl]
         new = ok & (dev[sl] > threshold * sigma)

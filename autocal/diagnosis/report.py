@@ -59,6 +59,11 @@ class Diagnosis:
         impact on ``G`` and ``Trxr`` is negligible
         (:func:`~autocal.diagnosis.impact.is_negligible`): reported as "detected,
         negligible", not named among :attr:`effects`; their steps say ``negligible: true``.
+    not_tested
+        ``{entry: why}``: catalogue entries the search did not test at all on these data
+        (e.g. the per-antenna entries above
+        :data:`~autocal.diagnosis.feeds.FEED_JITTER_MAX_FEEDS` antenna-pols), so that their
+        absence from :attr:`effects` is not read as "not present".
     """
 
     steps: list[dict[str, Any]] = field(default_factory=list)
@@ -73,12 +78,14 @@ class Diagnosis:
     product_change: dict[str, Any] = field(default_factory=dict)
     unexplained: dict[str, Any] | None = None
     negligible: list[str] = field(default_factory=list)
+    not_tested: dict[str, str] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form (without residual arrays)."""
         return {
             "effects": self.effects,
             "negligible": self.negligible,
+            "not_tested": self.not_tested,
             "unexplained": self.unexplained,
             "steps": self.steps,
             "initial_gap": self.initial_gap,
@@ -142,6 +149,8 @@ def summary_text(diag: Diagnosis) -> str:
             "detected, negligible for the calibration products (kept in the fit, not named): "
             + ", ".join(diag.negligible)
         )
+    for name, why in diag.not_tested.items():
+        lines.append(f"not tested: {name} ({why})")
     rej = diag.config.get("last_rejected")
     if rej:
         lines.append(

@@ -109,6 +109,10 @@ class SearchState:
         The per-antenna gain entries accepted (held in :attr:`obs`).
     restarts
         Times the model was refitted from a candidate's better minimum.
+    feed_departures
+        ``(Nant, Npol, Ntime)`` the accepted per-antenna gains' departures from the shared
+        series, divided out of :attr:`obs` (``None`` until one is accepted): the final
+        products' change includes them.
     """
 
     obs: Observation
@@ -120,6 +124,7 @@ class SearchState:
     cable: BandpassFit | None = None
     feed_accepted: set[str] = field(default_factory=set)
     restarts: int = 0
+    feed_departures: np.ndarray | None = None
 
     def fail(self, key: str, reason: str) -> None:
         """Record why a candidate was not taken (the diagnosis's ``failed_candidates``)."""

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
+import pytest
 
 from autocal.diagnosis.catalogue import catalogue
-from autocal.diagnosis.consistency import band_consistency
+from autocal.diagnosis.consistency import band_consistency, wald_statistic
 from autocal.diagnosis.extended_fit import fit_extended, radiometer_weights
 from tests.diagnosis.simulated import PRIOR_SIGMA, hidden, s_of
 
@@ -61,3 +64,52 @@ def test_band_consistency_with_a_partner(setup):
     # alone: both halves biased (0.046 and 0.034 against 0.02), and significantly apart
     assert check is not None and check.p_value < 1e-3 and both.p_value > 1e-3
     assert check.relative_difference > 5 * both.relative_difference
+
+
+def test_wald_statistic_uses_the_full_covariance_block(setup):
+    """A drift of two correlated parameters (a sidereal-day sine and cosine over a third of
+    the day, where they are far from orthogonal): the Wald statistic with the full
+    covariance block equals the fit's Delta chi2 (the model is linear in them); the
+    diagonal one does not."""
+    obs, tpl = setup
+    keep = np.arange(obs.ntime // 3)  # the first third of the day
+    part = dataclasses.replace(
+        obs,
+        data=obs.data[:, :, keep],
+        flags=obs.flags[:, :, keep],
+        nsamples=obs.nsamples[:, :, keep],
+        lsts=obs.lsts[keep],
+        jds=obs.jds[keep],
+        integration_time=obs.integration_time[keep],
+    )
+    ptpl = dataclasses.replace(
+        tpl,
+        **{
+            name: getattr(tpl, name)[:, keep]
+            for name in ("total", "galactic", "cmb", "ground", "beam_dwidth", "lst_derivative")
+            if getattr(tpl, name) is not None
+        },
+        lsts=tpl.lsts[keep],
+        beam_width_poly=None if tpl.beam_width_poly is None else tpl.beam_width_poly[:, :, keep],
+    )
+    drift = next(
+        e
+        for e in catalogue(ntime=part.ntime, span_h=8.0)
+        if e.name == "noise_drift" and e.basis == "diurnal"
+    )
+    phase = 2 * np.pi * part.lsts / 24.0
+    trxr = 150.0 * (1 + 0.004 * np.sin(phase) + 0.003 * np.cos(phase))[:, None]
+    data = hidden(part, ptpl.total, trxr=trxr)
+    w = radiometer_weights(data, data.data)
+    kw = {"trxr_prior": 150.0, "trxr_prior_sigma": PRIOR_SIGMA}
+    base = fit_extended(data, ptpl, [], weights=w, **kw)
+    fit = fit_extended(data, ptpl, [drift], weights=w, **kw)
+    cov = fit.covariances[drift.name]
+    corr = cov[0, 1] / np.sqrt(cov[0, 0] * cov[1, 1])
+    assert abs(corr) > 0.2, corr
+    dchi2 = base.chi2 - fit.chi2
+    full = wald_statistic(fit, drift)
+    values, sigmas = fit.params[drift.name], fit.sigmas[drift.name]
+    diagonal = float(np.sum((values / sigmas) ** 2))
+    assert full == pytest.approx(dchi2, rel=0.02)
+    assert abs(diagonal - dchi2) > 0.05 * dchi2

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
-from autocal.diagnosis.impact import is_negligible
+from types import SimpleNamespace
+
+import numpy as np
+
+from autocal.diagnosis.impact import is_negligible, product_impact
 
 
 def test_negligible_needs_a_verdict_on_most_channels() -> None:
@@ -52,3 +56,21 @@ def test_negligible_needs_a_verdict_on_most_channels() -> None:
     assert not is_negligible(drifting)
     # an effect that removes a fifth of the noise variance per sample is never negligible
     assert not is_negligible(steady, chi2_share=0.2) and is_negligible(steady, chi2_share=0.01)
+
+
+def test_product_impact_counts_each_antenna_pols_own_gain_series() -> None:
+    """The whole diagnosis's product change includes the accepted per-antenna gain series
+    (divided out of the data the final model was fitted to): without them it would show
+    no change of G(t) at all."""
+    ntime, shape = 40, (2, 1, 8)
+    flat = SimpleNamespace(
+        G=np.ones(shape), Trxr=np.full(shape, 150.0), gain_factor=None, noise_factor=None
+    )
+    sigma_g, sigma_t = np.full(shape, 1e-3), np.full(shape, 1.0)
+    own = np.ones((2, 1, ntime))
+    own[1, 0] = 1 + 0.01 * np.sin(np.linspace(0, 6, ntime))  # antenna 1 jitters
+    without = product_impact(flat, flat, sigma_g, sigma_t)
+    assert without["G_time"]["max_abs_relative_change"] == 0.0
+    with_feeds = product_impact(flat, flat, sigma_g, sigma_t, after_feed_factors=own)
+    assert with_feeds["G_time"]["max_abs_relative_change"] > 9e-3
+    assert not is_negligible(with_feeds)

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from autocal.diagnosis.jitter import robust_overdispersion
+from autocal.diagnosis.dispersion import robust_overdispersion
 
 
 def test_robust_overdispersion_ignores_a_few_outliers() -> None:

@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
 
 import autocal.plots
+from autocal.diagnosis.candidate_fits import try_feed_gains
+from autocal.diagnosis.catalogue import catalogue
 from autocal.diagnosis.report import Diagnosis, summary_text, write_diagnosis
 from autocal.diagnosis.stepwise import diagnose
 from tests.diagnosis.simulated import PRIOR_SIGMA, hidden
@@ -62,3 +68,26 @@ def test_summary_marks_superseded_and_dropped_steps() -> None:
     text = summary_text(diag)
     assert "gain_jitter [superseded by antenna_gain_jitter]" in text
     assert "beam_width [dropped at step 3]" in text
+
+
+def test_entries_not_tested_are_reported_with_the_reason(setup) -> None:
+    """Above 64 antenna-pols the per-antenna entries are not tested: diagnosis.json says so
+    ('not_tested', with the reason) and so does the summary, so that their absence from
+    the effects is not read as 'not present'."""
+    obs, _ = setup
+    many = dataclasses.replace(
+        obs,
+        data=np.repeat(obs.data, 66, axis=0),
+        flags=np.repeat(obs.flags, 66, axis=0),
+        nsamples=np.repeat(obs.nsamples, 66, axis=0),
+        antennas=np.arange(66),
+        antenna_names=(),
+    )
+    entry = next(e for e in catalogue(ntime=obs.ntime, nfeeds=66) if e.name == "antenna_gain_drift")
+    gap = {"reduced_chi2": 1.0, "rms_normalised_residual": 1.0}
+    diag = Diagnosis(config={"failed_candidates": {}}, initial_gap=gap, final_gap=gap)
+    state = SimpleNamespace(obs=many, active=[], feed_accepted=set(), diag=diag)
+    state.fail = lambda key, why: diag.config["failed_candidates"].__setitem__(key, why)
+    assert try_feed_gains(SimpleNamespace(), state, entry) is None
+    assert "66 antenna-pols" in diag.to_dict()["not_tested"]["antenna_gain_drift"]
+    assert "not tested: antenna_gain_drift (66 antenna-pols" in summary_text(diag)
