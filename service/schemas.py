@@ -532,6 +532,11 @@ class DiagnosisResults(BaseModel):
         "units of the total 1-sigma (median and worst channel); each step's own change is "
         "in its details.product_impact",
     )
+    not_tested: dict[str, str] = Field(
+        default_factory=dict,
+        description="catalogue entries the search did not test, each with the reason (e.g. "
+        "per-antenna entries above the feed limit)",
+    )
     summary: dict[str, Any] | None = Field(
         None, description="the job's summary: observation, config, timings"
     )

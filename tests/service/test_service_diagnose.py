@@ -183,6 +183,9 @@ def test_diagnose_job_end_to_end(
     impact = step["details"]["product_impact"]
     assert impact["G"]["median_change_over_sigma"] > 0 and "Trxr" in impact
     assert body["product_change"]["G"]["channels"] == impact["G"]["channels"]
+    # what the search left untested (nothing on this small file) is read from diagnosis.json
+    doc = json.loads((settings.products_dir / job_id / "attempt-1" / "diagnosis.json").read_text())
+    assert body["not_tested"] == doc["not_tested"]
     # the drift coefficients are the projection of the true gain on the effect's basis
     obs = read_uvh5(data / SIM)
     order = int(step["parameters"]["order"]["value"])
