@@ -1,6 +1,7 @@
 """The flagging stage of a calibration: band edges and RFI found before the fit.
 
-:func:`scan_flags` reads the observation once, block by block, and returns the
+:func:`scan_flags` reads the observation twice, block by block (the time-mean spectra,
+then the outliers given them), and returns the
 :class:`~autocal.pipeline.rfi.RfiMask` that every pass then ORs into each block's flags
 (:meth:`autocal.pipeline.partials._FileSums.add`), so flagged samples never enter the normal
 sums. :func:`mark_flag_reasons` tells, in the solution's ``flag_reason``, the channels that had
@@ -20,7 +21,7 @@ import numpy as np
 from autocal.fit.solve import FLAG_BAND_EDGE, FLAG_RFI, FLAG_TOO_FEW
 from autocal.pipeline.config import CalibrationConfig, read_selection
 from autocal.pipeline.partials import read_chunks
-from autocal.pipeline.rfi import RfiMask, RfiScan
+from autocal.pipeline.rfi import LevelScan, RfiMask, RfiScan
 from autocal.pipeline.sources import Source
 
 logger = logging.getLogger(__name__)
@@ -33,7 +34,7 @@ def scan_flags(
     block_size: int | None,
     report: Callable[[float, str], None],
 ) -> tuple[RfiMask | None, dict[str, Any]]:
-    """Read the observation once and decide its band-edge and RFI flags.
+    """Read the observation (twice) and decide its band-edge and RFI flags.
 
     Parameters
     ----------
@@ -60,9 +61,15 @@ def scan_flags(
     if source.kind == "edges":
         return None, {"applied": False, "why": "EDGES spectra are not flagged from the autos"}
     report(0.07, "flagging band edges and RFI from the autos")
-    scan = RfiScan(int(source.lsts.size))
     selection = read_selection(config)
-    for task in source.tasks(tsky_all):
+    tasks = source.tasks(tsky_all)
+    levels = LevelScan()
+    for task in tasks:  # first read: the time-mean spectra
+        for chunk in read_chunks(selection, block_size, task):
+            levels.add(chunk.data, chunk.flags)
+            del chunk
+    scan = RfiScan(int(source.lsts.size), levels.level())
+    for task in tasks:  # second read: the outliers, given the mean spectra
         offset = task.offset
         for chunk in read_chunks(selection, block_size, task):
             scan.add(chunk.data, chunk.flags, offset)

@@ -131,23 +131,32 @@ def _quiet_nan() -> Iterator[None]:
         yield
 
 
-def frequency_flags(data: np.ndarray, flags: np.ndarray) -> np.ndarray:
+def frequency_flags(data: np.ndarray, flags: np.ndarray, level: np.ndarray) -> np.ndarray:
     """Flag RFI along frequency in each spectrum of a block.
+
+    Each spectrum is divided by the time-mean spectrum ``level`` first, so the bandpass's
+    fine structure (stable in time) does not widen the robust width; what stands out of
+    a median of neighbouring channels is then RFI.
 
     Parameters
     ----------
     data, flags
-        ``(..., Nfreq)`` auto-correlations and their flags (flagged, non-finite and
-        non-positive samples are filled with the spectrum's median before filtering and
-        are not flagged again here).
+        ``(Nant, Npol, Ntime, Nfreq)`` auto-correlations and their flags (flagged,
+        non-finite and non-positive samples are filled with the spectrum's median before
+        filtering and are not flagged again here).
+    level
+        ``(Nant, Npol, Nfreq)`` time-mean auto-correlations (:class:`LevelScan`).
 
     Returns
     -------
     numpy.ndarray
         ``(..., Nfreq)`` the new RFI flags.
     """
-    usable = ~flags & np.isfinite(data) & (data > 0)
-    filled = _filled(data, usable)
+    lev = level[:, :, None, :]
+    usable = ~flags & np.isfinite(data) & (data > 0) & np.isfinite(lev) & (lev > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(usable, data / lev, 0.0)
+    filled = _filled(ratio, usable)
     z = robust_zscores(filled, KF)
     return watershed(np.where(usable, z, 0.0), NSIG, NSIG_ADJACENT) & usable
 
@@ -201,6 +210,8 @@ class RfiMask:
         ``(Nant, Npol, Nfreq)`` channels flagged whole for persistent RFI.
     integrations
         ``(Nant, Npol, Ntime)`` integrations flagged whole (RFI in time).
+    level
+        ``(Nant, Npol, Nfreq)`` the time-mean spectra the frequency flags divide by.
     counts
         The summary's ``rfi`` block (:meth:`RfiScan.finish`).
     """
@@ -208,6 +219,7 @@ class RfiMask:
     band_edge: np.ndarray
     channels: np.ndarray
     integrations: np.ndarray
+    level: np.ndarray
     counts: dict[str, Any] = field(default_factory=dict)
 
     def apply(self, data: np.ndarray, flags: np.ndarray, offset: int) -> np.ndarray:
@@ -221,25 +233,50 @@ class RfiMask:
             Index of the block's first integration in the observation.
         """
         nt = data.shape[2]
-        out = frequency_flags(data, flags)  # the same flags the scan counted
+        out = frequency_flags(data, flags, self.level)  # the same flags the scan counted
         out |= flags | self.band_edge[:, :, None, :] | self.channels[:, :, None, :]
         out |= self.integrations[:, :, offset : offset + nt, None]
         return out
 
 
 @dataclass
+class LevelScan:
+    """The first read: the time-mean spectrum of every antenna-pol, block by block."""
+
+    total: np.ndarray | None = None
+    count: np.ndarray | None = None
+
+    def add(self, data: np.ndarray, flags: np.ndarray) -> None:
+        """Add one block ``(Nant, Npol, Ntime, Nfreq)``."""
+        usable = ~flags & np.isfinite(data) & (data > 0)
+        if self.total is None or self.count is None:
+            self.total = np.zeros(data.shape[:2] + data.shape[3:])
+            self.count = np.zeros(self.total.shape, np.int64)
+        self.total += np.where(usable, data, 0.0).sum(axis=2)
+        self.count += usable.sum(axis=2)
+
+    def level(self) -> np.ndarray:
+        """Return ``(Nant, Npol, Nfreq)`` the mean of the usable samples (NaN: none)."""
+        if self.total is None or self.count is None:
+            raise ValueError("no data were scanned for flagging")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(self.count > 0, self.total / self.count, np.nan)
+
+
+@dataclass
 class RfiScan:
-    """Accumulates, block by block, what the whole-observation flags are decided from.
+    """The second read: accumulates, block by block, what the flags are decided from.
 
     Attributes
     ----------
     ntime
         Integrations of the observation.
+    level
+        ``(Nant, Npol, Nfreq)`` time-mean spectra (:meth:`LevelScan.level`).
     """
 
     ntime: int
-    level_sum: np.ndarray | None = None
-    level_count: np.ndarray | None = None
+    level: np.ndarray
     band_median: np.ndarray | None = None
     freq_hits: np.ndarray | None = None
     freq_usable: np.ndarray | None = None
@@ -252,24 +289,21 @@ class RfiScan:
         nant, npol, nt, nfreq = data.shape
         if self.band_median is None:
             self.band_median = np.full((nant, npol, self.ntime), np.nan)
-            self.level_sum = np.zeros((nant, npol, nfreq))
-            self.level_count = np.zeros((nant, npol, nfreq), np.int64)
             self.freq_hits = np.zeros((nant, npol, nfreq), np.int64)
             self.freq_usable = np.zeros((nant, npol, nfreq), np.int64)
             self.hits_per_time = np.zeros((nant, npol, self.ntime), np.int64)
             self.usable_per_time = np.zeros((nant, npol, self.ntime), np.int64)
         assert self.freq_hits is not None and self.freq_usable is not None
         assert self.hits_per_time is not None and self.usable_per_time is not None
-        usable = ~flags & np.isfinite(data) & (data > 0)
+        lev = self.level[:, :, None, :]
+        usable = ~flags & np.isfinite(data) & (data > 0) & np.isfinite(lev) & (lev > 0)
         self.prior_flagged += int(np.count_nonzero(flags))
-        hits = frequency_flags(data, flags)
-        clean = np.where(usable & ~hits, data, np.nan)
+        hits = frequency_flags(data, flags, self.level)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            clean = np.where(usable & ~hits, data / lev, np.nan)
         window = slice(offset, offset + nt)
         with _quiet_nan():
             self.band_median[:, :, window] = np.nanmedian(clean, axis=-1)
-        assert self.level_sum is not None and self.level_count is not None
-        self.level_sum += np.where(usable, data, 0.0).sum(axis=2)
-        self.level_count += usable.sum(axis=2)
         self.freq_hits += hits.sum(axis=2)
         self.freq_usable += usable.sum(axis=2)
         self.hits_per_time[:, :, window] = hits.sum(axis=-1)
@@ -281,20 +315,17 @@ class RfiScan:
             raise ValueError("no data were scanned for flagging")
         assert self.freq_hits is not None and self.freq_usable is not None
         assert self.hits_per_time is not None and self.usable_per_time is not None
-        assert self.level_sum is not None and self.level_count is not None
-        with np.errstate(divide="ignore", invalid="ignore"):
-            level = np.where(self.level_count > 0, self.level_sum / self.level_count, np.nan)
-        edge = band_edges(level)
+        edge = band_edges(self.level)
         with np.errstate(divide="ignore", invalid="ignore"):
             channel = (self.freq_hits > CHANNEL_FRACTION * self.freq_usable) & ~edge
         nfreq = edge.shape[-1]
         bursts = self.hits_per_time > INTEGRATION_FRACTION * np.maximum(self.usable_per_time, 1)
         integrations = bursts | self._time_outliers()
         counts = self._counts(edge, channel, integrations, nfreq)
-        return RfiMask(edge, channel, integrations, counts)
+        return RfiMask(edge, channel, integrations, self.level, counts)
 
     def _time_outliers(self) -> np.ndarray:
-        """Integrations whose band median stands out from its neighbours in time."""
+        """Integrations whose band median (of data / level) stands out from its neighbours."""
         assert self.band_median is not None
         med = self.band_median
         ok = np.isfinite(med)
