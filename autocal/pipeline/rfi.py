@@ -19,8 +19,9 @@ Then, once the whole observation has been seen (:class:`RfiScan`):
 - **band edges**: channels outside the longest run of channels whose time-mean auto
   is at least :data:`EDGE_LEVEL` of the in-band median (the bandpass roll-off and the
   zeroed channels at the ends of a HERA band);
-- channels flagged in frequency in more than :data:`CHANNEL_FRACTION` of their integrations
-  are flagged whole (persistent narrow-band RFI), and integrations with more than
+- channels that stand out of the time-mean spectrum (RFI that is always on), and channels
+  flagged in frequency in more than :data:`CHANNEL_FRACTION` of their integrations, are
+  flagged whole (persistent narrow-band RFI), and integrations with more than
   :data:`INTEGRATION_FRACTION` of their channels flagged are flagged whole (broad-band
   bursts), as xrfi's channel and integration thresholds do.
 
@@ -38,7 +39,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.ndimage import binary_closing, label, median_filter
+from scipy.ndimage import find_objects, label, median_filter
 
 logger = logging.getLogger(__name__)
 
@@ -175,8 +176,8 @@ def band_edges(level: np.ndarray, edge_level: float = EDGE_LEVEL) -> np.ndarray:
     -------
     numpy.ndarray
         ``(..., Nfreq)`` True outside the longest run of channels at or above
-        ``edge_level`` times the median of the positive channels (gaps of up to
-        ``2 KF`` channels inside a run bridged).
+        ``edge_level`` times the median of the positive channels, joined across gaps
+        of up to ``2 KF`` channels to runs longer than that (:func:`_band_run`).
     """
     level = np.asarray(level, dtype=np.float64)
     out = np.ones(level.shape, dtype=bool)
@@ -186,16 +187,46 @@ def band_edges(level: np.ndarray, edge_level: float = EDGE_LEVEL) -> np.ndarray:
         if not positive.any():
             continue
         inband = positive & (row >= edge_level * np.median(row[positive]))
-        # a dead or RFI channel inside the band does not split it: gaps up to 2 KF bridged
-        inband = binary_closing(inband, structure=np.ones(2 * KF + 1, bool), border_value=0)
-        inband |= positive & (row >= edge_level * np.median(row[positive]))
-        runs, nrun = label(inband)
-        if nrun == 0:
-            continue
-        sizes = np.bincount(runs.ravel())[1:]
-        best = np.flatnonzero(runs == 1 + int(np.argmax(sizes)))
-        dest[best[0] : best[-1] + 1] = False
+        lo, hi = _band_run(inband, 2 * KF)
+        dest[lo:hi] = False
     return out
+
+
+def _band_run(inband: np.ndarray, max_gap: int) -> tuple[int, int]:
+    """Return ``(start, stop)`` of the longest run of ``inband``, joined across short gaps.
+
+    Gaps of at most ``max_gap`` channels are joined to runs at least ``max_gap + 1`` long,
+    so a dead channel does not split the band, and an isolated spike beyond the roll-off
+    does not extend it.
+    """
+    runs, nrun = label(inband)
+    if nrun == 0:
+        return 0, 0
+    spans = [(int(sl[0].start), int(sl[0].stop)) for sl in find_objects(runs)]
+    best = max(range(nrun), key=lambda i: spans[i][1] - spans[i][0])
+    lo, hi = spans[best]
+    for i in range(best - 1, -1, -1):  # join runs on the left
+        start, stop = spans[i]
+        if lo - stop > max_gap or stop - start <= max_gap:
+            break
+        lo = start
+    for start, stop in spans[best + 1 :]:  # and on the right
+        if start - hi > max_gap or stop - start <= max_gap:
+            break
+        hi = stop
+    return lo, hi
+
+
+def persistent_channels(level: np.ndarray) -> np.ndarray:
+    """Return the channels of ``(Nant, Npol, Nfreq)`` time-mean spectra that stand out.
+
+    RFI that is on all the time is part of the time-mean spectrum the frequency flags
+    divide by, so it is looked for in that spectrum itself, with the same median filter
+    along frequency.
+    """
+    usable = np.isfinite(level) & (level > 0)
+    z = robust_zscores(_filled(level, usable), KF)
+    return watershed(np.where(usable, z, 0.0), NSIG, NSIG_ADJACENT) & usable
 
 
 @dataclass(frozen=True)
@@ -318,6 +349,7 @@ class RfiScan:
         edge = band_edges(self.level)
         with np.errstate(divide="ignore", invalid="ignore"):
             channel = (self.freq_hits > CHANNEL_FRACTION * self.freq_usable) & ~edge
+        channel |= persistent_channels(self.level) & ~edge
         nfreq = edge.shape[-1]
         bursts = self.hits_per_time > INTEGRATION_FRACTION * np.maximum(self.usable_per_time, 1)
         integrations = bursts | self._time_outliers()
