@@ -264,8 +264,11 @@ def refuse_inapplicable(settings: dict[str, Any]) -> None:
 
 
 def refuse_edges_options(settings: dict[str, Any], inputs: list[Path]) -> None:
-    """Refuse ``--edges-r`` / ``--edges-bin`` unless the inputs are EDGES spectra, and
-    ``--(no-)rfi-flagging`` when they are."""
+    """Refuse options that do not apply to the kind of inputs.
+
+    ``--edges-r`` / ``--edges-bin`` unless the inputs are EDGES spectra, and
+    ``--(no-)rfi-flagging`` when they are.
+    """
     from autocal.pipeline.sources import detect_format
 
     given = [f"--{n.replace('_', '-')}" for n in ("edges_r", "edges_bin") if n in settings]

@@ -103,9 +103,12 @@ def robust_zscores(values: np.ndarray, half_width: int) -> np.ndarray:
 def watershed(z: np.ndarray, nsig: float, nsig_adjacent: float) -> np.ndarray:
     """Flag samples above ``nsig`` and every run above ``nsig_adjacent`` that touches one.
 
-    Runs are contiguous along the last axis (hera_qm's ``watershed_flag`` in one dimension).
+    Runs are contiguous along the last axis (hera_qm's ``watershed_flag`` in one
+    dimension). Only excess power (``z > nsig``) starts a run, as RFI adds power: a
+    channel whose mean is raised by intermittent RFI then does not get its clean samples,
+    low against that mean, flagged; runs grow over ``|z| > nsig_adjacent``.
     """
-    strong = np.abs(z) > nsig
+    strong = z > nsig
     if not strong.any():
         return strong
     weak = np.abs(z) > nsig_adjacent
@@ -221,8 +224,9 @@ def persistent_channels(level: np.ndarray) -> np.ndarray:
     """Return the channels of ``(Nant, Npol, Nfreq)`` time-mean spectra that stand out.
 
     RFI that is on all the time is part of the time-mean spectrum the frequency flags
-    divide by, so it is looked for in that spectrum itself, with the same median filter
-    along frequency.
+    divide by, so it is looked for in that spectrum itself (the mean of the samples the
+    frequency flags kept, so a few strong spikes do not cost their channel), with the same
+    median filter along frequency.
     """
     usable = np.isfinite(level) & (level > 0)
     z = robust_zscores(_filled(level, usable), KF)
@@ -304,10 +308,13 @@ class RfiScan:
         Integrations of the observation.
     level
         ``(Nant, Npol, Nfreq)`` time-mean spectra (:meth:`LevelScan.level`).
+    clean
+        The time-mean spectra of the samples the frequency flags keep.
     """
 
     ntime: int
     level: np.ndarray
+    clean: LevelScan = field(default_factory=LevelScan)
     band_median: np.ndarray | None = None
     freq_hits: np.ndarray | None = None
     freq_usable: np.ndarray | None = None
@@ -335,6 +342,7 @@ class RfiScan:
         window = slice(offset, offset + nt)
         with _quiet_nan():
             self.band_median[:, :, window] = np.nanmedian(clean, axis=-1)
+        self.clean.add(data, flags | hits)
         self.freq_hits += hits.sum(axis=2)
         self.freq_usable += usable.sum(axis=2)
         self.hits_per_time[:, :, window] = hits.sum(axis=-1)
@@ -349,7 +357,7 @@ class RfiScan:
         edge = band_edges(self.level)
         with np.errstate(divide="ignore", invalid="ignore"):
             channel = (self.freq_hits > CHANNEL_FRACTION * self.freq_usable) & ~edge
-        channel |= persistent_channels(self.level) & ~edge
+        channel |= persistent_channels(self.clean.level()) & ~edge
         nfreq = edge.shape[-1]
         bursts = self.hits_per_time > INTEGRATION_FRACTION * np.maximum(self.usable_per_time, 1)
         integrations = bursts | self._time_outliers()

@@ -57,9 +57,10 @@ def test_robust_zscores_have_unit_width_on_white_noise() -> None:
 
 
 def test_watershed_grows_only_runs_touching_a_strong_sample() -> None:
-    z = np.array([[0, 3, 7, 3, 0, 3, 3, 0, 6, 0]], float)
+    z = np.array([[0, 3, 7, -3, 0, 3, 3, 0, 6, 0, -8]], float)
     got = watershed(z, 5.0, 2.0)
-    assert got.tolist() == [[False, True, True, True, False, False, False, False, True, False]]
+    expected = [False, True, True, True, False, False, False, False, True, False, False]
+    assert got.tolist() == [expected]
 
 
 def test_band_edges_keep_the_band_and_bridge_a_dead_channel() -> None:
