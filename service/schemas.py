@@ -184,6 +184,11 @@ class CalibrationOptions(BaseModel):
     inflate_errors: StrictBool | None = Field(
         None, description="radiometer weights: scale each channel's covariance by chi2/dof > 1"
     )
+    rfi_flagging: StrictBool | None = Field(
+        None,
+        description="flag band edges and RFI from the autos before the fit (default true); "
+        "the counts per reason are in the result's summary under rfi_flagging",
+    )
     trxr_prior: Annotated[Number, Field(ge=-100_000.0, le=100_000.0)] | PathText | None = Field(
         None,
         description="receiver-temperature prior: a number (K), or a CSV table "
@@ -238,6 +243,7 @@ CALIBRATE_ONLY = frozenset(
         "weights",
         "passes",
         "inflate_errors",
+        "rfi_flagging",
         "products",
         "reference",
         "input_format",
@@ -473,6 +479,16 @@ class JobResults(BaseModel):
     solutions: list[AntennaPolResult]
     summary: dict[str, Any] | None
     comparison: dict[str, Any] | None
+    quality: dict[str, Any] | None = Field(
+        None,
+        description="how much of the solution is flagged and why: status ok, mostly_flagged "
+        "or fully_flagged, counts per reason, message (summary.json's quality block)",
+    )
+    rfi_flagging: dict[str, Any] | None = Field(
+        None,
+        description="band edges and RFI flagged before the fit: samples per reason "
+        "(band_edge, rfi_frequency, rfi_time), channels, integrations, method",
+    )
 
 
 class DiagnosisParameter(BaseModel):

@@ -29,6 +29,14 @@ def add(sub: argparse._SubParsersAction) -> None:
         "(default: every antenna of the data, which the solution must cover)",
     )
     p.add_argument(
+        "--freq-range",
+        metavar="LOW:HIGH",
+        help="MHz (a unit suffix, e.g. 1.1e8Hz, is accepted): calibrate only the data's "
+        "channels in this range, e.g. the band of a solution that covers part of the data's; "
+        "the output holds those channels only (default: every channel, which the solution "
+        "must cover)",
+    )
+    p.add_argument(
         "--overwrite",
         action="store_true",
         help="replace --out if it is a calibrated UVH5 file autocal apply wrote",
@@ -38,12 +46,17 @@ def add(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
-    from autocal.cli.args import parse_int_list
+    from autocal.cli.args import parse_freq_pair, parse_int_list
     from autocal.pipeline.apply import apply_solution
 
     antennas = None if args.antennas is None else parse_int_list(args.antennas, "antennas")
     result = apply_solution(
-        args.solution, args.data, args.out, antennas=antennas, overwrite=args.overwrite
+        args.solution,
+        args.data,
+        args.out,
+        antennas=antennas,
+        freq_range_mhz=parse_freq_pair(args.freq_range, "freq-range"),
+        overwrite=args.overwrite,
     )
     print(
         f"calibrated {result.nbls} baseline(s) x {result.ntimes} integration(s) x "

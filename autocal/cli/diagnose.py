@@ -53,8 +53,7 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--trxr-prior-sigma",
         type=float,
-        default=1.0,
-        help="1-sigma K of a number prior or a table without sigma_k (1)",
+        help="1-sigma K of a number prior or a table without sigma_k (1); needs --trxr-prior",
     )
     p.add_argument(
         "--bic-threshold",
@@ -79,10 +78,12 @@ def run(args: argparse.Namespace) -> int:
     from autocal.diagnosis.run import DiagnoseConfig, run_diagnosis
     from autocal.fit.priors import prior_value
 
+    refuse_inapplicable(args)
     optional: dict[str, Any] = {
         "bic_threshold": args.bic_threshold,
         "alpha": args.alpha,
         "max_steps": args.max_steps,
+        "trxr_prior_sigma_k": args.trxr_prior_sigma,
     }
     try:
         config = DiagnoseConfig(
@@ -96,7 +97,6 @@ def run(args: argparse.Namespace) -> int:
             freq_range_mhz=parse_freq_pair(args.freq_range, "freq-range"),
             lst_range_h=parse_pair(args.lst_range, "lst-range", "hours"),
             trxr_prior=None if args.trxr_prior is None else prior_value(args.trxr_prior),
-            trxr_prior_sigma_k=args.trxr_prior_sigma,
             **{k: v for k, v in optional.items() if v is not None},
         )
     except ValidationError as err:
@@ -112,3 +112,27 @@ def run(args: argparse.Namespace) -> int:
     print((out / "summary.txt").read_text())
     print(f"wrote {out}")
     return 0
+
+
+def refuse_inapplicable(args: argparse.Namespace) -> None:
+    """Refuse options that do nothing with the other options given, saying why.
+
+    Raises
+    ------
+    CliError
+        ``--trxr-prior-sigma`` without ``--trxr-prior``; ``--bic-threshold`` or ``--alpha``
+        with ``--max-steps 0`` (no effect is tried, so nothing is accepted or refused).
+    """
+    if args.trxr_prior_sigma is not None and args.trxr_prior is None:
+        raise CliError("--trxr-prior-sigma is the 1-sigma of --trxr-prior: give the prior too")
+    if args.max_steps == 0:
+        given = [
+            f"--{n}"
+            for n in ("bic-threshold", "alpha")
+            if getattr(args, n.replace("-", "_")) is not None
+        ]
+        if given:
+            raise CliError(
+                f"{', '.join(given)}: the acceptance test of an effect, and --max-steps 0 "
+                "tries none: drop it or allow steps"
+            )

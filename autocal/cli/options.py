@@ -122,6 +122,13 @@ def _add_fit_arguments(group: argparse._ActionsContainer) -> None:
         f"1 (identity weights always scale) ({d('inflate_errors')})",
     )
     group.add_argument(
+        "--rfi-flagging",
+        action=argparse.BooleanOptionalAction,
+        help="flag band edges and RFI from the autos before the fit (robust median filters in "
+        "frequency and time, as hera_qm's xrfi; counts per reason in summary.json); "
+        f"--no-rfi-flagging fits every sample the data do not flag ({d('rfi_flagging')})",
+    )
+    group.add_argument(
         "--trxr-prior",
         metavar="K|CSV|H5",
         help="receiver-temperature prior: a number in K, a CSV table with the header "
@@ -288,16 +295,25 @@ def refuse_inapplicable(settings: dict[str, Any]) -> None:
 
 
 def refuse_edges_options(settings: dict[str, Any], inputs: list[Path]) -> None:
-    """Refuse ``--edges-r`` / ``--edges-bin`` when the inputs are not EDGES spectra."""
+    """Refuse options that do not apply to the kind of inputs.
+
+    ``--edges-r`` / ``--edges-bin`` unless the inputs are EDGES spectra, and
+    ``--(no-)rfi-flagging`` when they are.
+    """
     from autocal.pipeline.sources import detect_format
 
     given = [f"--{n.replace('_', '-')}" for n in ("edges_r", "edges_bin") if n in settings]
-    if not given:
+    if not given and "rfi_flagging" not in settings:
         return
     kind = detect_format(
         [Path(p).expanduser().absolute() for p in inputs], settings.get("input_format", "auto")
     )
-    if kind != "edges":
+    if kind == "edges" and "rfi_flagging" in settings:
+        raise CliError(
+            "--(no-)rfi-flagging: EDGES spectra are not flagged from the autos (the option "
+            "applies to HERA UVH5 and Miriad inputs): drop it"
+        )
+    if given and kind != "edges":
         raise CliError(
             f"{', '.join(given)}: option(s) of EDGES spectra, and the inputs are {kind} "
             "files: drop them"

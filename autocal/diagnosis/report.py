@@ -252,6 +252,8 @@ def write_diagnosis(
         shown = f"ant {obs.antennas[0]} {obs.pols[0]}"
         title = run_title(obs.jds, obs.antennas, obs.pols, stems)
         total = len(obs.antennas) * len(obs.pols)
+    if total is not None and total > 1 and len(snaps) > 0:
+        logger.info("residual plots show 1 of %d antenna-pols (%s)", total, shown)
     for i in range(1, len(snaps)):
         before, after = snaps[i - 1], snaps[i]
         nt, nf = after[1].shape

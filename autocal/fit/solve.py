@@ -21,7 +21,16 @@ FLAG_REASONS: dict[int, str] = {
     1: "too few unflagged samples",
     2: "singular normal matrix",
     3: "non-positive gain",
+    4: "band edge",
+    5: "RFI",
 }
+#: ``flag_reason`` of a channel with too few unflagged samples.
+FLAG_TOO_FEW = 1
+#: ``flag_reason`` of a channel flagged whole as a band edge before the fit
+#: (:mod:`autocal.pipeline.rfi`).
+FLAG_BAND_EDGE = 4
+#: ``flag_reason`` of a channel flagged whole (or at every integration) for RFI before the fit.
+FLAG_RFI = 5
 #: Largest condition number of the (column-scaled) normal matrix accepted as solvable.
 MAX_CONDITION = 1e12
 

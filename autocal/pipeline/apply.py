@@ -207,7 +207,8 @@ def check_coverage(uvd: Any, uvc: Any) -> None:
             f"{channels.size} data channel(s) ({channels.min() / 1e6:.3f}-"
             f"{channels.max() / 1e6:.3f} MHz) are not channels of the solution "
             f"({float(np.min(uvc.freq_array)) / 1e6:.3f}-{float(np.max(uvc.freq_array)) / 1e6:.3f}"
-            " MHz): calibrate the data's band or select the solution's channels from the data"
+            " MHz): calibrate the data's band, or apply to the solution's band with "
+            "--freq-range (freq_range_mhz)"
         )
     times = _missing_times(uvd, uvc)
     if times.size:
@@ -215,6 +216,28 @@ def check_coverage(uvd: Any, uvc: Any) -> None:
             f"{times.size} integration(s) of the data (JD {times.min():.6f}-{times.max():.6f}) "
             "are not times of the solution: apply the solution of the same observation"
         )
+
+
+def select_band(uvd: Any, freq_range_mhz: tuple[float, float]) -> None:
+    """Keep the data's channels within ``(low, high)`` MHz, in place.
+
+    Raises
+    ------
+    ApplyError
+        If the range is not ``0 < low < high`` or keeps no channel (the data's band named).
+    """
+    lo, hi = (float(v) for v in freq_range_mhz)
+    if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo < hi):
+        raise ApplyError(f"--freq-range must be LOW:HIGH MHz with 0 < LOW < HIGH, got {lo}:{hi}")
+    freqs = np.asarray(uvd.freq_array, dtype=np.float64).ravel()
+    keep = freqs[(freqs >= lo * 1e6) & (freqs <= hi * 1e6)]
+    if keep.size == 0:
+        raise ApplyError(
+            f"--freq-range {lo:g}:{hi:g} MHz keeps no channel of the data "
+            f"({freqs.min() / 1e6:.3f}-{freqs.max() / 1e6:.3f} MHz)"
+        )
+    with _log_warnings("selecting channels"):
+        uvd.select(frequencies=keep)
 
 
 def check_output(path: Path, overwrite: bool) -> None:
@@ -255,6 +278,7 @@ def apply_solution(
     out: str | Path,
     *,
     antennas: Sequence[int] | None = None,
+    freq_range_mhz: tuple[float, float] | None = None,
     overwrite: bool = False,
 ) -> ApplyResult:
     """Calibrate UVH5 visibilities with a gain solution and write a calibrated UVH5 file.
@@ -271,6 +295,10 @@ def apply_solution(
     antennas
         Calibrate only the baselines between these antennas (``None``: every antenna of
         the data, each of which the solution must cover).
+    freq_range_mhz
+        Calibrate only the data's channels within ``(low, high)`` MHz, e.g. the band a
+        solution covers when it covers only part of the data's; the output holds those
+        channels only (``None``: every channel, each of which the solution must cover).
     overwrite
         Replace ``out`` if it is a calibrated UVH5 file autocal wrote.
 
@@ -290,6 +318,8 @@ def apply_solution(
     check_output(out, overwrite)
     uvc = read_gains(solution)
     uvd = read_visibilities(data_paths, antennas)
+    if freq_range_mhz is not None:
+        select_band(uvd, freq_range_mhz)
     check_coverage(uvd, uvc)
     try:
         with _log_warnings("calibrating"):

@@ -46,6 +46,7 @@ from autocal.io.miriad import read_miriad
 from autocal.io.uvh5 import read_uvh5
 from autocal.io.uvh5_integrity import input_integrity
 from autocal.pipeline.config import CalibrationConfig, PipelineError, Progress, read_selection
+from autocal.pipeline.flagging import mark_flag_reasons, scan_flags
 from autocal.pipeline.passes import PassesResult, solution_of, sum_passes
 from autocal.pipeline.products import (
     SUMMARY_NAME,
@@ -173,19 +174,32 @@ def _calibrate(
     tsky_all, tsky_meta = tsky_per_pol(config.sky, config, source, pols, epoch)
     timings["tsky_s"] = time.perf_counter() - t1
 
+    mask, flagging = scan_flags(config, source, tsky_all, block_size, report)
     model = FitModel.for_lsts(
         source.lsts, config.model, 0 if config.model == "constant" else config.order
     )
     t2 = time.perf_counter()
     run = sum_passes(
-        config, source, pols, tsky_all, model, report, progress, should_stop, executor, block_size
+        config,
+        source,
+        pols,
+        tsky_all,
+        model,
+        report,
+        progress,
+        should_stop,
+        executor,
+        block_size,
+        mask,
     )
     timings["fit_s"] = time.perf_counter() - t2
 
     scaling = covariance_scaling(config.weights, config.inflate_errors)
     prior_fn = _prior_term(prior, source, run, pols, scaling)
     solved, total = _solve(run, model, source, scaling, prior_fn, report)
+    mark_flag_reasons(solved, mask)
     provenance = _provenance(config, source, run, tsky_meta, epoch, total, prior)
+    provenance["rfi_flagging"] = flagging
     solution = solution_of(
         model,
         run,
@@ -201,7 +215,7 @@ def _calibrate(
         comparison_inputs = {
             **block_trend(run, source, tsky_all, pols),
             "alternatives": alternative_solutions(
-                config, source, pols, model, epoch, scaling, block_size, prior_fn
+                config, source, pols, model, epoch, scaling, block_size, prior_fn, mask
             ),
         }
     t3 = time.perf_counter()
@@ -216,6 +230,7 @@ def _calibrate(
         "solution": solution.describe(),
         "separation": separation,
         "quality": flag_quality(solution),
+        "rfi_flagging": flagging,
         "comparison": comparison_summary(products),
         "config": config.model_dump(mode="json"),
         "provenance": provenance,

@@ -70,6 +70,11 @@ class CalibrationConfig(BaseModel):
         description="receiver-temperature prior: a number (K), a CSV table "
         "freq_mhz,trxr_k[,sigma_k] or a previous solution.h5 of the same antennas/pols",
     )
+    rfi_flagging: bool = Field(
+        True,
+        description="flag band edges and RFI from the autos before the fit (robust median "
+        "filters in frequency and time, as hera_qm's xrfi); false: the data's own flags only",
+    )
     trxr_prior_sigma_k: float = Field(
         DEFAULT_PRIOR_SIGMA_K,
         gt=0.0,

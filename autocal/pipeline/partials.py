@@ -11,6 +11,7 @@ give the same sums bit for bit.
 
 from __future__ import annotations
 
+import copy
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -25,6 +26,7 @@ from autocal.fit.sums import NormalSums, accumulate
 from autocal.io.uvh5_blocks import iter_uvh5_blocks
 from autocal.io.uvh5_chunks import ReadStats
 from autocal.pipeline.config import PipelineError
+from autocal.pipeline.rfi import RfiMask
 
 
 @dataclass(frozen=True)
@@ -55,6 +57,9 @@ class PartialSpec:
         partial then holds one set of sums of the extended model
         (:func:`autocal.fit.blocks.extended_model`) per block it overlaps. ``None``:
         one set of sums of ``model``.
+    rfi
+        Band-edge and RFI flags ORed into every block before its sums
+        (:mod:`autocal.pipeline.flagging`); ``None``: the data's own flags only.
     """
 
     model: FitModel
@@ -65,6 +70,7 @@ class PartialSpec:
     block_size: int | None = None
     coeffs: np.ndarray | None = None
     edges: tuple[int, ...] | None = None
+    rfi: RfiMask | None = None
 
 
 @dataclass(frozen=True)
@@ -179,7 +185,7 @@ def compute_partial(
     started = time.perf_counter()
     stats = ReadStats()
     running = _FileSums.start(spec, task)
-    for chunk in _chunks(spec, task, stats):
+    for chunk in read_chunks(spec.selection, spec.block_size, task, stats):
         nt = chunk.ntime
         running.add(chunk)
         del chunk
@@ -188,16 +194,32 @@ def compute_partial(
     return running.finish(stats, time.perf_counter() - started)
 
 
-def _chunks(spec: PartialSpec, task: FileTask, stats: ReadStats) -> Iterator[Observation]:
-    """Return the task's data: its file block by block, or its in-memory observation at once."""
-    sel = spec.selection
+def read_chunks(
+    selection: dict[str, Any],
+    block_size: int | None,
+    task: FileTask,
+    stats: ReadStats | None = None,
+) -> Iterator[Observation]:
+    """Return a task's data: its file block by block, or its in-memory observation at once.
+
+    Parameters
+    ----------
+    selection
+        Antennas, pols, frequency range (Hz) and LST range (hours) to read.
+    block_size
+        Integrations per read block (``None``: automatic).
+    task
+        The file.
+    stats
+        Read counters to add to.
+    """
     if task.observation is not None:
         obs = task.observation
-        if sel.get("antennas") is not None:
-            obs = obs.select(antennas=sel["antennas"])
+        if selection.get("antennas") is not None:
+            obs = obs.select(antennas=selection["antennas"])
         return iter([obs])
     return iter_uvh5_blocks(  # each block is used up before the next is asked for
-        task.file, **sel, block_size=spec.block_size, stats=stats, reuse_buffers=True
+        task.file, **selection, block_size=block_size, stats=stats, reuse_buffers=True
     )
 
 
@@ -254,6 +276,10 @@ class _FileSums:
             chunk.lsts, task.lsts[window], atol=1e-6
         ):
             raise PipelineError(f"{chunk.meta.get('files')}: LSTs changed between scan and read")
+        if spec.rfi is not None:  # a copy: an in-memory observation is the caller's
+            flags = spec.rfi.apply(chunk.data, chunk.flags, task.offset + self.offset)
+            chunk = copy.copy(chunk)
+            object.__setattr__(chunk, "flags", flags)
         if self.antennas is None:
             self.antennas, self.names = chunk.antennas, chunk.antenna_names
             nshow = min(spec.nshow, chunk.nant)

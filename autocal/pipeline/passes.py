@@ -30,6 +30,7 @@ from autocal.fit.solution import Solution
 from autocal.fit.sums import NormalSums
 from autocal.pipeline.config import CalibrationConfig, PipelineError, Progress, read_selection
 from autocal.pipeline.partials import FilePartial, FileTask, PartialSpec, compute_partial, fold
+from autocal.pipeline.rfi import RfiMask
 from autocal.pipeline.sources import Source
 
 logger = logging.getLogger(__name__)
@@ -87,8 +88,12 @@ def sum_passes(
     should_stop: Callable[[], bool] | None,
     executor: Any,
     block_size: int | None,
+    rfi: RfiMask | None = None,
 ) -> PassesResult:
-    """Accumulate the normal sums file by file (one or two passes), serially or on Dask."""
+    """Accumulate the normal sums file by file (one or two passes), serially or on Dask.
+
+    ``rfi``: band-edge and RFI flags ORed into every block (:mod:`autocal.pipeline.flagging`).
+    """
     tasks = source.tasks(tsky_all)
     ntime = source.lsts.size
     bin_size = max(1, -(-ntime // MAX_WATERFALL_ROWS))
@@ -111,6 +116,7 @@ def sum_passes(
             block_size,
             coeffs,
             tuple(int(e) for e in edges),
+            rfi,
         )
         lo = 0.1 + 0.7 * ipass / npass
         hi = 0.1 + 0.7 * (ipass + 1) / npass

@@ -9,6 +9,7 @@ product set. :func:`write_solution_products` is also the writer of
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import time
@@ -48,6 +49,8 @@ FIGURE_FILES: dict[str, str] = {
 
 #: Name of the run's JSON summary in the output folder.
 SUMMARY_NAME = "summary.json"
+
+logger = logging.getLogger(__name__)
 
 
 def write_solution_products(
@@ -179,6 +182,13 @@ def write_figures(
     core = band_core(solution.G, solution.flags)
     total = solution.antennas.size * len(solution.pols)
     labels, resid, bin_lsts = waterfall_residuals(solution, run, config, lsts)
+    if len(labels) < total:
+        logger.info(
+            "residuals.png and data_model.png show %d of %d antenna-pols (%s)",
+            len(labels),
+            total,
+            ", ".join(labels),
+        )
     head = run_title(solution.jds, solution.antennas, solution.pols, stems)
     path = out / FIGURE_FILES["residuals_png"]
     plot_residuals(

@@ -20,6 +20,7 @@ from autocal.fit.solve import solve_sums
 from autocal.fit.sums import NormalSums
 from autocal.pipeline.config import CalibrationConfig
 from autocal.pipeline.passes import PassesResult, solution_of, sum_passes
+from autocal.pipeline.rfi import RfiMask
 from autocal.pipeline.sources import Source, tsky_per_pol
 
 #: Sky models whose fits the comparison's systematics budget sets beside the main one.
@@ -39,12 +40,13 @@ def alternative_solutions(
     scaling: bool | str,
     block_size: int | None,
     prior_fn: Callable[..., NormalSums] | None = None,
+    rfi: RfiMask | None = None,
 ) -> dict[str, Solution]:
     """Fit the data again with the other sky models of :data:`ALTERNATIVE_SKIES`.
 
     One pass over the data each (data-derived weights), with the main fit's receiver prior
-    (``prior_fn``) if any; only for a comparison with reference gains, whose systematics
-    budget reports the spread of the ratio over them.
+    (``prior_fn``) and flags (``rfi``) if any; only for a comparison with reference gains,
+    whose systematics budget reports the spread of the ratio over them.
     """
     out: dict[str, Solution] = {}
     for sky in ALTERNATIVE_SKIES:
@@ -53,7 +55,7 @@ def alternative_solutions(
         tsky = tsky_per_pol(sky, config, source, pols, epoch)[0]
         alt = config.model_copy(update={"sky": sky, "passes": 1})
         run = sum_passes(
-            alt, source, pols, tsky, model, lambda f, m: None, None, None, None, block_size
+            alt, source, pols, tsky, model, lambda f, m: None, None, None, None, block_size, rfi
         )
         sums = run.sums
         if prior_fn is not None:

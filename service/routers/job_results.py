@@ -247,6 +247,8 @@ def job_results(
         solutions=solutions,
         summary=json_safe(result.get("solution")),
         comparison=json_safe(result.get("comparison")),
+        quality=json_safe(result.get("quality")),
+        rfi_flagging=json_safe(result.get("rfi_flagging")),
     )
     return _anonymised(results, reader, settings)
 

@@ -111,6 +111,29 @@ def test_options_that_do_not_apply_are_refused(tmp_path, capsys, options, messag
     assert re.search(message, capsys.readouterr().err)
 
 
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (["--trxr-prior-sigma", "5"], "give the prior too"),
+        (["--max-steps", "0", "--alpha", "0.01"], "--alpha: the acceptance test"),
+        (["--max-steps", "0", "--bic-threshold", "3"], "--bic-threshold: the acceptance"),
+    ],
+)
+def test_diagnose_refuses_options_that_do_not_apply(tmp_path, capsys, options, message) -> None:
+    """As calibrate does: before any file is read, exit status 2, nothing written."""
+    argv = ["diagnose", str(tmp_path / "x.uvh5"), *options, "--out", str(tmp_path / "o")]
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.data
+def test_rfi_flagging_is_refused_on_edges_spectra(tmp_path, capsys, data_root) -> None:
+    argv = ["calibrate", str(data_root / "edges/acq/sample.acq"), "--no-rfi-flagging"]
+    assert main([*argv, "--out", str(tmp_path / "o")]) == 2
+    assert "EDGES spectra are not flagged" in capsys.readouterr().err
+
+
 @pytest.mark.data
 def test_edges_options_are_refused_on_hera_data(tmp_path, capsys, data_root) -> None:
     argv = ["calibrate", *_hera_files(data_root), "--edges-r", "p0", "--out", str(tmp_path)]

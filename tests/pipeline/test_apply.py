@@ -96,3 +96,20 @@ def test_refuses_corrupt_solution_and_foreign_output(real, tmp_path) -> None:
     assert file_checksum(real.calfits) in UVData.from_file(str(out)).history
     leftovers = [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
     assert leftovers == []
+
+
+def test_freq_range_applies_a_solution_of_part_of_the_band(real, tmp_path) -> None:
+    """The solution covers 150-160 MHz of a 100-200 MHz file: refused as it is, calibrated
+    with --freq-range on the solution's band (the output holds those channels only), the
+    same numbers as the band-matched file gives; a range outside the data names its band."""
+    whole = tmp_path / "whole.uvh5"
+    result = apply_solution(real.calh5, [real.auto], whole, freq_range_mhz=(150.0, 160.0))
+    matched = apply_solution(real.calh5, [real.band], tmp_path / "matched.uvh5")
+    assert result.nfreqs == matched.nfreqs < UVData.from_file(str(real.auto)).Nfreqs
+    got, want = UVData.from_file(str(whole)), UVData.from_file(str(tmp_path / "matched.uvh5"))
+    np.testing.assert_array_equal(got.freq_array, want.freq_array)
+    np.testing.assert_array_equal(got.data_array, want.data_array)
+    np.testing.assert_array_equal(got.flag_array, want.flag_array)
+    with pytest.raises(ApplyError, match=r"keeps no channel of the data \(100\.000-199\.902 MHz\)"):
+        apply_solution(real.calh5, [real.auto], tmp_path / "x.uvh5", freq_range_mhz=(250, 300))
+    assert not (tmp_path / "x.uvh5").exists()

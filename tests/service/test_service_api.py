@@ -643,6 +643,9 @@ def test_results_and_products_of_a_completed_job(
     assert body["units"]["sigma_G_stat"] == "raw/K"
     assert body["comparison"] == {"ratio_mean": None, "n": 3}  # NaN -> null
     assert isinstance(body["summary"], dict) and body["summary"]
+    # how much is flagged, and what was flagged before the fit, shown with the results
+    assert body["quality"] == result.summary["quality"] and body["quality"]["status"] == "ok"
+    assert body["rfi_flagging"]["applied"] is True
     assert client.get(f"/jobs/{job_id}/results", params={"antenna": 0, "pol": "ee"}).json()[
         "solutions"
     ] == [sol]

@@ -1,0 +1,409 @@
+"""Flagging before the fit: band edges and RFI found in the auto-correlations themselves.
+
+The method follows hera_qm's ``xrfi`` (``detrend_medfilt``, ``watershed_flag``): a sample's
+outlier significance is its difference from the median of its neighbours (the centre
+excluded), divided by a robust width, ``sqrt(median(residual^2) / 0.456)`` over the same
+neighbours; samples above :data:`NSIG` are flagged and the flags grow into adjacent samples
+above :data:`NSIG_ADJACENT` (watershed). It is applied in two separable steps, so that it
+gives the same flags whatever the read block size and never needs a night in memory:
+
+1. **RFI in frequency**, per spectrum: the median filter runs along frequency
+   (:data:`KF` channels each side) on every integration of every antenna-pol, block by
+   block as the data are read (:func:`frequency_flags`);
+2. **RFI in time**, per antenna-pol: the band median of each integration (one number per
+   integration, kept for the whole observation) is median-filtered along time (:data:`KT`
+   integrations each side) and outlying integrations are flagged whole.
+
+Then, once the whole observation has been seen (:class:`RfiScan`):
+
+- **band edges**: channels outside the longest run of channels whose time-mean auto
+  is at least :data:`EDGE_LEVEL` of the in-band median (the bandpass roll-off and the
+  zeroed channels at the ends of a HERA band);
+- channels that stand out of the time-mean spectrum (RFI that is always on), and channels
+  flagged in frequency in more than :data:`CHANNEL_FRACTION` of their integrations, are
+  flagged whole (persistent narrow-band RFI), and integrations with more than
+  :data:`INTEGRATION_FRACTION` of their channels flagged are flagged whole (broad-band
+  bursts), as xrfi's channel and integration thresholds do.
+
+:class:`RfiMask` holds the result; :meth:`RfiMask.apply` ORs it into a block's flags before
+the block enters the normal sums, so flagged samples never reach the fit.
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.ndimage import find_objects, label, median_filter
+
+logger = logging.getLogger(__name__)
+
+#: Outlier significance (robust sigma) above which a sample is flagged (hera_qm's default
+#: ``sig_init`` of ``simple_flag_waterfall``).
+NSIG = 5.0
+#: Significance above which a sample next to a flagged one is flagged too (watershed).
+NSIG_ADJACENT = 2.0
+#: Channels each side of a sample in the frequency median filter (hera_qm's ``Kf``).
+KF = 8
+#: Integrations each side in the time median filter (hera_qm's ``Kt``).
+KT = 8
+#: A band edge is where the time-mean auto is below this fraction of the in-band median.
+EDGE_LEVEL = 0.1
+#: A channel flagged in frequency in more than this fraction of its integrations is flagged.
+CHANNEL_FRACTION = 0.25
+#: An integration with more than this fraction of its channels flagged is flagged whole.
+INTEGRATION_FRACTION = 0.5
+#: Factor of hera_qm's ``detrend_medfilt``: ``median(z^2) = 0.456`` for a unit normal.
+MEDIAN_CHI2_1 = 0.456
+
+#: Reasons counted in the summary, in the order they are applied.
+REASONS = ("band_edge", "rfi_frequency", "rfi_time")
+
+
+def robust_zscores(values: np.ndarray, half_width: int) -> np.ndarray:
+    """Return the outlier significance of each sample along the last axis.
+
+    hera_qm's ``detrend_medfilt`` in one dimension: the residual from the median of the
+    ``half_width`` neighbours each side (the sample itself excluded), divided by
+    ``sqrt(median(residual^2) / 0.456)`` over the same neighbours. Edges are reflected.
+
+    Parameters
+    ----------
+    values
+        ``(..., N)`` finite values.
+    half_width
+        Neighbours each side (reduced to fit ``N``).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(..., N)`` significances; ``inf`` where the robust width is zero and the
+        residual is not, 0 where both are.
+    """
+    values = np.asarray(values, dtype=np.float64)
+    n = values.shape[-1]
+    k = max(1, min(int(half_width), (n - 1) // 2))
+    if n < 3:
+        return np.zeros_like(values)
+    footprint = np.ones((1,) * (values.ndim - 1) + (2 * k + 1,), dtype=bool)
+    footprint[..., k] = False
+    smooth = median_filter(values, footprint=footprint, mode="reflect")
+    resid = values - smooth
+    width = np.sqrt(median_filter(resid**2, footprint=footprint, mode="reflect") / MEDIAN_CHI2_1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = resid / width
+    return np.where(width > 0, z, np.where(resid == 0, 0.0, np.inf))
+
+
+def watershed(z: np.ndarray, nsig: float, nsig_adjacent: float) -> np.ndarray:
+    """Flag samples above ``nsig`` and every run above ``nsig_adjacent`` that touches one.
+
+    Runs are contiguous along the last axis (hera_qm's ``watershed_flag`` in one
+    dimension). Only excess power (``z > nsig``) starts a run, as RFI adds power: a
+    channel whose mean is raised by intermittent RFI then does not get its clean samples,
+    low against that mean, flagged; runs grow over ``|z| > nsig_adjacent``.
+    """
+    strong = z > nsig
+    if not strong.any():
+        return strong
+    weak = np.abs(z) > nsig_adjacent
+    structure = np.zeros((3,) * z.ndim, dtype=bool)
+    structure[(1,) * (z.ndim - 1)] = True  # connect along the last axis only
+    runs, _ = label(weak, structure=structure)
+    hit = np.unique(runs[strong])
+    return np.isin(runs, hit[hit > 0]) | strong
+
+
+def _filled(data: np.ndarray, usable: np.ndarray) -> np.ndarray:
+    """Return ``(rows, F)`` spectra with unusable samples replaced by the row's median."""
+    rows = np.where(usable, data, np.nan)
+    with np.errstate(all="ignore"), _quiet_nan():
+        fill = np.nanmedian(rows, axis=-1, keepdims=True)
+    return np.where(usable, data, np.where(np.isfinite(fill), fill, 0.0))
+
+
+@contextmanager
+def _quiet_nan() -> Iterator[None]:
+    """Silence numpy's "All-NaN slice" warning (a fully flagged spectrum is expected)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        yield
+
+
+def frequency_flags(data: np.ndarray, flags: np.ndarray, level: np.ndarray) -> np.ndarray:
+    """Flag RFI along frequency in each spectrum of a block.
+
+    Each spectrum is divided by the time-mean spectrum ``level`` first, so the bandpass's
+    fine structure (stable in time) does not widen the robust width; what stands out of
+    a median of neighbouring channels is then RFI.
+
+    Parameters
+    ----------
+    data, flags
+        ``(Nant, Npol, Ntime, Nfreq)`` auto-correlations and their flags (flagged,
+        non-finite and non-positive samples are filled with the spectrum's median before
+        filtering and are not flagged again here).
+    level
+        ``(Nant, Npol, Nfreq)`` time-mean auto-correlations (:class:`LevelScan`).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(..., Nfreq)`` the new RFI flags.
+    """
+    lev = level[:, :, None, :]
+    usable = ~flags & np.isfinite(data) & (data > 0) & np.isfinite(lev) & (lev > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(usable, data / lev, 0.0)
+    filled = _filled(ratio, usable)
+    z = robust_zscores(filled, KF)
+    return watershed(np.where(usable, z, 0.0), NSIG, NSIG_ADJACENT) & usable
+
+
+def band_edges(level: np.ndarray, edge_level: float = EDGE_LEVEL) -> np.ndarray:
+    """Return the band-edge channels of time-mean spectra.
+
+    Parameters
+    ----------
+    level
+        ``(..., Nfreq)`` time-mean auto-correlations (NaN: no data).
+    edge_level
+        Fraction of the in-band median below which a channel is out of band.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(..., Nfreq)`` True outside the longest run of channels at or above
+        ``edge_level`` times the median of the positive channels, joined across gaps
+        of up to ``2 KF`` channels to runs longer than that (:func:`_band_run`).
+    """
+    level = np.asarray(level, dtype=np.float64)
+    out = np.ones(level.shape, dtype=bool)
+    flat_level, flat_out = level.reshape(-1, level.shape[-1]), out.reshape(-1, level.shape[-1])
+    for row, dest in zip(flat_level, flat_out, strict=True):
+        positive = np.isfinite(row) & (row > 0)
+        if not positive.any():
+            continue
+        inband = positive & (row >= edge_level * np.median(row[positive]))
+        lo, hi = _band_run(inband, 2 * KF)
+        dest[lo:hi] = False
+    return out
+
+
+def _band_run(inband: np.ndarray, max_gap: int) -> tuple[int, int]:
+    """Return ``(start, stop)`` of the longest run of ``inband``, joined across short gaps.
+
+    Gaps of at most ``max_gap`` channels are joined to runs at least ``max_gap + 1`` long,
+    so a dead channel does not split the band, and an isolated spike beyond the roll-off
+    does not extend it.
+    """
+    runs, nrun = label(inband)
+    if nrun == 0:
+        return 0, 0
+    spans = [(int(sl[0].start), int(sl[0].stop)) for sl in find_objects(runs)]
+    best = max(range(nrun), key=lambda i: spans[i][1] - spans[i][0])
+    lo, hi = spans[best]
+    for i in range(best - 1, -1, -1):  # join runs on the left
+        start, stop = spans[i]
+        if lo - stop > max_gap or stop - start <= max_gap:
+            break
+        lo = start
+    for start, stop in spans[best + 1 :]:  # and on the right
+        if start - hi > max_gap or stop - start <= max_gap:
+            break
+        hi = stop
+    return lo, hi
+
+
+def persistent_channels(level: np.ndarray) -> np.ndarray:
+    """Return the channels of ``(Nant, Npol, Nfreq)`` time-mean spectra that stand out.
+
+    RFI that is on all the time is part of the time-mean spectrum the frequency flags
+    divide by, so it is looked for in that spectrum itself (the mean of the samples the
+    frequency flags kept, so a few strong spikes do not cost their channel), with the same
+    median filter along frequency.
+    """
+    usable = np.isfinite(level) & (level > 0)
+    z = robust_zscores(_filled(level, usable), KF)
+    return watershed(np.where(usable, z, 0.0), NSIG, NSIG_ADJACENT) & usable
+
+
+@dataclass(frozen=True)
+class RfiMask:
+    """The flags of the whole observation that do not depend on one block alone.
+
+    Attributes
+    ----------
+    band_edge
+        ``(Nant, Npol, Nfreq)`` band-edge channels.
+    channels
+        ``(Nant, Npol, Nfreq)`` channels flagged whole for persistent RFI.
+    integrations
+        ``(Nant, Npol, Ntime)`` integrations flagged whole (RFI in time).
+    level
+        ``(Nant, Npol, Nfreq)`` the time-mean spectra the frequency flags divide by.
+    counts
+        The summary's ``rfi`` block (:meth:`RfiScan.finish`).
+    """
+
+    band_edge: np.ndarray
+    channels: np.ndarray
+    integrations: np.ndarray
+    level: np.ndarray
+    counts: dict[str, Any] = field(default_factory=dict)
+
+    def apply(self, data: np.ndarray, flags: np.ndarray, offset: int) -> np.ndarray:
+        """Return a block's flags with band edges and RFI added.
+
+        Parameters
+        ----------
+        data, flags
+            ``(Nant, Npol, Ntime, Nfreq)`` the block's autos and flags.
+        offset
+            Index of the block's first integration in the observation.
+        """
+        nt = data.shape[2]
+        out = frequency_flags(data, flags, self.level)  # the same flags the scan counted
+        out |= flags | self.band_edge[:, :, None, :] | self.channels[:, :, None, :]
+        out |= self.integrations[:, :, offset : offset + nt, None]
+        return out
+
+
+@dataclass
+class LevelScan:
+    """The first read: the time-mean spectrum of every antenna-pol, block by block."""
+
+    total: np.ndarray | None = None
+    count: np.ndarray | None = None
+
+    def add(self, data: np.ndarray, flags: np.ndarray) -> None:
+        """Add one block ``(Nant, Npol, Ntime, Nfreq)``."""
+        usable = ~flags & np.isfinite(data) & (data > 0)
+        if self.total is None or self.count is None:
+            self.total = np.zeros(data.shape[:2] + data.shape[3:])
+            self.count = np.zeros(self.total.shape, np.int64)
+        self.total += np.where(usable, data, 0.0).sum(axis=2)
+        self.count += usable.sum(axis=2)
+
+    def level(self) -> np.ndarray:
+        """Return ``(Nant, Npol, Nfreq)`` the mean of the usable samples (NaN: none)."""
+        if self.total is None or self.count is None:
+            raise ValueError("no data were scanned for flagging")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(self.count > 0, self.total / self.count, np.nan)
+
+
+@dataclass
+class RfiScan:
+    """The second read: accumulates, block by block, what the flags are decided from.
+
+    Attributes
+    ----------
+    ntime
+        Integrations of the observation.
+    level
+        ``(Nant, Npol, Nfreq)`` time-mean spectra (:meth:`LevelScan.level`).
+    clean
+        The time-mean spectra of the samples the frequency flags keep.
+    """
+
+    ntime: int
+    level: np.ndarray
+    clean: LevelScan = field(default_factory=LevelScan)
+    band_median: np.ndarray | None = None
+    freq_hits: np.ndarray | None = None
+    freq_usable: np.ndarray | None = None
+    hits_per_time: np.ndarray | None = None
+    usable_per_time: np.ndarray | None = None
+    prior_flagged: int = 0
+
+    def add(self, data: np.ndarray, flags: np.ndarray, offset: int) -> None:
+        """Add one block ``(Nant, Npol, Ntime, Nfreq)`` starting at integration ``offset``."""
+        nant, npol, nt, nfreq = data.shape
+        if self.band_median is None:
+            self.band_median = np.full((nant, npol, self.ntime), np.nan)
+            self.freq_hits = np.zeros((nant, npol, nfreq), np.int64)
+            self.freq_usable = np.zeros((nant, npol, nfreq), np.int64)
+            self.hits_per_time = np.zeros((nant, npol, self.ntime), np.int64)
+            self.usable_per_time = np.zeros((nant, npol, self.ntime), np.int64)
+        assert self.freq_hits is not None and self.freq_usable is not None
+        assert self.hits_per_time is not None and self.usable_per_time is not None
+        lev = self.level[:, :, None, :]
+        usable = ~flags & np.isfinite(data) & (data > 0) & np.isfinite(lev) & (lev > 0)
+        self.prior_flagged += int(np.count_nonzero(flags))
+        hits = frequency_flags(data, flags, self.level)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            clean = np.where(usable & ~hits, data / lev, np.nan)
+        window = slice(offset, offset + nt)
+        with _quiet_nan():
+            self.band_median[:, :, window] = np.nanmedian(clean, axis=-1)
+        self.clean.add(data, flags | hits)
+        self.freq_hits += hits.sum(axis=2)
+        self.freq_usable += usable.sum(axis=2)
+        self.hits_per_time[:, :, window] = hits.sum(axis=-1)
+        self.usable_per_time[:, :, window] = usable.sum(axis=-1)
+
+    def finish(self) -> RfiMask:
+        """Return the observation's mask and the summary counts of every reason."""
+        if self.band_median is None:
+            raise ValueError("no data were scanned for flagging")
+        assert self.freq_hits is not None and self.freq_usable is not None
+        assert self.hits_per_time is not None and self.usable_per_time is not None
+        edge = band_edges(self.level)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            channel = (self.freq_hits > CHANNEL_FRACTION * self.freq_usable) & ~edge
+        channel |= persistent_channels(self.clean.level()) & ~edge
+        nfreq = edge.shape[-1]
+        bursts = self.hits_per_time > INTEGRATION_FRACTION * np.maximum(self.usable_per_time, 1)
+        integrations = bursts | self._time_outliers()
+        counts = self._counts(edge, channel, integrations, nfreq)
+        return RfiMask(edge, channel, integrations, self.level, counts)
+
+    def _time_outliers(self) -> np.ndarray:
+        """Integrations whose band median (of data / level) stands out from its neighbours."""
+        assert self.band_median is not None
+        med = self.band_median
+        ok = np.isfinite(med)
+        filled = _filled(med, ok)
+        z = robust_zscores(filled, KT) if self.ntime >= 3 else np.zeros_like(med)
+        return watershed(np.where(ok, z, 0.0), NSIG, NSIG_ADJACENT) & ok
+
+    def _counts(
+        self, edge: np.ndarray, channel: np.ndarray, integrations: np.ndarray, nfreq: int
+    ) -> dict[str, Any]:
+        """Return the numbers of channels, integrations and samples flagged per reason."""
+        assert self.freq_hits is not None
+        nant, npol, ntime = integrations.shape
+        total = nant * npol * ntime * nfreq
+        edge_samples = int(edge.sum()) * ntime
+        channel_samples = int(channel.sum()) * ntime
+        scattered = int(np.where(edge | channel, 0, self.freq_hits).sum())
+        time_samples = int((integrations[..., None] & ~(edge | channel)[:, :, None, :]).sum())
+        samples = {
+            "band_edge": edge_samples,
+            "rfi_frequency": channel_samples + scattered,
+            "rfi_time": time_samples,
+        }
+        return {
+            "applied": True,
+            "samples_total": total,
+            "samples": samples,
+            "fractions": {k: round(v / total, 6) if total else 0.0 for k, v in samples.items()},
+            "band_edge_channels": int(edge.any(axis=(0, 1)).sum()),
+            "rfi_channels": int(channel.any(axis=(0, 1)).sum()),
+            "rfi_integrations": int(integrations.any(axis=(0, 1)).sum()),
+            "method": {
+                "nsig": NSIG,
+                "nsig_adjacent": NSIG_ADJACENT,
+                "kf": KF,
+                "kt": KT,
+                "edge_level": EDGE_LEVEL,
+                "channel_fraction": CHANNEL_FRACTION,
+                "integration_fraction": INTEGRATION_FRACTION,
+            },
+        }

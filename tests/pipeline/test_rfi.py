@@ -1,0 +1,171 @@
+"""Band-edge and RFI flags found from the autos (autocal.pipeline.rfi).
+
+Synthetic checks of each step, then injected RFI on real HERA autos: a measured detection
+and false-alarm rate, set beside hera_qm's own ``detrend_medfilt`` + watershed flagger.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from autocal.pipeline.calibrate import read
+from autocal.pipeline.rfi import (
+    LevelScan,
+    RfiMask,
+    RfiScan,
+    band_edges,
+    robust_zscores,
+    watershed,
+)
+
+HERA_116 = [f"hera/autos/zen.2458116.{s}.HH.uvh5" for s in ("30448", "31193", "31939")]
+
+
+def _mask(data: np.ndarray, flags: np.ndarray, block: int | None = None) -> RfiMask:
+    """Scan ``data`` as the pipeline does, in blocks of ``block`` integrations."""
+    nt = data.shape[2]
+    step = nt if block is None else block
+    levels = LevelScan()
+    for t0 in range(0, nt, step):
+        levels.add(data[:, :, t0 : t0 + step], flags[:, :, t0 : t0 + step])
+    scan = RfiScan(nt, levels.level())
+    for t0 in range(0, nt, step):
+        scan.add(data[:, :, t0 : t0 + step], flags[:, :, t0 : t0 + step], t0)
+    return scan.finish()
+
+
+def _bandpass(nt: int = 40, nf: int = 256, seed: int = 0) -> np.ndarray:
+    """``(1, 1, nt, nf)`` a smooth bandpass with rolled-off edges, radiometer noise 1e-3."""
+    rng = np.random.default_rng(seed)
+    x = np.linspace(-1, 1, nf)
+    shape = 1e3 * np.exp(-((x / 0.8) ** 12)) * (1 + 0.2 * x)
+    drift = 1 + 0.01 * np.linspace(0, 1, nt)[:, None]
+    wf = shape * drift * (1 + 1e-3 * rng.standard_normal((nt, nf)))
+    return wf[None, None]
+
+
+def test_robust_zscores_have_unit_width_on_white_noise() -> None:
+    """Median-filter residuals over the robust width behave as a unit normal (the 0.456
+    factor of hera_qm's detrend_medfilt); 5 sigma is then a rare event."""
+    rng = np.random.default_rng(3)
+    z = robust_zscores(rng.standard_normal((200, 512)), 8)
+    assert 0.9 < np.std(z[np.abs(z) < 10]) < 1.25
+    assert np.mean(np.abs(z) > 5) < 1e-3
+
+
+def test_watershed_grows_only_runs_touching_a_strong_sample() -> None:
+    z = np.array([[0, 3, 7, -3, 0, 3, 3, 0, 6, 0, -8]], float)
+    got = watershed(z, 5.0, 2.0)
+    expected = [False, True, True, True, False, False, False, False, True, False, False]
+    assert got.tolist() == [expected]
+
+
+def test_band_edges_keep_the_band_and_bridge_a_dead_channel() -> None:
+    """Zeroed edge channels and a roll-off are edges; a dead channel inside the band and a
+    spike on the last channel do not move the band."""
+    level = np.full(100, 10.0)
+    level[:12] = 0.0
+    level[12:15] = 0.5  # below 10 % of the band: roll-off
+    level[50] = 0.0  # dead channel inside the band
+    level[90:99] = 0.2
+    level[99] = 100.0  # a spike on the last channel
+    edge = band_edges(level)
+    assert np.flatnonzero(~edge)[[0, -1]].tolist() == [15, 89]
+    assert not edge[50]
+
+
+def test_injected_spikes_and_a_burst_are_found_and_block_size_does_not_matter() -> None:
+    data = _bandpass()
+    flags = np.zeros(data.shape, bool)
+    clean = _mask(data, flags)
+    inband = ~clean.band_edge[0, 0]
+    assert inband.sum() > 150 and clean.band_edge[0, 0, 0] and clean.band_edge[0, 0, -1]
+    base = clean.apply(data, flags, 0)[0, 0][:, inband]
+    assert base.mean() < 2e-3  # false alarms on Gaussian noise
+
+    rng = np.random.default_rng(1)
+    band_channels = np.flatnonzero(inband)
+    spikes = [
+        (t, band_channels[i]) for t, i in zip(range(0, 40, 2), rng.choice(150, 20), strict=True)
+    ]
+    hit = data.copy()
+    for t, f in spikes:
+        hit[0, 0, t, f] *= 1.02  # 20 sigma of the radiometer noise
+    hit[0, 0, 25] *= 1.05  # a broadband burst
+    whole = _mask(hit, flags)
+    blocks = _mask(hit, flags, block=7)
+    for name in ("band_edge", "channels", "integrations"):
+        assert np.array_equal(getattr(whole, name), getattr(blocks, name)), name
+    applied = np.concatenate(
+        [blocks.apply(hit[:, :, t : t + 7], flags[:, :, t : t + 7], t) for t in range(0, 40, 7)],
+        axis=2,
+    )
+    assert np.array_equal(applied, whole.apply(hit, flags, 0))
+    assert all(applied[0, 0, t, f] for t, f in spikes)
+    assert whole.integrations[0, 0].tolist() == [t == 25 for t in range(40)]
+    assert whole.counts["rfi_integrations"] == 1
+    assert whole.counts["samples"]["band_edge"] == int(whole.band_edge.sum()) * 40
+
+
+def test_a_persistent_narrow_band_transmitter_flags_its_channel() -> None:
+    data = _bandpass()
+    data[0, 0, :, 128] *= 1.1
+    mask = _mask(data, np.zeros(data.shape, bool))
+    assert mask.channels[0, 0, 128] and mask.channels.sum() <= 3
+    assert mask.counts["rfi_channels"] == int(mask.channels.sum())
+
+
+def _hera_qm_flags(waterfall: np.ndarray) -> np.ndarray:
+    """hera_qm's 2-D flagger on one waterfall: detrend_medfilt (Kt = Kf = 8), 5 sigma, grown
+    to 2 sigma neighbours (simple_flag_waterfall's first step)."""
+    xrfi = pytest.importorskip("hera_qm.xrfi")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        z = xrfi.detrend_medfilt(waterfall, Kt=8, Kf=8)
+        flags = np.abs(z) > 5
+        return flags | xrfi._ws_flag_waterfall(z, flags, nsig=2.0)
+
+
+@pytest.mark.data
+@pytest.mark.slow
+def test_injected_rfi_on_real_hera_autos_is_found(data_root) -> None:
+    """300 single-sample spikes of +1 % (about 20 radiometer sigma; real narrow-band RFI is
+    far brighter) injected into in-band, unflagged samples of antenna 23's real autos: at
+    least 85 % are found (92 % measured) while the new flags elsewhere stay below 0.2 % of
+    the in-band samples; hera_qm's 2-D median filter on the same waterfalls finds far fewer
+    of them, because the bandpass's fine structure, which autocal divides out first, widens
+    its robust width. Broad-band bursts of +10 % at three integrations are all found."""
+    obs = read([data_root / f for f in HERA_116], antennas=[23])
+    data, flags = obs.data, obs.flags
+    base = _mask(data, flags)
+    base_flags = base.apply(data, flags, 0)
+    inband = np.broadcast_to(~(base.band_edge | base.channels)[:, :, None, :], data.shape)
+    candidates = np.argwhere(inband & ~base_flags)
+    pick = candidates[np.random.default_rng(7).choice(len(candidates), 300, replace=False)]
+    injected = np.zeros(data.shape, bool)
+    injected[tuple(pick.T)] = True
+    hit = np.where(injected, data * 1.01, data)
+    found = _mask(hit, flags).apply(hit, flags, 0)
+    detection = found[injected].mean()
+    near = injected | np.roll(injected, 1, -1) | np.roll(injected, -1, -1)
+    others = inband & ~base_flags & ~near
+    false_alarm = (found & others).sum() / others.sum()
+    assert detection >= 0.85, detection
+    assert false_alarm < 2e-3, false_alarm
+
+    qm_found = []
+    for a, p in np.ndindex(*data.shape[:2]):
+        band = ~base.band_edge[a, p]
+        full = np.zeros(data.shape[2:], bool)
+        full[:, band] = _hera_qm_flags(hit[a, p][:, band])
+        qm_found.append(full[injected[a, p]])
+    assert np.concatenate(qm_found).mean() < detection
+
+    burst = data.copy()
+    burst[:, :, [5, 17, 30]] *= 1.10
+    times = _mask(burst, flags).integrations
+    for a, p in np.ndindex(*times.shape[:2]):
+        assert np.flatnonzero(times[a, p]).tolist() == [5, 17, 30]
