@@ -16,7 +16,17 @@ variable                         meaning (default)
 ``AUTOCAL_HEARTBEAT_S``          worker heartbeat interval (10)
 ``AUTOCAL_STALE_AFTER_S``        a running job without heartbeat for this long is
                                  re-queued or failed (60)
-``AUTOCAL_MAX_ATTEMPTS``         attempts before a crashed job is failed (3)
+``AUTOCAL_MAX_ATTEMPTS``         attempts before a crashed job is failed (3); jobs handed
+                                 back by a worker shutting down (SIGTERM) are not counted
+``AUTOCAL_JOB_TIMEOUT_S``        an attempt running longer than this is failed with that
+                                 reason, even if it still sends heartbeats (21600 = 6 h;
+                                 0 = no limit)
+``AUTOCAL_JANITOR_AFTER_S``      the worker's janitor removes orphaned ``.staging-*`` and
+                                 ``.part`` files older than this (21600 = 6 h)
+``AUTOCAL_JANITOR_INTERVAL_S``   seconds between two janitor runs of a worker (3600; one
+                                 also runs at start-up)
+``AUTOCAL_FINGERPRINT_FULL_BYTES`` inputs up to this size are hashed whole at submission;
+                                 larger ones by size, time and sampled blocks (64 MiB)
 ``AUTOCAL_DASK_SCHEDULER``       calibrations map their per-file sums over Dask: a
                                  scheduler address (tcp://host:8786), "local" for a
                                  LocalCluster, "" (default) to run in the worker
@@ -51,6 +61,10 @@ class Settings(BaseSettings):
     heartbeat_s: float = Field(10.0, gt=0)
     stale_after_s: float = Field(60.0, gt=0)
     max_attempts: int = Field(3, ge=1)
+    job_timeout_s: float = Field(6 * 3600.0, ge=0)
+    janitor_after_s: float = Field(6 * 3600.0, gt=0)
+    janitor_interval_s: float = Field(3600.0, gt=0)
+    fingerprint_full_bytes: int = Field(64 * 1024**2, ge=0)
     dask_scheduler: str = ""
 
     @field_validator("data_roots", mode="before")

@@ -38,6 +38,7 @@ from autocal.fit.priors import PriorError
 from autocal.fit.separation import separation_summary
 from autocal.pipeline.config import PipelineError
 from autocal.service.auth import app_settings, require_token
+from autocal.service.input_check import fingerprint_config
 from autocal.service.nightly import (
     NightlyError,
     checked_options,
@@ -336,6 +337,7 @@ def submit_diagnosis(
         dedupe_key=job_key("diagnose", config),  # type: ignore[arg-type]  # any config model
         force=force,
         max_attempts=settings.max_attempts,
+        input_fingerprints=fingerprint_config(config.model_dump(mode="json"), settings),
     )
     logger.info(
         "%s diagnose job %s (%d input(s))",

@@ -1,0 +1,143 @@
+"""Schema migrations of the job store: named steps applied once, in order, at start-up.
+
+``Base.metadata.create_all`` creates missing *tables* (a fresh database gets every column
+of the current models), but it never changes an existing table. Each :class:`Migration`
+brings an older database up to date; it is applied inside a transaction by
+:func:`apply_migrations` (called by :class:`autocal.service.store.JobStore` after
+``create_all``) and recorded by name in the ``schema_migrations`` table, so it runs once
+per database. Steps are idempotent (a column that already exists, e.g. because
+``create_all`` made it, is not added again), on SQLite and PostgreSQL.
+
+A step's name starts with the name of the change that introduced it; append new steps
+at the end of :data:`MIGRATIONS` and never rename or reorder the existing ones.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+
+from sqlalchemy import (
+    JSON,
+    Column,
+    DateTime,
+    Integer,
+    MetaData,
+    String,
+    Table,
+    inspect,
+    select,
+    text,
+)
+from sqlalchemy.engine import Connection, Engine
+from sqlalchemy.types import TypeEngine
+
+logger = logging.getLogger(__name__)
+
+_metadata = MetaData()
+
+#: One row per applied migration step.
+schema_migrations = Table(
+    "schema_migrations",
+    _metadata,
+    Column("name", String(128), primary_key=True),
+    Column("applied_at", DateTime(timezone=True), nullable=False),
+)
+
+#: PostgreSQL advisory-lock key serialising migrations of concurrent starters.
+_PG_LOCK_KEY = 0x6175746F63616C  # "autocal"
+
+
+@dataclass(frozen=True)
+class Migration:
+    """One named, idempotent schema change.
+
+    Parameters
+    ----------
+    name
+        Unique name, recorded in ``schema_migrations`` once applied.
+    apply
+        Function changing the schema through the given connection (inside the
+        migration's transaction).
+    """
+
+    name: str
+    apply: Callable[[Connection], None]
+
+
+def add_column(
+    table: str, column: str, type_: TypeEngine, default_sql: str | None = None
+) -> Callable[[Connection], None]:
+    """Return a step that adds ``column`` to ``table`` unless it exists.
+
+    Parameters
+    ----------
+    table, column
+        Table and new column names.
+    type_
+        The column's SQLAlchemy type (compiled for the connection's dialect).
+    default_sql
+        SQL literal of the server default (existing rows get it); ``None``: NULL.
+
+    Returns
+    -------
+    callable
+        The step, for :class:`Migration`.
+    """
+
+    def step(conn: Connection) -> None:
+        existing = {c["name"] for c in inspect(conn).get_columns(table)}
+        if column in existing:
+            return
+        sql_type = type_.compile(dialect=conn.dialect)
+        default = f" DEFAULT {default_sql} NOT NULL" if default_sql is not None else ""
+        conn.execute(text(f'ALTER TABLE "{table}" ADD COLUMN "{column}" {sql_type}{default}'))
+
+    return step
+
+
+#: Every migration, in the order they are applied.
+MIGRATIONS: list[Migration] = [
+    # graceful releases (SIGTERM) do not count as attempts
+    Migration("h24w-jobs-releases", add_column("jobs", "releases", Integer(), "0")),
+    # size, time and content fingerprints of the inputs, recorded at submission
+    Migration("h24w-jobs-input-fingerprints", add_column("jobs", "input_fingerprints", JSON())),
+]
+
+
+def apply_migrations(engine: Engine, migrations: list[Migration] | None = None) -> list[str]:
+    """Apply the steps not yet recorded in ``schema_migrations``; return their names.
+
+    Parameters
+    ----------
+    engine
+        The store's engine (SQLite or PostgreSQL).
+    migrations
+        The steps (default :data:`MIGRATIONS`).
+
+    Returns
+    -------
+    list of str
+        Names of the steps applied now (empty when the database was up to date).
+    """
+    steps = MIGRATIONS if migrations is None else migrations
+    _metadata.create_all(engine)
+    applied: list[str] = []
+    with engine.begin() as conn:
+        if conn.dialect.name == "postgresql":
+            # two processes starting at once: the second waits, then finds the steps done
+            conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _PG_LOCK_KEY})
+        done = set(conn.scalars(select(schema_migrations.c.name)))
+        for migration in steps:
+            if migration.name in done:
+                continue
+            migration.apply(conn)
+            conn.execute(
+                schema_migrations.insert().values(name=migration.name, applied_at=datetime.now(UTC))
+            )
+            applied.append(migration.name)
+    for name in applied:
+        logger.info("job store: applied migration %s", name)
+    return applied
