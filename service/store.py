@@ -398,7 +398,8 @@ class JobStore:
     def append_log(self, job_id: str, line: str) -> None:
         """Append a line to the job's log tail."""
         with self.session() as s:
-            job = s.get(Job, job_id)
+            # locked: a concurrent release or recovery also appends to the log
+            job = s.get(Job, job_id, with_for_update=not self.is_sqlite)
             if job is None:
                 return
             lines = (job.log.splitlines() if job.log else []) + [line.rstrip()[:1000]]

@@ -152,6 +152,7 @@ class _Run:
         self.message = "claimed"
         self.stop_flag = threading.Event()  # the store said stop (cancel / lost ownership)
         self.released = False  # handed back to the queue by a shutdown
+        self.release_lock = threading.Lock()
         self.done = threading.Event()
         self.lock = threading.Lock()
         self.thread = threading.Thread(
@@ -258,18 +259,22 @@ class Worker:
             self.release(run)
 
     def release(self, run: _Run) -> bool:
-        """Hand ``run``'s job back to the queue (once; later calls do nothing)."""
-        with run.lock:
+        """Hand ``run``'s job back to the queue (once; later calls wait for it, then return).
+
+        Called by the stopping thread and by the job thread at its checkpoint: the lock
+        makes the job thread (and so the process's exit) wait for a release under way.
+        """
+        with run.release_lock:
             if run.released:
                 return False
+            try:
+                done = self.store.release(
+                    run.job_id, self.worker_id, run.attempt, f"worker {self.worker_id} shut down"
+                )
+            except Exception as err:  # the store is unreachable: stale recovery will do it
+                logger.warning("job %s: could not hand it back (%s)", run.job_id, err)
+                return False
             run.released = True
-        try:
-            done = self.store.release(
-                run.job_id, self.worker_id, run.attempt, f"worker {self.worker_id} shut down"
-            )
-        except Exception as err:  # the store is unreachable: stale recovery will do it
-            logger.warning("job %s: could not hand it back (%s)", run.job_id, err)
-            return False
         if done:
             logger.warning(
                 "job %s attempt %d: handed back to the queue (worker %s shutting down)",
