@@ -60,16 +60,16 @@ class Migration:
         Unique name, recorded in ``schema_migrations`` once applied.
     apply
         Function changing the schema through the given connection (inside the
-        migration's transaction).
+        migration's transaction); returns whether it changed anything.
     """
 
     name: str
-    apply: Callable[[Connection], None]
+    apply: Callable[[Connection], bool]
 
 
 def add_column(
     table: str, column: str, type_: TypeEngine, default_sql: str | None = None
-) -> Callable[[Connection], None]:
+) -> Callable[[Connection], bool]:
     """Return a step that adds ``column`` to ``table`` unless it exists.
 
     Parameters
@@ -87,13 +87,14 @@ def add_column(
         The step, for :class:`Migration`.
     """
 
-    def step(conn: Connection) -> None:
+    def step(conn: Connection) -> bool:
         existing = {c["name"] for c in inspect(conn).get_columns(table)}
-        if column in existing:
-            return
+        if column in existing:  # a fresh database: create_all made it
+            return False
         sql_type = type_.compile(dialect=conn.dialect)
         default = f" DEFAULT {default_sql} NOT NULL" if default_sql is not None else ""
         conn.execute(text(f'ALTER TABLE "{table}" ADD COLUMN "{column}" {sql_type}{default}'))
+        return True
 
     return step
 
@@ -125,6 +126,7 @@ def apply_migrations(engine: Engine, migrations: list[Migration] | None = None) 
     steps = MIGRATIONS if migrations is None else migrations
     _metadata.create_all(engine)
     applied: list[str] = []
+    changed: list[str] = []
     with engine.begin() as conn:
         if conn.dialect.name == "postgresql":
             # two processes starting at once: the second waits, then finds the steps done
@@ -133,11 +135,15 @@ def apply_migrations(engine: Engine, migrations: list[Migration] | None = None) 
         for migration in steps:
             if migration.name in done:
                 continue
-            migration.apply(conn)
+            if migration.apply(conn):
+                changed.append(migration.name)
             conn.execute(
                 schema_migrations.insert().values(name=migration.name, applied_at=datetime.now(UTC))
             )
             applied.append(migration.name)
     for name in applied:
-        logger.info("job store: applied migration %s", name)
+        if name in changed:
+            logger.info("job store: applied migration %s", name)
+        else:
+            logger.debug("job store: recorded migration %s (already up to date)", name)
     return applied
