@@ -183,7 +183,12 @@ def _trials(args: argparse.Namespace, cluster: Cluster, store: Any, rng: random.
             proc.wait(60)
             slow_stops += 1
         cluster.start_worker()
-    return {"trials": kills + stops, "kills": kills, "stops": stops, "killed_after_grace": slow_stops}
+    return {
+        "trials": kills + stops,
+        "kills": kills,
+        "stops": stops,
+        "killed_after_grace": slow_stops,
+    }
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
