@@ -15,6 +15,7 @@ from pydantic import ValidationError
 
 from autocal.diagnosis.errors import DiagnoseError
 from autocal.diagnosis.run import DiagnoseConfig
+from autocal.service.input_check import fingerprint_config
 from autocal.service.nightly import checked_options, job_key, night_of
 from autocal.service.paths import resolve_input
 from autocal.service.routers import MAX_ERRORS, as_api_error, describe_problem, problems_message
@@ -132,6 +133,7 @@ def submit_diagnosis(
         force=force,
         max_attempts=settings.max_attempts,
         submitted_by=submitted_by,
+        input_fingerprints=fingerprint_config(config.model_dump(mode="json"), settings),
     )
     logger.info(
         "%s diagnose job %s (%d input(s))",

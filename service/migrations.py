@@ -1,51 +1,131 @@
 """Schema migrations of the job store: named steps applied once, in order, at start-up.
 
-``Base.metadata.create_all`` creates missing tables but never changes an existing one, so a
-new column or index on a table that already holds jobs is a *step* here: a name and a
-function of a connection. :func:`apply_migrations` runs every step not yet recorded in the
-``schema_migrations`` table, each in its own transaction together with the row that records
-it, so a step is applied exactly once even when several processes (the API and workers)
-start at the same moment: the second one's insert of the same name waits for the first's
-transaction and then fails on the primary key, and it skips the step. Steps are written to
-be harmless on a database created from the current models (``IF NOT EXISTS``, a column
-added only when it is missing), SQLite and PostgreSQL alike.
+``Base.metadata.create_all`` creates missing *tables* (a fresh database gets every column
+of the current models), but it never changes an existing table. Each :class:`Migration`
+brings an older database up to date; it is applied inside a transaction by
+:func:`apply_migrations` (called by :class:`autocal.service.store.JobStore` after
+``create_all``) and recorded by name in the ``schema_migrations`` table, so it runs once
+per database. Steps are idempotent (a column that already exists, e.g. because
+``create_all`` made it, is not added again), on SQLite and PostgreSQL.
 
-Step names are prefixed by the helper (branch) that wrote them; never rename or reorder an
-applied step, append new ones.
+A step's name starts with the name of the change that introduced it; append new steps
+at the end of :data:`MIGRATIONS` and never rename or reorder the existing ones.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass
 from datetime import UTC, datetime
 
-from sqlalchemy import Connection, inspect, text
-from sqlalchemy.engine import Engine
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy import (
+    JSON,
+    Column,
+    DateTime,
+    Integer,
+    MetaData,
+    String,
+    Table,
+    inspect,
+    select,
+    text,
+)
+from sqlalchemy.engine import Connection, Engine
+from sqlalchemy.types import TypeEngine
 
 logger = logging.getLogger(__name__)
 
-#: The table recording applied steps.
-MIGRATIONS_TABLE = "schema_migrations"
+_metadata = MetaData()
+
+#: One row per applied migration step.
+schema_migrations = Table(
+    "schema_migrations",
+    _metadata,
+    Column("name", String(128), primary_key=True),
+    Column("applied_at", DateTime(timezone=True), nullable=False),
+)
+
+#: PostgreSQL advisory-lock key serialising migrations of concurrent starters.
+_PG_LOCK_KEY = 0x6175746F63616C  # "autocal"
 
 
-def _index(name: str, columns: str) -> Callable[[Connection], None]:
-    def step(conn: Connection) -> None:
-        conn.execute(text(f"CREATE INDEX IF NOT EXISTS {name} ON jobs ({columns})"))
+@dataclass(frozen=True)
+class Migration:
+    """One named, idempotent schema change.
+
+    Parameters
+    ----------
+    name
+        Unique name, recorded in ``schema_migrations`` once applied.
+    apply
+        Function changing the schema through the given connection (inside the
+        migration's transaction); returns whether it changed anything.
+    """
+
+    name: str
+    apply: Callable[[Connection], bool]
+
+
+def add_column(
+    table: str, column: str, type_: TypeEngine, default_sql: str | None = None
+) -> Callable[[Connection], bool]:
+    """Return a step that adds ``column`` to ``table`` unless it exists.
+
+    Parameters
+    ----------
+    table, column
+        Table and new column names.
+    type_
+        The column's SQLAlchemy type (compiled for the connection's dialect).
+    default_sql
+        SQL literal of the server default (existing rows get it); ``None``: NULL.
+
+    Returns
+    -------
+    callable
+        The step, for :class:`Migration`.
+    """
+
+    def step(conn: Connection) -> bool:
+        existing = {c["name"] for c in inspect(conn).get_columns(table)}
+        if column in existing:  # a fresh database: create_all made it
+            return False
+        sql_type = type_.compile(dialect=conn.dialect)
+        default = f" DEFAULT {default_sql} NOT NULL" if default_sql is not None else ""
+        conn.execute(text(f'ALTER TABLE "{table}" ADD COLUMN "{column}" {sql_type}{default}'))
+        return True
 
     return step
 
 
-def _add_submitted_by(conn: Connection) -> None:
-    columns = {c["name"] for c in inspect(conn).get_columns("jobs")}
-    if "submitted_by" not in columns:
-        conn.execute(text("ALTER TABLE jobs ADD COLUMN submitted_by VARCHAR(64)"))
+def add_index(name: str, columns: str) -> Callable[[Connection], bool]:
+    """Return a step that creates index ``name`` on ``jobs (columns)`` unless it exists.
+
+    Parameters
+    ----------
+    name
+        The index name.
+    columns
+        The indexed columns, comma-separated, in order.
+
+    Returns
+    -------
+    callable
+        The step, for :class:`Migration`.
+    """
+
+    def step(conn: Connection) -> bool:
+        existing = {ix["name"] for ix in inspect(conn).get_indexes("jobs")}
+        conn.execute(text(f"CREATE INDEX IF NOT EXISTS {name} ON jobs ({columns})"))
+        return name not in existing
+
+    return step
 
 
-def _backfill_job_antennas(conn: Connection) -> None:
+def _backfill_job_antennas(conn: Connection) -> bool:
     """Index the antennas of jobs created before the ``job_antennas`` table existed."""
-    from autocal.service.job_index import antenna_rows
+    from autocal.service.job_index import antenna_rows  # the store imports this module
 
     done = {row[0] for row in conn.execute(text("SELECT DISTINCT job_id FROM job_antennas"))}
     rows = []
@@ -62,31 +142,35 @@ def _backfill_job_antennas(conn: Connection) -> None:
             ),
             rows,
         )
+    return bool(rows)
 
 
-#: The ordered steps: (name, function of a connection inside the step's transaction).
-STEPS: list[tuple[str, Callable[[Connection], None]]] = [
-    ("h24a_jobs_created_id_index", _index("ix_jobs_created_id", "created_at, id")),
-    ("h24a_jobs_state_created_index", _index("ix_jobs_state_created", "state, created_at, id")),
-    ("h24a_jobs_kind_created_index", _index("ix_jobs_kind_created", "kind, created_at, id")),
-    ("h24a_jobs_night_created_index", _index("ix_jobs_night_created", "night, created_at, id")),
-    ("h24a_jobs_submitted_by", _add_submitted_by),
-    ("h24a_job_antennas_backfill", _backfill_job_antennas),
+#: Every migration, in the order they are applied.
+MIGRATIONS: list[Migration] = [
+    # keyset listing of GET /jobs: one index per filter, ordered like the pages
+    Migration("h24a_jobs_created_id_index", add_index("ix_jobs_created_id", "created_at, id")),
+    Migration(
+        "h24a_jobs_state_created_index", add_index("ix_jobs_state_created", "state, created_at, id")
+    ),
+    Migration(
+        "h24a_jobs_kind_created_index", add_index("ix_jobs_kind_created", "kind, created_at, id")
+    ),
+    Migration(
+        "h24a_jobs_night_created_index", add_index("ix_jobs_night_created", "night, created_at, id")
+    ),
+    # the name of the token that submitted a job
+    Migration("h24a_jobs_submitted_by", add_column("jobs", "submitted_by", String(64))),
+    # the antenna filter of GET /jobs reads the job_antennas table
+    Migration("h24a_job_antennas_backfill", _backfill_job_antennas),
+    # graceful releases (SIGTERM) do not count as attempts
+    Migration("h24w-jobs-releases", add_column("jobs", "releases", Integer(), "0")),
+    # size, time and content fingerprints of the inputs, recorded at submission
+    Migration("h24w-jobs-input-fingerprints", add_column("jobs", "input_fingerprints", JSON())),
 ]
 
 
-def _ensure_table(engine: Engine) -> None:
-    with engine.begin() as conn:
-        conn.execute(
-            text(
-                f"CREATE TABLE IF NOT EXISTS {MIGRATIONS_TABLE} "
-                "(name VARCHAR(128) PRIMARY KEY, applied_at VARCHAR(40) NOT NULL)"
-            )
-        )
-
-
 def applied_migrations(engine: Engine) -> list[str]:
-    """Return the names of the applied steps, in the order they were applied.
+    """Return the names of the applied steps: those of :data:`MIGRATIONS` in its order.
 
     Parameters
     ----------
@@ -96,48 +180,51 @@ def applied_migrations(engine: Engine) -> list[str]:
     Returns
     -------
     list of str
-        Step names.
+        Step names (a recorded name unknown to this version comes last).
     """
-    _ensure_table(engine)
+    _metadata.create_all(engine)
     with engine.connect() as conn:
-        rows = conn.execute(text(f"SELECT name FROM {MIGRATIONS_TABLE} ORDER BY applied_at"))
-        return [row[0] for row in rows]
+        recorded = set(conn.scalars(select(schema_migrations.c.name)))
+    known = [m.name for m in MIGRATIONS if m.name in recorded]
+    return known + sorted(recorded - set(known))
 
 
-def apply_migrations(
-    engine: Engine, steps: list[tuple[str, Callable[[Connection], None]]] | None = None
-) -> list[str]:
-    """Apply the steps not yet recorded, each in one transaction with its record.
+def apply_migrations(engine: Engine, migrations: list[Migration] | None = None) -> list[str]:
+    """Apply the steps not yet recorded in ``schema_migrations``; return their names.
 
     Parameters
     ----------
     engine
-        The job store's engine (tables already created).
-    steps
-        The steps (default :data:`STEPS`).
+        The store's engine (SQLite or PostgreSQL).
+    migrations
+        The steps (default :data:`MIGRATIONS`).
 
     Returns
     -------
     list of str
-        The names of the steps this call applied (empty when the schema is current).
+        Names of the steps applied now (empty when the database was up to date).
     """
-    _ensure_table(engine)
+    steps = MIGRATIONS if migrations is None else migrations
+    _metadata.create_all(engine)
     applied: list[str] = []
-    done = set(applied_migrations(engine))
-    for name, step in STEPS if steps is None else steps:
-        if name in done:
-            continue
-        try:
-            with engine.begin() as conn:
-                # the record first: a concurrent start-up blocks here, then fails on the key
-                conn.execute(
-                    text(f"INSERT INTO {MIGRATIONS_TABLE} (name, applied_at) VALUES (:n, :t)"),
-                    {"n": name, "t": datetime.now(UTC).isoformat()},
-                )
-                step(conn)
-        except IntegrityError:
-            logger.info("schema migration %s was applied by another process", name)
-            continue
-        logger.info("applied schema migration %s", name)
-        applied.append(name)
+    changed: list[str] = []
+    with engine.begin() as conn:
+        if conn.dialect.name == "postgresql":
+            # two processes starting at once: the second waits, then finds the steps done
+            conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _PG_LOCK_KEY})
+        done = set(conn.scalars(select(schema_migrations.c.name)))
+        for migration in steps:
+            if migration.name in done:
+                continue
+            if migration.apply(conn):
+                changed.append(migration.name)
+            conn.execute(
+                schema_migrations.insert().values(name=migration.name, applied_at=datetime.now(UTC))
+            )
+            applied.append(migration.name)
+    for name in applied:
+        if name in changed:
+            logger.info("job store: applied migration %s", name)
+        else:
+            logger.debug("job store: recorded migration %s (already up to date)", name)
     return applied

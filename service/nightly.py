@@ -31,6 +31,7 @@ import numpy as np
 
 from autocal.errors import AutocalError
 from autocal.pipeline.config import CalibrationConfig
+from autocal.service.input_check import fingerprint_config
 from autocal.service.paths import InputPathError, check_under_roots, resolve_input
 from autocal.service.settings import Settings
 from autocal.service.store import JobStore
@@ -230,8 +231,9 @@ def submit_calibration(
     config = build_config(settings, inputs, options)
     key = job_key(kind, config)
     # The store makes identical concurrent submissions safe (a unique active-key column).
+    stored = config.model_dump(mode="json")
     job, created = store.submit(
-        config.model_dump(mode="json"),
+        stored,
         kind=kind,
         night=night_of(config.inputs),
         antennas=config.antennas,
@@ -239,6 +241,7 @@ def submit_calibration(
         force=force,
         max_attempts=settings.max_attempts,
         submitted_by=submitted_by,
+        input_fingerprints=fingerprint_config(stored, settings),
     )
     logger.info(
         "%s job %s (%s, %d input(s))",

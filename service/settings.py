@@ -1,34 +1,44 @@
 """Service settings, read from the environment (``AUTOCAL_*``) through pydantic-settings.
 
-===============================  ==========================================================
-variable                         meaning (default)
-===============================  ==========================================================
-``AUTOCAL_DATABASE_URL``         SQLAlchemy URL of the job store
-                                 (``sqlite:///<state dir>/jobs.sqlite``); PostgreSQL for
-                                 many workers: ``postgresql+psycopg://user:pw@host/db``
-``AUTOCAL_STATE_DIR``            where the SQLite store, uploads and products live
-                                 (``~/.local/share/autocal``)
-``AUTOCAL_DATA_ROOTS``           input paths must lie under one of these folders
-                                 (JSON list or ``:``-separated; default: the data folder)
-``AUTOCAL_API_TOKEN``            token required by write endpoints (``Authorization:
-                                 Bearer <token>``), named ``default``; unset and no
-                                 other token = writes refused
-``AUTOCAL_API_TOKENS``           named tokens, ``name=token`` separated by commas
-``AUTOCAL_API_TOKENS_FILE``      a file of ``name=token`` lines (``#`` comments)
-``AUTOCAL_MIN_TOKEN_LENGTH``     shortest accepted token; shorter refuses to start (32)
-``AUTOCAL_READ_AUTH``            1: read endpoints need a token too (0)
-``AUTOCAL_AUTH_FAILURES``        failed authentications per client within the window
-                                 before it is answered 429 (10)
-``AUTOCAL_AUTH_WINDOW_S``        that window, in seconds (60)
-``AUTOCAL_MAX_UPLOAD_BYTES``     largest accepted upload (2 GiB)
-``AUTOCAL_HEARTBEAT_S``          worker heartbeat interval (10)
-``AUTOCAL_STALE_AFTER_S``        a running job without heartbeat for this long is
-                                 re-queued or failed (60)
-``AUTOCAL_MAX_ATTEMPTS``         attempts before a crashed job is failed (3)
-``AUTOCAL_DASK_SCHEDULER``       calibrations map their per-file sums over Dask: a
-                                 scheduler address (tcp://host:8786), "local" for a
-                                 LocalCluster, "" (default) to run in the worker
-===============================  ==========================================================
+==================================  ==========================================================
+variable                            meaning (default)
+==================================  ==========================================================
+``AUTOCAL_DATABASE_URL``            SQLAlchemy URL of the job store
+                                    (``sqlite:///<state dir>/jobs.sqlite``); PostgreSQL for
+                                    many workers: ``postgresql+psycopg://user:pw@host/db``
+``AUTOCAL_STATE_DIR``               where the SQLite store, uploads and products live
+                                    (``~/.local/share/autocal``)
+``AUTOCAL_DATA_ROOTS``              input paths must lie under one of these folders
+                                    (JSON list or ``:``-separated; default: the data folder)
+``AUTOCAL_API_TOKEN``               token required by write endpoints (``Authorization:
+                                    Bearer <token>``), named ``default``; unset and no
+                                    other token = writes refused
+``AUTOCAL_API_TOKENS``              named tokens, ``name=token`` separated by commas
+``AUTOCAL_API_TOKENS_FILE``         a file of ``name=token`` lines (``#`` comments)
+``AUTOCAL_MIN_TOKEN_LENGTH``        shortest accepted token; shorter refuses to start (32)
+``AUTOCAL_READ_AUTH``               1: read endpoints need a token too (0)
+``AUTOCAL_AUTH_FAILURES``           failed authentications per client within the window
+                                    before it is answered 429 (10)
+``AUTOCAL_AUTH_WINDOW_S``           that window, in seconds (60)
+``AUTOCAL_MAX_UPLOAD_BYTES``        largest accepted upload (2 GiB)
+``AUTOCAL_HEARTBEAT_S``             worker heartbeat interval (10)
+``AUTOCAL_STALE_AFTER_S``           a running job without heartbeat for this long is
+                                    re-queued or failed (60)
+``AUTOCAL_MAX_ATTEMPTS``            attempts before a crashed job is failed (3); jobs handed
+                                    back by a worker shutting down (SIGTERM) are not counted
+``AUTOCAL_JOB_TIMEOUT_S``           an attempt running longer than this is failed with that
+                                    reason, even if it still sends heartbeats (21600 = 6 h;
+                                    0 = no limit)
+``AUTOCAL_JANITOR_AFTER_S``         the worker's janitor removes orphaned ``.staging-*`` and
+                                    ``.part`` files older than this (21600 = 6 h)
+``AUTOCAL_JANITOR_INTERVAL_S``      seconds between two janitor runs of a worker (3600; one
+                                    also runs at start-up)
+``AUTOCAL_FINGERPRINT_FULL_BYTES``  inputs up to this size are hashed whole at submission;
+                                    larger ones by size, time and sampled blocks (64 MiB)
+``AUTOCAL_DASK_SCHEDULER``          calibrations map their per-file sums over Dask: a
+                                    scheduler address (tcp://host:8786), "local" for a
+                                    LocalCluster, "" (default) to run in the worker
+==================================  ==========================================================
 """
 
 from __future__ import annotations
@@ -65,6 +75,10 @@ class Settings(BaseSettings):
     heartbeat_s: float = Field(10.0, gt=0)
     stale_after_s: float = Field(60.0, gt=0)
     max_attempts: int = Field(3, ge=1)
+    job_timeout_s: float = Field(6 * 3600.0, ge=0)
+    janitor_after_s: float = Field(6 * 3600.0, gt=0)
+    janitor_interval_s: float = Field(3600.0, gt=0)
+    fingerprint_full_bytes: int = Field(64 * 1024**2, ge=0)
     dask_scheduler: str = ""
 
     @field_validator("data_roots", mode="before")

@@ -40,6 +40,7 @@ from sqlalchemy.exc import IntegrityError, OperationalError, ProgrammingError
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 
 from autocal.errors import AutocalError
+from autocal.service.migrations import apply_migrations
 
 logger = logging.getLogger(__name__)
 
@@ -106,6 +107,13 @@ class Job(Base):
     completions: Mapped[int] = mapped_column(Integer, default=0)
     # the name of the API token that submitted the job (None: nightly runner, CLI, tests)
     submitted_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    # attempts handed back by a worker shutting down (SIGTERM): not counted against
+    # max_attempts (added by migration h24w-jobs-releases)
+    releases: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    # {path: fingerprint} of the input files, recorded at submission and checked when a
+    # worker starts the job (autocal.service.input_check; migration
+    # h24w-jobs-input-fingerprints)
+    input_fingerprints: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
 
     def to_dict(self) -> dict[str, Any]:
         """Return a plain dictionary of the record (datetimes as ISO strings)."""
@@ -141,13 +149,13 @@ class JobStore:
         self.engine: Engine = create_engine(url, **kwargs)
         if self.is_sqlite:
             event.listen(self.engine, "connect", _sqlite_pragmas)
+            event.listen(self.engine, "begin", _sqlite_begin_immediate)
         self._create_tables()
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
 
     def _create_tables(self) -> None:
-        """Create the table; tolerate another process creating it at the same moment."""
+        """Create the tables and apply the migrations; tolerate a concurrent starter."""
         from autocal.service import job_index  # noqa: F401  # registers its table
-        from autocal.service.migrations import apply_migrations
 
         for attempt in range(5):
             try:
@@ -170,6 +178,33 @@ class JobStore:
                 session.rollback()
                 raise
 
+    def db_now(self, session: Session | None = None) -> datetime:
+        """Return the database's current time (UTC, timezone-aware).
+
+        Every time the store records or compares -- claims, heartbeats, staleness, the
+        per-job time limit -- is read here, so workers whose clocks disagree are judged
+        by one clock: PostgreSQL's ``clock_timestamp()``, or for SQLite (an embedded
+        database all of whose users share one host) that host's clock.
+
+        Parameters
+        ----------
+        session
+            Session to ask through (default: a new connection).
+        """
+        if self.is_sqlite:
+            query = select(func.strftime("%Y-%m-%d %H:%M:%f", "now"))
+        else:
+            query = select(func.clock_timestamp())
+        if session is not None:
+            value = session.scalar(query)
+        else:
+            with self.engine.connect() as conn:
+                value = conn.scalar(query)
+        if isinstance(value, str):
+            value = datetime.fromisoformat(value)
+        assert isinstance(value, datetime)
+        return _aware(value)
+
     def ping(self) -> bool:
         """Whether the database answers."""
         with self.engine.connect() as conn:
@@ -188,21 +223,35 @@ class JobStore:
         force: bool = False,
         max_attempts: int = 3,
         submitted_by: str | None = None,
+        input_fingerprints: dict[str, Any] | None = None,
     ) -> tuple[dict[str, Any], bool]:
         """Queue a job; return ``(job, created)``.
 
         With ``dedupe_key``, an existing job with the same key that is not failed or
         cancelled is returned instead of a new one (``created`` false), unless ``force``.
-        ``submitted_by`` records the name of the API token that asked for it.
+        ``submitted_by`` records the name of the API token that asked for it;
+        ``input_fingerprints`` (:func:`autocal.service.input_check.fingerprint_config`)
+        are checked by the worker before it reads the inputs.
         """
         if dedupe_key is not None and not force:
             existing = self._active_duplicate(dedupe_key)
             if existing is not None:
                 return existing, False
         try:
-            return self._insert(
-                config, kind, night, antennas, dedupe_key, force, max_attempts, submitted_by
-            ), True
+            job = Job(
+                id=uuid.uuid4().hex,
+                kind=kind,
+                state=JobState.queued.value,
+                config=config,
+                night=night,
+                antennas=antennas,
+                dedupe_key=dedupe_key,
+                dedupe_active=None if force else dedupe_key,
+                max_attempts=max_attempts,
+                input_fingerprints=input_fingerprints,
+                submitted_by=submitted_by,
+            )
+            return self._insert(job), True
         except IntegrityError:
             # A concurrent identical submission won the race: return its job.
             existing = self._active_duplicate(dedupe_key) if dedupe_key else None
@@ -220,36 +269,15 @@ class JobStore:
             ).first()
             return None if existing is None else existing.to_dict()
 
-    def _insert(
-        self,
-        config: dict[str, Any],
-        kind: str,
-        night: int | None,
-        antennas: list[int] | None,
-        dedupe_key: str | None,
-        force: bool,
-        max_attempts: int,
-        submitted_by: str | None = None,
-    ) -> dict[str, Any]:
+    def _insert(self, job: Job) -> dict[str, Any]:
         from autocal.service.job_index import JobAntenna, antenna_rows
 
         with self.session() as s:
-            job = Job(
-                id=uuid.uuid4().hex,
-                kind=kind,
-                state=JobState.queued.value,
-                config=config,
-                night=night,
-                antennas=antennas,
-                dedupe_key=dedupe_key,
-                dedupe_active=None if force else dedupe_key,
-                created_at=_now(),
-                max_attempts=max_attempts,
-                submitted_by=submitted_by,
-            )
+            job.created_at = self.db_now(s)
             s.add(job)
             s.flush()
-            s.add_all(JobAntenna(**row) for row in antenna_rows(job.id, job.created_at, antennas))
+            rows = antenna_rows(job.id, job.created_at, job.antennas)
+            s.add_all(JobAntenna(**row) for row in rows)
             s.flush()
             return job.to_dict()
 
@@ -301,7 +329,7 @@ class JobStore:
             if job.state == JobState.queued.value:
                 job.state = JobState.cancelled.value
                 job.dedupe_active = None
-                job.finished_at = _now()
+                job.finished_at = self.db_now(s)
                 job.message = "cancelled before it started"
             elif job.state == JobState.running.value:
                 job.cancel_requested = True
@@ -313,8 +341,8 @@ class JobStore:
     # the worker side -------------------------------------------------------------------
     def claim(self, worker: str, kinds: list[str] | None = None) -> dict[str, Any] | None:
         """Atomically take the oldest queued job; ``None`` when the queue is empty."""
-        now = _now()
         with self.session() as s:
+            now = self.db_now(s)
             pick = select(Job.id).where(Job.state == JobState.queued.value)
             if kinds:
                 pick = pick.where(Job.kind.in_(kinds))
@@ -373,7 +401,7 @@ class JobStore:
             job = self._owned(s, job_id, worker, attempt)
             if job is None:
                 return False
-            job.heartbeat_at = _now()
+            job.heartbeat_at = self.db_now(s)
             if progress is not None:
                 job.progress = float(min(max(progress, 0.0), 1.0))
             if message is not None:
@@ -383,7 +411,8 @@ class JobStore:
     def append_log(self, job_id: str, line: str) -> None:
         """Append a line to the job's log tail."""
         with self.session() as s:
-            job = s.get(Job, job_id)
+            # locked: a concurrent release or recovery also appends to the log
+            job = s.get(Job, job_id, with_for_update=not self.is_sqlite)
             if job is None:
                 return
             lines = (job.log.splitlines() if job.log else []) + [line.rstrip()[:1000]]
@@ -406,63 +435,170 @@ class JobStore:
             raise StoreError(f"{state.value} is not a final state")
         with self.session() as s:
             job = self._owned(s, job_id, worker, attempt)
-            if job is None:
-                logger.warning("worker %s no longer owns job %s; result discarded", worker, job_id)
-                return False
-            job.state = state.value
-            job.finished_at = _now()
-            if state != JobState.succeeded:
-                job.dedupe_active = None
-            job.progress = 1.0 if state == JobState.succeeded else job.progress
-            job.result = result
-            job.products = products
-            job.provenance = provenance
-            job.error = error
-            job.message = {"succeeded": "done", "failed": "failed", "cancelled": "cancelled"}[
-                state.value
-            ]
-            if state == JobState.succeeded:
-                job.completions += 1
-            return True
+            if job is not None:
+                self._close(s, job, state, result, products, provenance, error)
+        if job is None:  # logged outside the session: a log handler may write to the store
+            logger.warning("worker %s no longer owns job %s; result discarded", worker, job_id)
+            return False
+        return True
 
-    def recover_stale(self, stale_after_s: float) -> list[dict[str, Any]]:
-        """Re-queue or fail running jobs whose heartbeat is older than ``stale_after_s``."""
-        cutoff = _now() - timedelta(seconds=stale_after_s)
+    def _close(
+        self,
+        s: Session,
+        job: Job,
+        state: JobState,
+        result: dict[str, Any] | None,
+        products: dict[str, str] | None,
+        provenance: dict[str, Any] | None,
+        error: str | None,
+    ) -> None:
+        """Record a job's final state (its owner checked by the caller)."""
+        job.state = state.value
+        job.finished_at = self.db_now(s)
+        if state != JobState.succeeded:
+            job.dedupe_active = None
+        job.progress = 1.0 if state == JobState.succeeded else job.progress
+        job.result = result
+        job.products = products
+        job.provenance = provenance
+        job.error = error
+        job.message = {"succeeded": "done", "failed": "failed", "cancelled": "cancelled"}[
+            state.value
+        ]
+        if state == JobState.succeeded:
+            job.completions += 1
+
+    def release(self, job_id: str, worker: str, attempt: int, reason: str) -> bool:
+        """Hand a running job back to the queue at once (a worker shutting down).
+
+        The attempt is not counted against ``max_attempts`` (``releases`` is raised with
+        ``attempts``, whose value keeps attempt numbers and product folders unique), the
+        owner is cleared, so the job can be claimed again at once and a late result of
+        this attempt is refused. A job whose cancellation was requested is cancelled.
+
+        Parameters
+        ----------
+        job_id, worker, attempt
+            The job and its owner (as returned by :meth:`claim`).
+        reason
+            Why it was handed back (the job's message and a log line).
+
+        Returns
+        -------
+        bool
+            ``False`` (nothing changed) if ``worker`` no longer owns the attempt.
+        """
+        with self.session() as s:
+            job = self._owned(s, job_id, worker, attempt)
+            if job is None:
+                return False
+            if job.cancel_requested:
+                job.state = JobState.cancelled.value
+                job.finished_at = self.db_now(s)
+                job.dedupe_active = None
+                job.error = "cancelled on request"
+                job.message = "cancelled"
+            else:
+                job.state = JobState.queued.value
+                job.releases = (job.releases or 0) + 1
+                job.message = f"re-queued: {reason}"[:500]
+            job.worker = None
+            _log_line(job, f"attempt {attempt} handed back: {reason}")
+        logger.info("job %s attempt %d handed back by %s: %s", job_id, attempt, worker, reason)
+        return True
+
+    def recover_stale(
+        self, stale_after_s: float, job_timeout_s: float = 0.0
+    ) -> list[dict[str, Any]]:
+        """Re-queue or fail running jobs that stopped beating or ran out of time.
+
+        A job whose heartbeat is older than ``stale_after_s`` (by the database clock,
+        :meth:`db_now`) is re-queued, or failed once it used ``max_attempts`` counted
+        attempts (handed-back ones are not counted). A job whose current attempt started
+        more than ``job_timeout_s`` ago is failed with that reason even if it is still
+        beating (a hung job whose heartbeat thread is alive); 0 means no time limit.
+
+        Parameters
+        ----------
+        stale_after_s
+            Seconds without heartbeat after which a worker is presumed dead.
+        job_timeout_s
+            Per-attempt time limit in seconds (``AUTOCAL_JOB_TIMEOUT_S``); 0: none.
+
+        Returns
+        -------
+        list of dict
+            The jobs changed.
+        """
         changed = []
         with self.session() as s:
+            now = self.db_now(s)
             query = select(Job).where(Job.state == JobState.running.value)
             if not self.is_sqlite:
                 query = query.with_for_update(skip_locked=True)
             for job in s.scalars(query):
-                beat = _aware(job.heartbeat_at) if job.heartbeat_at else None
-                if beat is not None and beat >= cutoff:
-                    continue
-                reason = (
-                    f"worker {job.worker} stopped sending heartbeats (last "
-                    f"{beat.isoformat() if beat else 'never'}; attempt {job.attempts})"
-                )
-                if job.attempts < job.max_attempts and not job.cancel_requested:
-                    job.state = JobState.queued.value
-                    job.message = f"re-queued: {reason}"
-                else:
-                    job.state = (
-                        JobState.cancelled.value if job.cancel_requested else JobState.failed.value
-                    )
-                    job.finished_at = _now()
-                    job.dedupe_active = None
-                    job.error = reason
-                    job.message = job.state
-                job.worker = None
-                lines = (job.log.splitlines() if job.log else []) + [reason]
-                job.log = "\n".join(lines[-LOG_LINES:])
-                changed.append(job.to_dict())
+                if self._recover_one(job, now, stale_after_s, job_timeout_s):
+                    changed.append(job.to_dict())
         for job in changed:
-            logger.warning("job %s: %s", job["id"], job["message"] or job["error"])
+            logger.warning("job %s: %s", job["id"], job["error"] or job["message"])
         return changed
+
+    @staticmethod
+    def _recover_one(job: Job, now: datetime, stale_after_s: float, timeout_s: float) -> bool:
+        """Re-queue or close one running job if stale or out of time; whether it changed."""
+        started = _aware(job.started_at) if job.started_at else None
+        beat = _aware(job.heartbeat_at) if job.heartbeat_at else None
+        if timeout_s > 0 and started is not None and now - started >= timedelta(seconds=timeout_s):
+            reason = (
+                f"job exceeded its time limit (AUTOCAL_JOB_TIMEOUT_S={timeout_s:g} s): attempt "
+                f"{job.attempts} running since {started.isoformat()} on worker {job.worker}"
+            )
+            requeue = False
+        elif beat is None or now - beat > timedelta(seconds=stale_after_s):
+            reason = (
+                f"worker {job.worker} stopped sending heartbeats (last "
+                f"{beat.isoformat() if beat else 'never'}; attempt {job.attempts})"
+            )
+            counted = job.attempts - (job.releases or 0)
+            requeue = counted < job.max_attempts and not job.cancel_requested
+        else:
+            return False
+        if requeue:
+            job.state = JobState.queued.value
+            job.message = f"re-queued: {reason}"[:500]
+        else:
+            job.state = JobState.cancelled.value if job.cancel_requested else JobState.failed.value
+            job.finished_at = now
+            job.dedupe_active = None
+            job.error = reason
+            job.message = job.state
+        job.worker = None
+        _log_line(job, reason)
+        return True
+
+
+def _log_line(job: Job, line: str) -> None:
+    """Append ``line`` to a job's bounded log tail."""
+    lines = (job.log.splitlines() if job.log else []) + [line.rstrip()[:1000]]
+    job.log = "\n".join(lines[-LOG_LINES:])
 
 
 def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
+    # let SQLAlchemy, not the sqlite3 module, open transactions (see below)
+    dbapi_connection.isolation_level = None
     cursor = dbapi_connection.cursor()
     cursor.execute("PRAGMA journal_mode=WAL")
     cursor.execute("PRAGMA busy_timeout=30000")
     cursor.close()
+
+
+def _sqlite_begin_immediate(conn: Any) -> None:
+    """Open every SQLite transaction with the write lock (``BEGIN IMMEDIATE``).
+
+    The sqlite3 module otherwise runs a session's reads outside any transaction and
+    begins one only at its first write, so two read-modify-write sessions (a release
+    and a log line, a finish and a recovery) could both read the old row and the later
+    write would silently undo the earlier one. Holding the lock from the first read
+    serialises them (waiting up to ``busy_timeout``); sessions are short.
+    """
+    conn.exec_driver_sql("BEGIN IMMEDIATE")

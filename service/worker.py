@@ -19,11 +19,20 @@ or many, sharing a PostgreSQL store) for parallelism. A job's life in the worker
    cancelled; or failed with a one-line reason (``"ExceptionType: message"``; the
    traceback goes to the worker's own log).
 
-A worker asked to shut down (:meth:`Worker.request_stop`, e.g. on SIGTERM) stops claiming,
-aborts the current job at its next checkpoint without closing it and stops its heartbeat;
-:meth:`JobStore.recover_stale`, called periodically by every worker, re-queues the job
-(or fails it after ``max_attempts``). A job is therefore never lost and, because
-``finish`` checks owner and attempt, never completed twice.
+A worker asked to shut down (:meth:`Worker.request_stop`, e.g. on SIGTERM or SIGINT)
+stops claiming and hands its running job back at once (:meth:`JobStore.release`: queued
+again, owner cleared, the attempt not counted against ``max_attempts``), then aborts the
+job at its next checkpoint; any later result of that attempt is refused. Graceful
+restarts therefore never fail a healthy job. A worker that dies (kill -9, power cut)
+stops beating; :meth:`JobStore.recover_stale`, called periodically by every worker,
+re-queues its job (or fails it after ``max_attempts``) and fails any attempt running
+longer than ``AUTOCAL_JOB_TIMEOUT_S`` even if it still beats. A job is therefore never
+lost and, because ``finish`` checks owner and attempt, never completed twice.
+
+Before a job reads its inputs, :func:`autocal.service.input_check.check_inputs`
+re-resolves them under the data roots and compares them with the fingerprints recorded
+at submission. The janitor (:func:`autocal.service.janitor.sweep`) runs at start-up and
+every ``AUTOCAL_JANITOR_INTERVAL_S``.
 """
 
 from __future__ import annotations
@@ -41,6 +50,8 @@ from pathlib import Path
 from typing import Any
 
 from autocal.service.history import record_job_safely
+from autocal.service.input_check import InputChangedError, check_inputs
+from autocal.service.janitor import sweep
 from autocal.service.settings import Settings, get_settings
 from autocal.service.store import JobState, JobStore
 
@@ -141,6 +152,8 @@ class _Run:
         self.progress_value = 0.0
         self.message = "claimed"
         self.stop_flag = threading.Event()  # the store said stop (cancel / lost ownership)
+        self.released = False  # handed back to the queue by a shutdown
+        self.release_lock = threading.Lock()
         self.done = threading.Event()
         self.lock = threading.Lock()
         self.thread = threading.Thread(
@@ -226,6 +239,7 @@ class Worker:
         self.current: _Run | None = None
         self._recover_lock = threading.Lock()
         self._last_recover = -math.inf
+        self._last_sweep = -math.inf
 
     # control -----------------------------------------------------------------------------
     @property
@@ -234,13 +248,42 @@ class Worker:
         return self.stop_event.is_set()
 
     def request_stop(self) -> None:
-        """Stop claiming jobs and abort the current one at its next checkpoint.
+        """Stop claiming jobs, hand the current job back and abort it at its next checkpoint.
 
-        The aborted job is not closed: it stays ``running`` until
-        :meth:`JobStore.recover_stale` re-queues it. From a signal handler, call it in a
-        new thread (``threading.Event.set`` takes a lock the interrupted thread may hold).
+        The job is re-queued at once (:meth:`JobStore.release`; the attempt is not
+        counted). From a signal handler, call it in a new thread (``threading.Event.set``
+        takes a lock the interrupted thread may hold; the release queries the store).
         """
         self.stop_event.set()
+        run = self.current
+        if run is not None:
+            self.release(run)
+
+    def release(self, run: _Run) -> bool:
+        """Hand ``run``'s job back to the queue (once; later calls wait for it, then return).
+
+        Called by the stopping thread and by the job thread at its checkpoint: the lock
+        makes the job thread (and so the process's exit) wait for a release under way.
+        """
+        with run.release_lock:
+            if run.released:
+                return False
+            try:
+                done = self.store.release(
+                    run.job_id, self.worker_id, run.attempt, f"worker {self.worker_id} shut down"
+                )
+            except Exception as err:  # the store is unreachable: stale recovery will do it
+                logger.warning("job %s: could not hand it back (%s)", run.job_id, err)
+                return False
+            run.released = True
+        if done:
+            logger.warning(
+                "job %s attempt %d: handed back to the queue (worker %s shutting down)",
+                run.job_id,
+                run.attempt,
+                self.worker_id,
+            )
+        return done
 
     @property
     def recover_interval_s(self) -> float:
@@ -255,13 +298,26 @@ class Worker:
                 return []
             self._last_recover = now
         try:
-            changed = self.store.recover_stale(self.settings.stale_after_s)
+            changed = self.store.recover_stale(
+                self.settings.stale_after_s, self.settings.job_timeout_s
+            )
         except Exception as err:
             logger.warning("stale-job recovery failed: %s", err)
             return []
         for job in changed:
             logger.warning("recovered stale job %s -> %s", job["id"], job["state"])
         return changed
+
+    def maybe_sweep(self, force: bool = False) -> None:
+        """Run the janitor, at most once per ``settings.janitor_interval_s``."""
+        now = time.monotonic()
+        if not force and now - self._last_sweep < self.settings.janitor_interval_s:
+            return
+        self._last_sweep = now
+        try:
+            sweep(self.store, self.settings)
+        except Exception as err:  # never let cleaning stop the worker
+            logger.warning("janitor failed: %s", err)
 
     # the loop ----------------------------------------------------------------------------
     def run_once(self) -> bool:
@@ -288,8 +344,8 @@ class Worker:
         poll_s
             Seconds to wait before looking again when the queue is empty.
         stop_event
-            Optional event that stops the loop (also aborts the current job, which is
-            then re-queued by stale-job recovery).
+            Optional event that stops the loop (also aborts the current job at its next
+            checkpoint; it is handed back to the queue).
         """
         if stop_event is not None:
             self.stop_event = stop_event
@@ -301,6 +357,7 @@ class Worker:
         )
         while not self.stopping:
             self.maybe_recover()
+            self.maybe_sweep()
             try:
                 ran = self.run_once()
             except Exception as err:  # the store is unreachable: wait and retry
@@ -405,6 +462,12 @@ class Worker:
                 error=f"unknown job kind {job['kind']!r} (this worker runs: "
                 f"{', '.join(KNOWN_KINDS)})",
             )
+        if self.stopping:  # stopped between the claim and now
+            return self._stopped(run, RuntimeError("worker shutting down"))
+        try:  # the inputs are still where (and what) they were at submission
+            check_inputs(job["config"] or {}, job.get("input_fingerprints"), self.settings)
+        except InputChangedError as err:
+            return self._finish(run, JobState.failed, error=describe_error(err))
         out = self.settings.products_dir / run.job_id / f"attempt-{run.attempt}"
         try:
             run_summary, products = self._run_kind(job["kind"], job["config"] or {}, out, run)
@@ -436,18 +499,12 @@ class Worker:
         )
 
     def _stopped(self, run: _Run, err: BaseException) -> str | None:
-        """Close (or leave) a job stopped at a checkpoint: cancelled, lost, or shutdown."""
-        if run.stop_flag.is_set():
+        """Close (or hand back) a job stopped at a checkpoint: cancelled, lost, or shutdown."""
+        if run.stop_flag.is_set() and not self.stopping:
             # Either cancellation was requested (we still own it: record cancelled) or
             # the job was re-queued/failed behind our back (finish refuses; fine).
             logger.info("job %s attempt %d: stopped (%s)", run.job_id, run.attempt, err)
             return self._finish(run, JobState.cancelled, error="cancelled on request")
-        logger.warning(
-            "job %s attempt %d: abandoned because worker %s is shutting down; "
-            "it will be re-queued when its heartbeat is stale",
-            run.job_id,
-            run.attempt,
-            self.worker_id,
-        )
+        self.release(run)  # usually done at once by request_stop; idempotent
         run.log(f"worker {self.worker_id} shut down during attempt {run.attempt}")
         return None

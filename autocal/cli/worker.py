@@ -27,9 +27,9 @@ def add(sub: argparse._SubParsersAction) -> None:
         "AUTOCAL_STATE_DIR/jobs/<job id>/attempt-<n>. For parallelism start several worker "
         "processes (e.g. systemd autocal-worker@1, @2, ... or compose replicas); with many "
         "workers or machines use PostgreSQL. Jobs of crashed workers are re-queued after "
-        "AUTOCAL_STALE_AFTER_S without heartbeat. SIGTERM/SIGINT: stop claiming, abort the "
-        "current job at its next checkpoint (it is re-queued) and exit; a second signal "
-        "exits at once.",
+        "AUTOCAL_STALE_AFTER_S without heartbeat. SIGTERM/SIGINT: stop claiming, hand the "
+        "current job back to the queue at once (the attempt is not counted), abort it at its "
+        "next checkpoint and exit; a second signal exits at once.",
     )
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--once", action="store_true", help="run at most one job, then exit")
@@ -89,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     worker.maybe_recover(force=True)
+    worker.maybe_sweep(force=True)  # the janitor: leftovers of killed processes
     if args.once:
         ran = worker.run_once()
         logger.info("worker %s: %s", worker.worker_id, "ran one job" if ran else "queue empty")

@@ -1,4 +1,9 @@
-"""File helpers every writer and reader shares: atomic writes and content checksums."""
+"""File helpers every writer and reader shares: atomic writes and content checksums.
+
+Renames are made durable: a file is flushed to disk (``fsync``) before it is renamed into
+place and its folder afterwards, so a power cut leaves either the old or the new product,
+never a renamed but empty file.
+"""
 
 from __future__ import annotations
 
@@ -21,11 +26,71 @@ def _current_umask() -> int:
 _UMASK = _current_umask()
 
 
+def fsync_file(path: str | Path) -> None:
+    """Flush a file's content to disk.
+
+    Parameters
+    ----------
+    path
+        The file.
+    """
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def fsync_dir(path: str | Path) -> None:
+    """Flush a folder's entries (renames, new files) to disk (a no-op where unsupported).
+
+    Parameters
+    ----------
+    path
+        The folder.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:  # e.g. Windows cannot open folders
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # some file systems refuse fsync on folders
+        pass
+    finally:
+        os.close(fd)
+
+
+def publish_staged(staging: Path, out: Path, names: list[str]) -> None:
+    """Move the files ``names`` from ``staging`` into ``out``, durably and in order.
+
+    Every staged file (and the staging folder) is flushed to disk before the first
+    rename, and ``out`` after the last, so that what is visible after a crash was fully
+    written. Put the file whose presence marks a complete set (``summary.json``) last.
+
+    Parameters
+    ----------
+    staging
+        The folder the products were written into (inside ``out``: same file system).
+    out
+        Where they are published.
+    names
+        File names in ``staging``, in publication order.
+    """
+    for name in names:
+        fsync_file(staging / name)
+    fsync_dir(staging)
+    for name in names:
+        os.replace(staging / name, out / name)
+    fsync_dir(out)
+
+
 @contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` on success.
 
-    On any exception the temporary file is removed and ``path`` is left untouched.
+    On any exception the temporary file is removed and ``path`` is left untouched. The
+    file is flushed to disk before the rename and its folder after it.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -38,7 +103,9 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         # so that a service reading it as another user (API vs worker) can serve it
         if tmp_path.exists():
             os.chmod(tmp_path, 0o666 & ~_UMASK)
+            fsync_file(tmp_path)
         os.replace(tmp_path, path)
+        fsync_dir(path.parent)
     except BaseException:
         tmp_path.unlink(missing_ok=True)
         raise

@@ -41,6 +41,7 @@ from pydantic import (
 
 from autocal import __version__
 from autocal.core.coords import night_epoch
+from autocal.core.files import publish_staged
 from autocal.core.observation import Observation
 from autocal.diagnosis import effects, report
 from autocal.diagnosis.effects import SkyTemplates
@@ -469,8 +470,7 @@ def _publish(
         text = json.dumps(_strict_json(summary), indent=2, allow_nan=False)
         (staging / SUMMARY).write_text(text + "\n")
         check_stop()  # last chance to cancel: nothing is published yet
-        for name in [*files, SUMMARY]:
-            os.replace(staging / name, out / name)
+        publish_staged(staging, out, [*files, SUMMARY])  # flushed to disk, summary last
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return products

@@ -52,7 +52,6 @@ from autocal.pipeline.products import (
     SUMMARY_NAME,
     comparison_summary,
     write_products,
-    write_summary,
 )
 from autocal.pipeline.quality import flag_quality
 from autocal.pipeline.scaleout import dask_client
@@ -219,27 +218,35 @@ def _calibrate(
             ),
         }
     t3 = time.perf_counter()
-    products: dict[str, str] = {}
-    if out is not None:
+    made: dict[str, dict[str, Any]] = {}
+
+    def summary_of(staged: dict[str, str], products: dict[str, str]) -> dict[str, Any]:
+        timings["products_s"] = time.perf_counter() - t3
+        timings["total_s"] = time.perf_counter() - t0
+        made["summary"] = {
+            "solution": solution.describe(),
+            "separation": separation_summary(solution),
+            "quality": flag_quality(solution),
+            "rfi_flagging": flagging,
+            "comparison": comparison_summary(staged),
+            "config": config.model_dump(mode="json"),
+            "provenance": provenance,
+            "products": dict(products),
+            "timings_s": {k: round(v, 3) for k, v in timings.items()},
+            "execution": run.execution,
+        }
+        return made["summary"]
+
+    if out is None:
+        products: dict[str, str] = {}
+        summary = summary_of({}, products)
+    else:
         report(0.85, "writing products")
-        products = write_products(config, solution, source.lsts, run, out, comparison_inputs)
-    separation = separation_summary(solution)
-    timings["products_s"] = time.perf_counter() - t3
-    timings["total_s"] = time.perf_counter() - t0
-    summary = {
-        "solution": solution.describe(),
-        "separation": separation,
-        "quality": flag_quality(solution),
-        "rfi_flagging": flagging,
-        "comparison": comparison_summary(products),
-        "config": config.model_dump(mode="json"),
-        "provenance": provenance,
-        "products": products,
-        "timings_s": {k: round(v, 3) for k, v in timings.items()},
-        "execution": run.execution,
-    }
-    if out is not None:
-        products["summary"] = write_summary(out, summary)
+        # summary.json is staged with the other products: all are published or none
+        products = write_products(
+            config, solution, source.lsts, run, out, comparison_inputs, summary_of=summary_of
+        )
+        summary = {**made["summary"], "products": products}
     report(1.0, "done")
     return CalibrationResult(solution, products, summary, timings)
 

@@ -13,7 +13,7 @@ import logging
 import os
 import shutil
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +21,7 @@ import numpy as np
 
 from autocal.compare.comparison import compare
 from autocal.compare.report import write_comparison
-from autocal.core.files import atomic_path
+from autocal.core.files import atomic_path, publish_staged
 from autocal.fit.solution import Solution
 from autocal.io.calsol_read import read_reference_gains
 from autocal.io.calsol_write import write_calfits, write_calh5
@@ -208,16 +208,22 @@ def write_products(
     run: PassesResult,
     out: Path,
     comparison_inputs: dict[str, Any] | None = None,
+    summary_of: Callable[[dict[str, str], dict[str, str]], dict[str, Any]] | None = None,
 ) -> dict[str, str]:
     """Write every product into a staging folder, then move them into ``out``.
 
-    ``lsts`` are the observation's (hours), for the residual waterfall's rows.
+    ``lsts`` are the observation's (hours), for the residual waterfall's rows. With
+    ``summary_of``, ``summary.json`` is part of the set: ``summary_of(staged, products)``
+    (product paths in the staging folder, where they can be read, and their final paths)
+    returns the summary, written into the staging folder like every other product. Nothing
+    is moved into ``out`` until every product, the summary included, was written; then the
+    files are flushed to disk and renamed, ``summary.json`` last, so a folder with a
+    ``summary.json`` holds the whole set.
     """
     out.mkdir(parents=True, exist_ok=True)
     staging = out / f".staging-{os.getpid()}-{time.time_ns()}"
     staging.mkdir()
     names = {**PRODUCT_FILES, **FIGURE_FILES}
-    written: dict[str, str] = {}
     try:
         stems = file_stems(config.inputs)
         write_solution_products(solution, staging, config.products, stems=stems)
@@ -228,11 +234,19 @@ def write_products(
             comparison = compare(solution, reference, **(comparison_inputs or {}))
             paths = write_comparison(comparison, staging)
             names.update({f"compare_{k}": Path(v).name for k, v in paths.items()})
-        for item in sorted(staging.iterdir()):
-            target = out / item.name
-            os.replace(item, target)
-            key = next((k for k, v in names.items() if v == item.name), item.name)
-            written[key] = str(target)
+        files = sorted(item.name for item in staging.iterdir())
+        keys = {name: next((k for k, v in names.items() if v == name), name) for name in files}
+        staged = {keys[name]: str(staging / name) for name in files}
+        written = {keys[name]: str(out / name) for name in files}
+        if summary_of is not None:
+            summary = summary_of(staged, written)
+            (staging / SUMMARY_NAME).write_text(
+                json.dumps(summary, indent=2, default=_json_default)
+            )
+            files.append(SUMMARY_NAME)
+        publish_staged(staging, out, files)
+        if summary_of is not None:
+            written["summary"] = str(out / SUMMARY_NAME)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return written

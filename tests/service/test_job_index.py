@@ -21,7 +21,7 @@ from autocal.service.job_index import (
     encode_cursor,
     list_page,
 )
-from autocal.service.migrations import STEPS, applied_migrations, apply_migrations
+from autocal.service.migrations import MIGRATIONS, applied_migrations, apply_migrations
 from autocal.service.store import Job, JobStore
 from tests.service.test_service_store import database_url
 
@@ -159,13 +159,13 @@ def test_a_cursor_not_issued_by_the_service_is_refused() -> None:
 
 
 def _old_schema(url: str) -> None:
-    """Create the jobs table as it was before the migrations (no submitted_by, no indexes)."""
+    """Create the jobs table as it was before the migrations (no columns or indexes of theirs)."""
     engine = create_engine(url)
     metadata = MetaData()
     columns = [
         Column(c.name, c.type, primary_key=c.primary_key, nullable=c.nullable)
         for c in Job.__table__.columns
-        if c.name != "submitted_by"
+        if c.name not in {"submitted_by", "releases", "input_fingerprints"}
     ]
     old = Table("jobs", metadata, *columns)
     metadata.create_all(engine)
@@ -202,7 +202,7 @@ def test_an_existing_store_is_migrated_once(tmp_path: Path) -> None:
         try:
             _old_schema(url)
             store = JobStore(url)
-            names = [name for name, _ in STEPS]
+            names = [m.name for m in MIGRATIONS]
             assert applied_migrations(store.engine) == names
             inspector = inspect(store.engine)
             assert "submitted_by" in {c["name"] for c in inspector.get_columns("jobs")}
@@ -225,7 +225,7 @@ def test_an_existing_store_is_migrated_once(tmp_path: Path) -> None:
 
 def test_a_new_store_records_every_step(tmp_path: Path) -> None:
     store = JobStore(f"sqlite:///{tmp_path / 'jobs.sqlite'}")
-    assert applied_migrations(store.engine) == [name for name, _ in STEPS]
+    assert applied_migrations(store.engine) == [m.name for m in MIGRATIONS]
     store.engine.dispose()
 
 

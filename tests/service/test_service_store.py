@@ -13,6 +13,7 @@ import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
+from datetime import datetime, timedelta
 from pathlib import Path
 
 import pytest
@@ -345,3 +346,84 @@ def test_log_tail_is_bounded(store: JobStore) -> None:
     lines = store.get(job["id"])["log"].splitlines()
     assert len(lines) == LOG_LINES
     assert lines[0] == "line 25" and lines[-1] == f"line {LOG_LINES + 24}"
+
+
+# graceful release, the database clock, the time limit (issue 24: D2, D10) -------------------
+
+
+def test_release_hands_the_job_back_without_counting_an_attempt(store: JobStore) -> None:
+    job, _ = store.submit(_config(), max_attempts=1)
+    jid = job["id"]
+    for attempt in (1, 2, 3):  # three graceful restarts of the worker running it
+        claimed = store.claim(f"w{attempt}")
+        assert claimed["id"] == jid and claimed["attempts"] == attempt
+        assert store.release(jid, f"w{attempt}", attempt, "worker shut down")
+        rec = store.get(jid)
+        assert rec["state"] == "queued" and rec["worker"] is None
+        assert rec["releases"] == attempt and "handed back" in rec["log"]
+        # the released attempt can no longer report, nor be released twice
+        assert not store.finish(jid, f"w{attempt}", attempt, JobState.succeeded)
+        assert not store.heartbeat(jid, f"w{attempt}", attempt)
+        assert not store.release(jid, f"w{attempt}", attempt, "again")
+    claimed = store.claim("w4")
+    assert claimed["attempts"] == 4
+    time.sleep(0.05)
+    store.recover_stale(0.01)  # a crash now: 1 counted attempt of 1 -> failed
+    rec = store.get(jid)
+    assert rec["state"] == "failed" and rec["completions"] == 0
+
+    other, _ = store.submit(_config("b"), max_attempts=1)
+    store.claim("w5")
+    store.release(other["id"], "w5", 1, "worker shut down")
+    claimed = store.claim("w6")
+    assert store.finish(other["id"], "w6", 2, JobState.succeeded)
+    assert store.get(other["id"])["completions"] == 1
+
+
+def test_release_of_a_job_being_cancelled_cancels_it(store: JobStore) -> None:
+    job, _ = store.submit(_config())
+    store.claim("w1")
+    store.request_cancel(job["id"])
+    assert store.release(job["id"], "w1", 1, "worker shut down")
+    rec = store.get(job["id"])
+    assert rec["state"] == "cancelled" and rec["finished_at"] is not None
+
+
+def _skewed_clock(monkeypatch: pytest.MonkeyPatch, offset_s: float) -> None:
+    """Make this process's clock (as the store module reads it) run ``offset_s`` off."""
+    import autocal.service.store as store_module
+
+    real = store_module._now
+    monkeypatch.setattr(store_module, "_now", lambda: real() + timedelta(seconds=offset_s))
+
+
+def test_heartbeats_and_staleness_use_the_database_clock(
+    store: JobStore, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    job, _ = store.submit(_config())
+    store.claim("slow-clock")
+    with monkeypatch.context() as patch:  # a worker whose clock is 10 minutes behind
+        _skewed_clock(patch, -600)
+        assert store.heartbeat(job["id"], "slow-clock", 1)
+    assert store.recover_stale(60) == []  # its heartbeat is fresh by the database clock
+    with monkeypatch.context() as patch:  # a recovering worker 10 minutes ahead
+        _skewed_clock(patch, +600)
+        assert store.recover_stale(60) == []
+    assert store.get(job["id"])["state"] == "running"
+    beat = datetime.fromisoformat(store.get(job["id"])["heartbeat_at"])
+    assert abs((store.db_now() - beat).total_seconds()) < 60
+
+
+def test_time_limit_fails_a_job_that_still_beats(store: JobStore) -> None:
+    job, _ = store.submit(_config(), max_attempts=3)
+    store.claim("hung")
+    time.sleep(0.3)
+    assert store.heartbeat(job["id"], "hung", 1)  # its heartbeat thread is alive
+    assert store.recover_stale(3600, job_timeout_s=3600) == []
+    changed = store.recover_stale(3600, job_timeout_s=0.2)
+    assert [c["id"] for c in changed] == [job["id"]]
+    rec = store.get(job["id"])
+    assert rec["state"] == "failed" and rec["completions"] == 0
+    assert "time limit" in rec["error"] and "AUTOCAL_JOB_TIMEOUT_S=0.2" in rec["error"]
+    assert not store.heartbeat(job["id"], "hung", 1)  # the worker is told to stop
+    assert store.recover_stale(3600, job_timeout_s=0) == []  # 0: no limit

@@ -148,13 +148,15 @@ def backend(request: pytest.FixtureRequest) -> str:
 
 
 @pytest.fixture
-def service(backend: str, tmp_path: Path) -> Iterator[Callable[..., Service]]:
+def service(backend: str, tmp_path: Path, tiny_uvh5: Path) -> Iterator[Callable[..., Service]]:
     made: list[Service] = []
+    # workers re-check at the start of a job that its inputs lie under the data roots
+    roots = f"{tiny_uvh5.parent}:{tmp_path}"
 
     with database_url(backend, tmp_path / "db") as url:
 
         def make(**env: str) -> Service:
-            svc = Service(url, tmp_path / "state", **env)
+            svc = Service(url, tmp_path / "state", **{"AUTOCAL_DATA_ROOTS": roots, **env})
             made.append(svc)
             return svc
 
@@ -250,24 +252,45 @@ def test_cancellation_and_graceful_sigterm(service, tiny_uvh5) -> None:
     assert job["state"] == "cancelled", (job, svc.logs())
     assert job["completions"] == 0 and job["error"] == "cancelled on request"
 
-    # SIGTERM mid-job: the worker stops at the next checkpoint without closing the job,
-    # its heartbeat stops, and recovery re-queues the job for another worker.
+    # SIGTERM mid-job: the worker hands the job back at once (queued, no owner, the
+    # attempt not counted) and exits after the next checkpoint.
     interrupted, _ = svc.store.submit(calibrate_config(tiny_uvh5, **SLOW))
     svc.wait(lambda: svc.state(interrupted["id"]) == "running", 60, "the second job to start")
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(60) == 0, svc.logs()
     job = svc.store.get(interrupted["id"])
-    assert job["state"] == "running" and job["completions"] == 0
-    assert "shut down during attempt 1" in job["log"]
-    beat = job["heartbeat_at"]
-    time.sleep(2 * HEARTBEAT_S)
-    assert svc.store.get(interrupted["id"])["heartbeat_at"] == beat  # heartbeat stopped
-    svc.wait(
-        lambda: svc.store.recover_stale(STALE_AFTER_S),
-        STALE_AFTER_S + 10,
-        "the interrupted job to be stale",
-    )
-    assert svc.state(interrupted["id"]) == "queued"
+    assert job["state"] == "queued" and job["worker"] is None, (job, svc.logs())
+    assert job["releases"] == 1 and job["completions"] == 0, (job, svc.logs())
+    assert "shut down during attempt 1" in job["log"] and "handed back" in job["log"]
+
+
+def test_three_graceful_restarts_never_fail_a_healthy_job(service, tiny_uvh5) -> None:
+    svc: Service = service()
+    # max_attempts=1: a single counted attempt, so any counted stop would fail the job
+    job, _ = svc.store.submit(calibrate_config(tiny_uvh5, **SLOW), max_attempts=1)
+    for k, signum in enumerate((signal.SIGTERM, signal.SIGINT, signal.SIGTERM), start=1):
+        proc = svc.worker(name=f"restart{k}")
+        svc.wait(
+            lambda k=k: (
+                (rec := svc.store.get(job["id"]))["state"] == "running" and rec["attempts"] == k
+            ),
+            60,
+            f"attempt {k} to run",
+        )
+        proc.send_signal(signum)
+        assert proc.wait(60) == 0, svc.logs()
+        rec = svc.store.get(job["id"])  # handed back at once, not after the stale timeout
+        assert rec["state"] == "queued" and rec["worker"] is None, (rec, svc.logs())
+        assert rec["releases"] == k and rec["completions"] == 0
+    final = svc.worker("--drain", name="final")
+    assert final.wait(120) == 0, svc.logs()
+    done = svc.store.get(job["id"])
+    assert done["state"] == "succeeded", (done, svc.logs())
+    assert done["attempts"] == 4 and done["releases"] == 3 and done["completions"] == 1
+    assert (svc.state_dir / "jobs" / job["id"] / "attempt-4" / "summary.json").is_file()
+    # the janitor of the next worker removes the empty folders of the handed-back attempts
+    svc.worker("--once", name="janitor").wait(60)
+    assert sorted(p.name for p in (svc.state_dir / "jobs" / job["id"]).iterdir()) == ["attempt-4"]
 
 
 def test_hundred_concurrent_submissions_three_workers_each_job_once(
@@ -320,6 +343,7 @@ def test_hundred_concurrent_submissions_three_workers_each_job_once(
 def test_worker_in_process_run_once_and_unknown_kind(tmp_path: Path, tiny_uvh5) -> None:
     settings = Settings(
         state_dir=tmp_path,
+        data_roots=[tiny_uvh5.parent],
         database_url=f"sqlite:///{tmp_path / 'jobs.sqlite'}",
         heartbeat_s=0.2,
         stale_after_s=2,
@@ -349,6 +373,80 @@ def test_worker_in_process_run_once_and_unknown_kind(tmp_path: Path, tiny_uvh5) 
         stop.set()
         thread.join(30)
     assert not thread.is_alive() and store.count("succeeded") == 2
+    store.engine.dispose()
+
+
+def _inprocess(tmp_path: Path, data: Path) -> tuple[Settings, JobStore, Worker]:
+    settings = Settings(
+        state_dir=tmp_path / "state",
+        database_url=f"sqlite:///{tmp_path / 'jobs.sqlite'}",
+        data_roots=[data],
+        heartbeat_s=0.2,
+        stale_after_s=30,
+    )
+    store = JobStore(settings.resolved_database_url())
+    return settings, store, Worker(store, settings, worker_id="inproc")
+
+
+def test_a_failed_summary_leaves_no_product_of_the_attempt(
+    tmp_path: Path, tiny_uvh5, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import errno
+
+    from autocal.service.janitor import sweep
+
+    settings, store, worker = _inprocess(tmp_path, tiny_uvh5.parent)
+    job, _ = store.submit(calibrate_config(tiny_uvh5, products=["hdf5", "calh5", "png"]))
+    real_write_text = Path.write_text
+
+    def disk_full_for_the_summary(self: Path, *args: Any, **kwargs: Any) -> int:
+        if "summary.json" in self.name:
+            raise OSError(errno.ENOSPC, "No space left on device", str(self))
+        return real_write_text(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "write_text", disk_full_for_the_summary)
+    assert worker.run_once()
+    rec = store.get(job["id"])
+    assert rec["state"] == "failed" and "No space left on device" in rec["error"]
+    attempt = settings.products_dir / job["id"] / "attempt-1"
+    assert not [p for p in attempt.rglob("*") if p.is_file()]  # no product visible
+    monkeypatch.undo()
+    sweep(store, settings)  # the janitor removes the empty folders of the failed job
+    assert not (settings.products_dir / job["id"]).exists()
+    store.engine.dispose()
+
+
+def test_inputs_are_rechecked_when_the_job_starts(tmp_path: Path, tiny_uvh5) -> None:
+    import shutil
+
+    from autocal.service.nightly import submit_calibration
+
+    data, outside = tmp_path / "data", tmp_path / "outside"
+    data.mkdir()
+    outside.mkdir()
+    settings, store, worker = _inprocess(tmp_path, data)
+    options = {"beam": "dipole", "products": ["hdf5"]}
+    swapped = shutil.copy(tiny_uvh5, data / "zen.2458098.50000.HH.uvh5")
+    changed = shutil.copy(tiny_uvh5, data / "zen.2458098.60000.HH.uvh5")
+    kept = shutil.copy(tiny_uvh5, data / "zen.2458098.70000.HH.uvh5")
+    jobs = [
+        submit_calibration(store, settings, [str(p)], options)[0]["id"]
+        for p in (swapped, changed, kept)
+    ]
+    assert all(store.get(j)["input_fingerprints"] for j in jobs)
+    # while queued: one input becomes a symlink to an identical file outside the roots,
+    # another is rewritten in place
+    Path(swapped).unlink()
+    Path(swapped).symlink_to(shutil.copy(tiny_uvh5, outside / "copy.uvh5"))
+    with open(changed, "r+b") as handle:
+        handle.seek(-8, os.SEEK_END)
+        handle.write(b"\x00" * 8)
+    assert worker.run_once() and worker.run_once() and worker.run_once()
+    out, edited, ok = (store.get(j) for j in jobs)
+    assert out["state"] == "failed" and "outside the allowed folders" in out["error"]
+    assert out["error"].startswith("InputChangedError: ") and str(outside) in out["error"]
+    assert edited["state"] == "failed" and "changed since the job was submitted" in edited["error"]
+    assert ok["state"] == "succeeded", ok
     store.engine.dispose()
 
 
