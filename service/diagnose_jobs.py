@@ -22,7 +22,7 @@ from autocal.service.routers import MAX_ERRORS, as_api_error, describe_problem, 
 from autocal.service.schemas import CALIBRATE_ONLY, ApiError
 from autocal.service.settings import Settings
 from autocal.service.store import JobStore
-from autocal.service.submission_checks import check_band, check_distinct
+from autocal.service.submission_checks import check_band, check_distinct, check_sky_varies
 
 logger = logging.getLogger(__name__)
 
@@ -86,6 +86,8 @@ def build_diagnose_config(
         )
     check_distinct(resolved, "inputs")
     check_band(resolved, opts.get("freq_range_mhz"))
+    # the diagnosis fits G and Trxr too: a sky constant in time leaves them inseparable
+    check_sky_varies(opts.get("sky"), opts.get("trxr_prior"))
     return DiagnoseConfig(inputs=[str(p) for p in resolved], **opts)
 
 

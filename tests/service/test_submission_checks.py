@@ -86,11 +86,12 @@ def test_the_same_file_named_twice_is_refused(client: TestClient, data: Path) ->
         assert "items 0, 1 are the same file" in detail
 
 
+@pytest.mark.parametrize("kind", ["calibrate", "diagnose"])
 @pytest.mark.parametrize("sky", ["uniform:300", "uniform", "powerlaw:uniform@150:-2.5"])
 def test_a_sky_constant_in_time_is_refused_unless_a_prior_separates_trxr(
-    client: TestClient, sky: str
+    client: TestClient, sky: str, kind: str
 ) -> None:
-    detail = _refused(_submit(client, sky=sky), "sky")
+    detail = _refused(_submit(client, sky=sky, kind=kind), "sky")
     assert "every channel would be flagged" in detail
-    accepted = _submit(client, sky=sky, trxr_prior=100.0)
+    accepted = _submit(client, sky=sky, trxr_prior=100.0, kind=kind)
     assert accepted.status_code == 202, accepted.text
