@@ -37,6 +37,7 @@ HELP_DEFAULTS: dict[str, Any] = {
     "weights": "radiometer",
     "passes": "auto",
     "inflate_errors": True,
+    "rfi_flagging": True,
     "trxr_prior_sigma_k": 10.0,
     "antennas": None,
     "products": ["calh5", "hdf5", "png"],
