@@ -43,6 +43,7 @@ HELP_DEFAULTS: dict[str, Any] = {
     "input_format": "auto",
     "edges_r": "q",
     "edges_bin": 64,
+    "rfi_flagging": True,
 }
 
 
