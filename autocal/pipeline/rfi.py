@@ -189,9 +189,13 @@ def band_edges(level: np.ndarray, edge_level: float = EDGE_LEVEL) -> np.ndarray:
         positive = np.isfinite(row) & (row > 0)
         if not positive.any():
             continue
-        inband = positive & (row >= edge_level * np.median(row[positive]))
+        # channels without data (NaN: flagged by the data) neither split nor extend the
+        # band: the run is found among the channels that have data
+        with_data = np.flatnonzero(np.isfinite(row))
+        inband = positive[with_data] & (row[with_data] >= edge_level * np.median(row[positive]))
         lo, hi = _band_run(inband, 2 * KF)
-        dest[lo:hi] = False
+        if hi > lo:
+            dest[with_data[lo] : with_data[hi - 1] + 1] = False
     return out
 
 

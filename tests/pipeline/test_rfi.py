@@ -77,6 +77,19 @@ def test_band_edges_keep_the_band_and_bridge_a_dead_channel() -> None:
     assert not edge[50]
 
 
+def test_channels_without_data_do_not_split_the_band() -> None:
+    """A wide block of channels the data flag (NaN time-mean) inside the band is no edge:
+    the band runs on across it (real HERA 2458099 Miriad autos: flagged blocks had made
+    583 of 1024 channels 'band edge')."""
+    level = np.full(200, 10.0)
+    level[:10] = 0.1
+    level[60:120] = np.nan  # 60 channels flagged by the data, far more than 2 KF
+    level[190:] = 0.1
+    edge = band_edges(level)
+    assert np.flatnonzero(~edge)[[0, -1]].tolist() == [10, 189]
+    assert not edge[120:190].any() and not edge[10:60].any()
+
+
 def test_injected_spikes_and_a_burst_are_found_and_block_size_does_not_matter() -> None:
     data = _bandpass()
     flags = np.zeros(data.shape, bool)

@@ -388,11 +388,11 @@ def test_diagnose_config_and_command(data: Path, tmp_path: Path, capsys) -> None
 
     out = tmp_path / "cli"
     args = ["diagnose", str(data / SIM), "--sky", SKY, "--beam", "dipole", "--nside", "32"]
-    assert main([*args, "--max-steps", "0", "--bic-threshold", "50", "--out", str(out)]) == 0
+    assert main([*args, "--max-steps", "0", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "autocal diagnose" in printed and f"wrote {out}" in printed
     summary = read_summary(out)
-    assert summary["effects"] == [] and summary["config"]["bic_threshold"] == 50
+    assert summary["effects"] == [] and summary["config"]["max_steps"] == 0
     assert os.path.isfile(out / "diagnosis.json") and os.path.isfile(out / "summary.txt")
     assert main([*args, "--alpha", "2", "--out", str(out)]) != 0
     assert "alpha" in capsys.readouterr().err

@@ -221,7 +221,7 @@ def test_the_endpoints_answer_with_values_and_404s_that_list_what_exists(
     from autocal.service.app import create_app
 
     _fill(store, {(NIGHTS[-1], 3): {"Trxr": 250.0}})
-    client = TestClient(create_app(Settings(state_dir=tmp_path, api_token="t"), store))
+    client = TestClient(create_app(Settings(state_dir=tmp_path, api_token="t" * 32), store))
     antennas = client.get("/antennas").json()
     assert antennas["count"] == 10 and len(antennas["items"][3]["outliers"]) == 2
     series = client.get("/antennas/3/history", params={"pol": "EE", "from": NIGHTS[2]}).json()
@@ -268,7 +268,7 @@ def test_the_page_is_read_only_and_out_of_the_schema(store, tmp_path: Path) -> N
 
     from autocal.service.app import create_app
 
-    client = TestClient(create_app(Settings(state_dir=tmp_path, api_token="t"), store))
+    client = TestClient(create_app(Settings(state_dir=tmp_path, api_token="t" * 32), store))
     answer = client.post("/ui")
     assert answer.status_code == 405 and answer.headers["allow"] == "GET"
     assert not [p for p in client.get("/openapi.json").json()["paths"] if p.startswith("/ui")]
