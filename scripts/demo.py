@@ -34,6 +34,18 @@ def free_port() -> int:
         return int(sock.getsockname()[1])
 
 
+def stop(procs: list[subprocess.Popen]) -> None:
+    """Stop the API and worker processes (SIGTERM, then kill after 20 s)."""
+    for proc in procs:
+        proc.send_signal(signal.SIGTERM)
+    for proc in procs:
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    print("stopped the API and the worker")
+
+
 def pick_inputs(env: dict[str, str]) -> tuple[list[str], dict]:
     from autocal.io.datasets import data_dir
 
@@ -158,14 +170,7 @@ def main() -> int:
         print(f"job record: {base}/jobs/{job_id}")
         return 0
     finally:
-        for proc in procs:
-            proc.send_signal(signal.SIGTERM)
-        for proc in procs:
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-        print("stopped the API and the worker")
+        stop(procs)
 
 
 if __name__ == "__main__":

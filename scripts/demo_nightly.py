@@ -16,14 +16,13 @@ import json
 import os
 import secrets
 import shutil
-import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import httpx
-from demo import free_port
+from demo import free_port, stop
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "demo-output" / "nightly"
@@ -127,14 +126,7 @@ def main() -> int:
                 time.sleep(min(serve_s, 10**7))
         return 0
     finally:
-        for proc in procs:
-            proc.send_signal(signal.SIGTERM)
-        for proc in procs:
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-        print("stopped the API and the worker")
+        stop(procs)
 
 
 if __name__ == "__main__":
