@@ -29,6 +29,7 @@ from collections.abc import Iterable, Sequence
 from typing import Any
 
 import numpy as np
+from scipy.stats import median_abs_deviation
 
 #: Robust z above which a value is an outlier.
 THRESHOLD = 5.0
@@ -36,18 +37,15 @@ THRESHOLD = 5.0
 CHI2_JUMP = 2.0
 #: Fewest antennas of a polarisation for the array test.
 MIN_ARRAY = 4
-#: Normal-equivalent factor of the median absolute deviation.
-MAD_TO_SIGMA = 1.4826
 #: The quantities tested against the array and the history.
 TESTED = ("G", "Trxr")
 UNITS = {"G": "raw/K", "Trxr": "K"}
 
 
 def robust_centre(values: Sequence[float]) -> tuple[float, float]:
-    """Return the median and the normal-equivalent spread (1.4826 x MAD) of ``values``."""
+    """Return the median and the normal-equivalent spread (scipy's MAD, ``scale="normal"``)."""
     arr = np.asarray(values, dtype=np.float64)
-    centre = float(np.median(arr))
-    return centre, float(MAD_TO_SIGMA * np.median(np.abs(arr - centre)))
+    return float(np.median(arr)), float(median_abs_deviation(arr, scale="normal"))
 
 
 def _ok(value: Any) -> bool:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.stats import median_abs_deviation
 
 from autocal.service.outliers import night_outliers, robust_centre
 
@@ -14,11 +13,11 @@ def _row(ant: int, night: int = 10, **values: float) -> dict:
     return {"antenna": ant, "pol": "ee", "night": night, "config_hash": "c", **base, **values}
 
 
-def test_robust_centre_is_the_median_and_the_normal_scaled_mad() -> None:
-    values = np.random.default_rng(1).normal(5.0, 2.0, 501)
+def test_robust_centre_estimates_a_normal_width_despite_outliers() -> None:
+    values = np.random.default_rng(1).normal(5.0, 2.0, 2001)
+    values[:100] = 1e4  # 5 % wild values move neither the centre nor the width much
     centre, spread = robust_centre(values)
-    assert centre == np.median(values)
-    assert spread == pytest.approx(median_abs_deviation(values, scale="normal"), rel=1e-4)
+    assert centre == pytest.approx(5.0, abs=0.2) and spread == pytest.approx(2.0, rel=0.1)
 
 
 def test_the_array_test_weighs_the_departure_by_spread_and_sigma() -> None:
