@@ -1,18 +1,26 @@
 """Flagging before the fit: band edges and RFI found in the auto-correlations themselves.
 
 The method follows hera_qm's ``xrfi`` (``detrend_medfilt``, ``watershed_flag``): a sample's
-outlier significance is its difference from the median of its neighbours (the centre
-excluded), divided by a robust width, ``sqrt(median(residual^2) / 0.456)`` over the same
-neighbours; samples above :data:`NSIG` are flagged and the flags grow into adjacent samples
-above :data:`NSIG_ADJACENT` (watershed). It is applied in two separable steps, so that it
-gives the same flags whatever the read block size and never needs a night in memory:
+outlier significance is its difference from a robust local trend divided by a robust width
+(``sqrt(median(residual^2) / 0.456)``); samples above :data:`NSIG` are flagged and the
+flags grow into adjacent samples above :data:`NSIG_ADJACENT` (watershed). It is applied in
+two separable steps, so that it gives the same flags whatever the read block size and
+never needs a night in memory:
 
-1. **RFI in frequency**, per spectrum: the median filter runs along frequency
-   (:data:`KF` channels each side) on every integration of every antenna-pol, block by
-   block as the data are read (:func:`frequency_flags`);
-2. **RFI in time**, per antenna-pol: the band median of each integration (one number per
-   integration, kept for the whole observation) is median-filtered along time (:data:`KT`
-   integrations each side) and outlying integrations are flagged whole.
+1. **RFI in frequency**, per spectrum: each spectrum is divided by the time-mean
+   spectrum (the bandpass, stable in time, cancels and the ratio is smooth), detrended by
+   the medians of :data:`BLOCK`-channel blocks interpolated between block centres, and
+   divided by one robust width per spectrum (relative radiometer noise is the same in
+   every channel), block by block as the data are read (:func:`frequency_flags`, a
+   compiled kernel). Where hera_qm slides a 17-channel median filter, which cost ~190 s
+   per pass over one 350-antenna HERA file (2 x 10^8 samples), the kernel takes ~3.4 s on
+   two cores, and its width, from the whole spectrum rather than 16 neighbours, is not
+   itself noisy: on real HERA autos it finds 99 % of +1 % spikes where the sliding filter
+   found 91 % (``python scripts/rfi_injection.py``);
+2. **RFI in time**, per antenna-pol: each spectrum's level relative to the time-mean
+   spectrum (the median of its block medians: one number per integration, kept for the
+   whole observation) is median-filtered along time (:data:`KT` integrations each side)
+   and outlying integrations are flagged whole.
 
 Then, once the whole observation has been seen (:class:`RfiScan`):
 
@@ -52,6 +60,8 @@ NSIG_ADJACENT = 2.0
 KF = 8
 #: Integrations each side in the time median filter (hera_qm's ``Kt``).
 KT = 8
+#: Channels per block of the frequency detrend (one median per block, interpolated).
+BLOCK = 16
 #: A band edge is where the time-mean auto is below this fraction of the in-band median.
 EDGE_LEVEL = 0.1
 #: A channel flagged in frequency in more than this fraction of its integrations is flagged.
@@ -135,34 +145,112 @@ def _quiet_nan() -> Iterator[None]:
         yield
 
 
-def frequency_flags(data: np.ndarray, flags: np.ndarray, level: np.ndarray) -> np.ndarray:
+def frequency_flags(
+    data: np.ndarray, flags: np.ndarray, level: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Flag RFI along frequency in each spectrum of a block.
 
     Each spectrum is divided by the time-mean spectrum ``level`` first, so the bandpass's
-    fine structure (stable in time) does not widen the robust width; what stands out of
-    a median of neighbouring channels is then RFI.
+    fine structure (stable in time) cancels; the ratio's smooth trend is the median of each
+    :data:`BLOCK` channels interpolated linearly between the blocks' centres (flat beyond
+    the first and last), and its width one robust number per spectrum,
+    ``sqrt(median(residual^2) / 0.456)`` (hera_qm's ``detrend_medfilt`` factor; relative
+    radiometer noise is the same in every channel). Runs above :data:`NSIG_ADJACENT` that
+    hold a sample above :data:`NSIG` are flagged (:func:`watershed`). Computed by the
+    compiled kernel :func:`autocal.pipeline.rfi_kernel.spectrum_hits`;
+    :func:`frequency_flags_numpy` is the same as numpy array passes.
 
     Parameters
     ----------
     data, flags
         ``(Nant, Npol, Ntime, Nfreq)`` auto-correlations and their flags (flagged,
-        non-finite and non-positive samples are filled with the spectrum's median before
-        filtering and are not flagged again here).
+        non-finite and non-positive samples take no part and are not flagged again here).
     level
         ``(Nant, Npol, Nfreq)`` time-mean auto-correlations (:class:`LevelScan`).
 
     Returns
     -------
-    numpy.ndarray
+    hits : numpy.ndarray
         ``(..., Nfreq)`` the new RFI flags.
+    band : numpy.ndarray
+        ``(Nant, Npol, Ntime)`` each spectrum's level relative to ``level``: the median of
+        its block medians (NaN: fewer than three usable samples).
     """
-    lev = level[:, :, None, :]
-    usable = ~flags & np.isfinite(data) & (data > 0) & np.isfinite(lev) & (lev > 0)
+    from autocal.pipeline.rfi_kernel import spectrum_hits  # numba: only when flagging
+
+    return spectrum_hits(data, flags, _inverse(level), BLOCK, NSIG, NSIG_ADJACENT, MEDIAN_CHI2_1)
+
+
+def _inverse(level: np.ndarray) -> np.ndarray:
+    """Return ``1 / level`` where the level is positive and finite, NaN elsewhere."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(usable, data / lev, 0.0)
-    filled = _filled(ratio, usable)
-    z = robust_zscores(filled, KF)
-    return watershed(np.where(usable, z, 0.0), NSIG, NSIG_ADJACENT) & usable
+        return np.where(np.isfinite(level) & (level > 0), 1.0 / level, np.nan)
+
+
+def frequency_flags_numpy(
+    data: np.ndarray, flags: np.ndarray, level: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`frequency_flags` as numpy array passes (~10x slower): the kernel's reference."""
+    nfreq = data.shape[-1]
+    ratio = data * _inverse(level)[:, :, None, :]
+    usable = ~flags & (ratio > 0) & np.isfinite(ratio)
+    rows = np.where(usable, ratio, np.nan).reshape(-1, nfreq)
+    block = max(1, min(BLOCK, nfreq))
+    med = _block_medians(rows, block)
+    enough = usable.reshape(-1, nfreq).sum(axis=1) >= 3
+    with _quiet_nan():
+        band = np.where(enough, np.nanmedian(med, axis=1), np.nan)
+    resid = rows - _interpolate(_nearest_filled(med), nfreq, block)
+    width = np.sqrt(_row_median(resid**2) / MEDIAN_CHI2_1)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.where(width > 0, resid / width, np.where(resid == 0, 0.0, np.inf))
+    z[~usable.reshape(-1, nfreq) | ~enough[:, None]] = 0.0
+    hits = watershed(z.reshape(data.shape), NSIG, NSIG_ADJACENT) & usable
+    return hits, band.reshape(data.shape[:3])
+
+
+def _block_medians(rows: np.ndarray, block: int) -> np.ndarray:
+    """Return ``(R, Nblock)`` the median of each ``block`` channels of ``rows`` (NaN ignored)."""
+    nrow, n = rows.shape
+    nblock = -(-n // block)
+    padded = np.full((nrow, nblock * block), np.nan)
+    padded[:, :n] = rows
+    return _row_median(padded.reshape(nrow * nblock, block)).reshape(nrow, nblock)
+
+
+def _nearest_filled(med: np.ndarray) -> np.ndarray:
+    """Give each block without samples (NaN) the nearest block's median, left first."""
+    nblock = med.shape[1]
+    have = np.isfinite(med)
+    index = np.arange(nblock)
+    left = np.maximum.accumulate(np.where(have, index, -1), axis=1)
+    right = np.minimum.accumulate(np.where(have, index, nblock)[:, ::-1], axis=1)[:, ::-1]
+    nearest = np.where(left >= 0, left, np.minimum(right, nblock - 1))
+    return np.take_along_axis(med, nearest, axis=1)
+
+
+def _interpolate(med: np.ndarray, n: int, block: int) -> np.ndarray:
+    """Return ``(R, n)`` the block medians interpolated linearly between block centres."""
+    nblock = med.shape[1]
+    if nblock == 1:
+        return np.repeat(med, n, axis=1)
+    starts = np.arange(nblock) * block
+    centres = (starts + np.minimum(starts + block, n) - 1) / 2.0
+    channel = np.arange(n, dtype=np.float64)
+    lo = np.clip(np.searchsorted(centres, channel, side="right") - 1, 0, nblock - 2)
+    w = np.clip((channel - centres[lo]) / (centres[lo + 1] - centres[lo]), 0.0, 1.0)
+    return med[:, lo] * (1.0 - w) + med[:, lo + 1] * w
+
+
+def _row_median(rows: np.ndarray) -> np.ndarray:
+    """Return the median of each row's finite values (NaN for a row without any)."""
+    ordered = np.sort(rows, axis=-1)  # NaN sort last
+    count = np.isfinite(rows).sum(axis=-1)
+    lo = np.maximum(count - 1, 0) // 2
+    hi = np.minimum(count // 2, rows.shape[-1] - 1)
+    a = np.take_along_axis(ordered, lo[:, None], axis=-1)[:, 0]
+    b = np.take_along_axis(ordered, hi[:, None], axis=-1)[:, 0]
+    return np.where(count > 0, 0.5 * (a + b), np.nan)
 
 
 def band_edges(level: np.ndarray, edge_level: float = EDGE_LEVEL) -> np.ndarray:
@@ -272,7 +360,7 @@ class RfiMask:
             Index of the block's first integration in the observation.
         """
         nt = data.shape[2]
-        out = frequency_flags(data, flags, self.level)  # the same flags the scan counted
+        out, _ = frequency_flags(data, flags, self.level)  # the same flags the scan counted
         out |= flags | self.band_edge[:, :, None, :] | self.channels[:, :, None, :]
         out |= self.integrations[:, :, offset : offset + nt, None]
         return out
@@ -340,12 +428,9 @@ class RfiScan:
         lev = self.level[:, :, None, :]
         usable = ~flags & np.isfinite(data) & (data > 0) & np.isfinite(lev) & (lev > 0)
         self.prior_flagged += int(np.count_nonzero(flags))
-        hits = frequency_flags(data, flags, self.level)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            clean = np.where(usable & ~hits, data / lev, np.nan)
+        hits, band = frequency_flags(data, flags, self.level)
         window = slice(offset, offset + nt)
-        with _quiet_nan():
-            self.band_median[:, :, window] = np.nanmedian(clean, axis=-1)
+        self.band_median[:, :, window] = band
         self.clean.add(data, flags | hits)
         self.freq_hits += hits.sum(axis=2)
         self.freq_usable += usable.sum(axis=2)

@@ -1,0 +1,274 @@
+"""The compiled frequency flagger: one pass over each spectrum, in parallel over spectra.
+
+:func:`spectrum_hits` does what :func:`autocal.pipeline.rfi.frequency_flags` describes
+(ratio to the time-mean spectrum, block-median trend, one robust width per spectrum,
+watershed) in one loop per spectrum, so a 350-antenna HERA file (2 x 10^8 samples) is
+flagged in about a second per core instead of the ~14 s the same steps take as numpy array
+passes. This module imports numba: :mod:`autocal.pipeline.rfi` imports it only when it
+flags (the command line never loads it). The machine code is cached on disk (numba's
+``cache=True``: beside this module, or numba's per-user cache directory when that is not
+writable).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+def spectrum_hits(
+    data: np.ndarray,
+    flags: np.ndarray,
+    inverse_level: np.ndarray,
+    block: int,
+    nsig: float,
+    nsig_adjacent: float,
+    median_chi2: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return the RFI hits and the band level of every spectrum of a block.
+
+    Parameters
+    ----------
+    data, flags
+        ``(Nant, Npol, Ntime, Nfreq)`` autos and their flags.
+    inverse_level
+        ``(Nant, Npol, Nfreq)`` one over the time-mean spectrum (NaN where it is not
+        positive and finite: those channels take no part).
+    block
+        Channels per median block of the trend.
+    nsig, nsig_adjacent
+        Significance that starts a flagged run, and that a run grows over.
+    median_chi2
+        ``median(z^2)`` of a unit normal (0.456): the width is
+        ``sqrt(median(residual^2) / median_chi2)``.
+
+    Returns
+    -------
+    hits : numpy.ndarray
+        ``(Nant, Npol, Ntime, Nfreq)`` bool, True where a usable sample is flagged.
+    band : numpy.ndarray
+        ``(Nant, Npol, Ntime)`` the median of each spectrum's block medians (its level
+        relative to the time-mean spectrum; NaN for a spectrum with fewer than three
+        usable samples), which the flags in time are found from.
+    """
+    nfreq = data.shape[-1]
+    block = max(1, min(int(block), nfreq))
+    nblock = -(-nfreq // block)
+    starts = np.arange(nblock) * block
+    centres = (starts + np.minimum(starts + block, nfreq) - 1) / 2.0
+    channel = np.arange(nfreq, dtype=np.float64)
+    if nblock > 1:
+        lo = np.clip(np.searchsorted(centres, channel, side="right") - 1, 0, nblock - 2)
+        weight = np.clip((channel - centres[lo]) / (centres[lo + 1] - centres[lo]), 0.0, 1.0)
+    else:
+        lo, weight = np.zeros(nfreq, np.int64), np.zeros(nfreq)
+    out = np.zeros(data.shape, dtype=np.bool_)
+    band = np.full(data.shape[:3], np.nan)
+    _kernel(
+        np.ascontiguousarray(data, dtype=np.float64),
+        np.ascontiguousarray(flags, dtype=np.bool_),
+        np.ascontiguousarray(inverse_level, dtype=np.float64),
+        block,
+        _network(block),
+        lo.astype(np.int64),
+        weight,
+        float(nsig),
+        float(nsig_adjacent),
+        float(median_chi2),
+        out,
+        band,
+    )
+    return out, band
+
+
+def _network(block: int) -> np.ndarray:
+    """Return the sorting network for blocks of ``block`` channels (padded to a power of 2)."""
+    size = 1
+    while size < block:
+        size *= 2
+    return sorting_network(size)
+
+
+def sorting_network(n: int) -> np.ndarray:
+    """Return Batcher's odd-even merge sort for ``n`` inputs as ``(Ncomparator, 2)`` pairs.
+
+    ``n`` must be a power of two (16: 63 comparators). Applying ``a[i], a[j] = min, max``
+    for every pair in order sorts any ``n`` values; with a fixed sequence and no branches,
+    the kernel runs it on all blocks of a spectrum at once in SIMD registers.
+    """
+    if n < 1 or n & (n - 1):
+        raise ValueError(f"a sorting network needs a power of two inputs, not {n}")
+    pairs = []
+    p = 1
+    while p < n:
+        k = p
+        while k >= 1:
+            for j in range(k % p, n - k, 2 * k):
+                for i in range(min(k, n - j - k)):
+                    if (i + j) // (2 * p) == (i + j + k) // (2 * p):
+                        pairs.append((i + j, i + j + k))
+            k //= 2
+        p *= 2
+    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+
+
+@numba.njit(cache=True)
+def _beyond(d: float, width: float, nsig: float, absolute: bool) -> bool:
+    """Return whether the residual ``d`` is more than ``nsig`` widths (``|z|`` if absolute)."""
+    if width > 0.0:
+        z = d / width
+    elif d == 0.0:
+        z = 0.0
+    else:
+        z = np.inf if d > 0.0 else -np.inf
+    return (abs(z) if absolute else z) > nsig
+
+
+@numba.njit(cache=True)
+def _block_medians(ratio, usable, block, network):  # type: ignore[no-untyped-def]
+    """Return the median of each ``block`` channels' usable samples, and which had any.
+
+    The blocks are laid side by side (``(block, Nblock)``, unusable samples +inf) and
+    sorted together by the comparator ``network``; the inner loop over blocks vectorises.
+    """
+    nfreq = ratio.size
+    nblock = (nfreq + block - 1) // block
+    size = 1
+    while size < block:
+        size *= 2
+    buf = np.full((size, nblock), np.inf)
+    count = np.zeros(nblock, dtype=np.int64)
+    for j in range(nfreq):
+        if usable[j]:
+            b = j // block
+            buf[j - b * block, b] = ratio[j]
+            count[b] += 1
+    for c in range(network.shape[0]):
+        i0 = network[c, 0]
+        i1 = network[c, 1]
+        for b in range(nblock):
+            x = buf[i0, b]
+            y = buf[i1, b]
+            buf[i0, b] = x if x < y else y
+            buf[i1, b] = y if x < y else x
+    med = np.empty(nblock)
+    for b in range(nblock):
+        m = count[b]
+        med[b] = 0.5 * (buf[(m - 1) // 2, b] + buf[m // 2, b]) if m > 0 else np.nan
+    return med, count > 0
+
+
+@numba.njit(cache=True)
+def _kth_nonnegative(values, k, hist, scratch):  # type: ignore[no-untyped-def]
+    """Return the ``k``-th smallest (0-based) of finite non-negative ``values``.
+
+    A radix select on the IEEE bits (which order non-negative doubles as integers): the
+    exponent, then the next 11 mantissa bits, then a sort of the few values left; three
+    linear passes instead of quickselect's data-dependent branches.
+    """
+    bits = values.view(np.int64)  # sign bit 0: non-negative doubles order as integers
+    n = values.size
+    hist[:] = 0
+    for i in range(n):
+        hist[bits[i] >> 52] += 1
+    acc = 0
+    top = 0
+    while acc + hist[top] <= k:
+        acc += hist[top]
+        top += 1
+    k -= acc
+    hist[:] = 0
+    for i in range(n):  # without a branch: values of other exponents count in a spare slot
+        hist[((bits[i] >> 41) & 2047) if (bits[i] >> 52) == top else 2048] += 1
+    acc = 0
+    mid = 0
+    while acc + hist[mid] <= k:
+        acc += hist[mid]
+        mid += 1
+    k -= acc
+    key = (top << 11) | mid
+    m = 0
+    for i in range(n):
+        if (bits[i] >> 41) == key:
+            scratch[m] = values[i]
+            m += 1
+    return np.sort(scratch[:m])[k]
+
+
+@numba.njit(cache=True)
+def _median_nonnegative(values, hist, scratch):  # type: ignore[no-untyped-def]
+    """Return the median of finite non-negative ``values`` (the mean of the middle two)."""
+    n = values.size
+    lo = _kth_nonnegative(values, (n - 1) // 2, hist, scratch)
+    if n % 2 == 1:
+        return lo
+    below = 0  # values <= lo: if more than n // 2, the upper middle equals lo too
+    above = np.inf
+    for i in range(n):  # branch-free: the comparisons are coin flips
+        v = values[i]
+        below += v <= lo
+        above = min(above, v if v > lo else np.inf)
+    return lo if below > n // 2 else 0.5 * (lo + above)
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _kernel(data, flags, inv, block, network, lo, weight, nsig, nadj, chi2, out, band):  # type: ignore[no-untyped-def]
+    """Flag every spectrum of ``data`` into ``out`` (see :func:`spectrum_hits`)."""
+    nant, npol, ntime, nfreq = data.shape
+    nblock = (nfreq + block - 1) // block
+    for row in numba.prange(nant * npol * ntime):
+        a = row // (npol * ntime)
+        p = (row // ntime) % npol
+        t = row % ntime
+        ratio = np.empty(nfreq)
+        usable = np.zeros(nfreq, dtype=np.bool_)
+        count = 0
+        for j in range(nfreq):
+            r = data[a, p, t, j] * inv[a, p, j]
+            if (not flags[a, p, t, j]) and r > 0.0 and r < np.inf:
+                ratio[j] = r
+                usable[j] = True
+                count += 1
+        if count < 3:
+            continue
+        med, have = _block_medians(ratio, usable, block, network)
+        band[a, p, t] = np.median(med[have])
+        first = 0  # an empty block takes the nearest block's median
+        while not have[first]:
+            first += 1
+        last = first
+        for b in range(nblock):
+            if have[b]:
+                last = b
+            else:
+                med[b] = med[last] if b > first else med[first]
+        # residuals from the trend interpolated between block centres, and their width
+        resid = np.zeros(nfreq)
+        squares = np.empty(count)
+        m = 0
+        for j in range(nfreq):
+            if usable[j]:
+                if nblock > 1:
+                    i = lo[j]
+                    trend = med[i] * (1.0 - weight[j]) + med[i + 1] * weight[j]
+                else:
+                    trend = med[0]
+                resid[j] = ratio[j] - trend
+                squares[m] = resid[j] * resid[j]
+                m += 1
+        hist = np.empty(2049, dtype=np.int32)
+        width = np.sqrt(_median_nonnegative(squares, hist, np.empty(count)) / chi2)
+        # watershed: runs of |z| > nadj that hold a sample with z > nsig
+        j = 0
+        while j < nfreq:
+            if not (usable[j] and _beyond(resid[j], width, nadj, True)):
+                j += 1
+                continue
+            start = j
+            strong = False
+            while j < nfreq and usable[j] and _beyond(resid[j], width, nadj, True):
+                strong = strong or _beyond(resid[j], width, nsig, False)
+                j += 1
+            if strong:
+                for k in range(start, j):
+                    out[a, p, t, k] = True
