@@ -58,6 +58,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from pyuvdata import Telescope, UVCal
 from pyuvdata import utils as uvutils
+from pyuvdata.uvdata.initializers import get_time_params
 
 from autocal import __version__
 from autocal.core.sites import HERA, Site, get_site
@@ -230,6 +231,7 @@ def solution_to_uvcal(
     telescope: str | None = None,
     site: Any = None,
     history: str = "",
+    shared_times: bool = False,
 ) -> Any:
     """Build a pyuvdata ``UVCal`` from an autocal solution (see the module notes).
 
@@ -254,6 +256,11 @@ def solution_to_uvcal(
         ``describe()`` dict (default: ``"site"`` in ``solution.config`` or its sections).
     history
         Text appended to the history.
+    shared_times
+        For a time model constant in time (``constant``), let every integration's gains,
+        flags and qualities be read-only views of one integration's (no copies: a
+        350-antenna HERA file's 192 integrations would otherwise take 2.7 GB); the
+        writers use this. Default: writable arrays.
 
     Returns
     -------
@@ -285,15 +292,27 @@ def solution_to_uvcal(
     if per_time and time_range is not None:
         raise CalsolFormatError("time_range describes one averaged solution: not with per_time")
     if per_time:
-        gains = _per_time_gains(solution, jds, flags, sigma_amp)
+        gains = _per_time_gains(solution, jds, flags, sigma_amp, shared_times)
     else:
         gains = _averaged_gains(solution, jds, flags, sigma_amp, time_range)
-    nant, npol, nfreq = len(solution.antennas), len(solution.pols), freqs.size
-    data = _uvcal_arrays(gains, total, (nant, npol, nfreq))
+    ntime_out = gains.gain_array.shape[2]
+    data = {
+        "gain_array": gains.gain_array,
+        "flag_array": gains.flag_array,
+        "quality_array": gains.quality_array,
+        "total_quality_array": np.ascontiguousarray(
+            np.broadcast_to(total.T[:, None, :], (freqs.size, ntime_out, total.shape[0]))
+        ).astype(np.float32),
+    }
     steps = np.diff(freqs)
-    width = np.full(nfreq, float(np.median(steps)) if steps.size else 1.0)
+    width = np.full(freqs.size, float(np.median(steps)) if steps.size else 1.0)
     config = solution.config or {}
     sky = _describe_sky(config)
+    # pyuvdata's UVCal.new evaluates its default arrays eagerly (np.ones of the full shape:
+    # 3.3 GB for a 350-antenna HERA file), so it is built for the first integration and
+    # then given all of them
+    first = {k: v[:, :1] if k == "total_quality_array" else v[:, :, :1] for k, v in data.items()}
+    first_times = {k: v[:1] for k, v in gains.times.items()}
     with _warnings_to_log("building UVCal"):
         uvc = UVCal.new(
             cal_style="sky",
@@ -305,11 +324,25 @@ def solution_to_uvcal(
             ant_array=np.asarray(solution.antennas, dtype=np.int64),
             ref_antenna_name="none",
             sky_catalog=sky,
-            data=data,
+            data=first,
             history=_history(solution, history),
             gain_scale=GAIN_SCALE,
-            **gains.times,
+            **first_times,
         )
+        if ntime_out > 1:
+            lsts, tint = get_time_params(
+                telescope_location=tel.location,
+                time_array=gains.times["time_array"],
+                integration_time=gains.times["integration_time"],
+            )
+            uvc.time_array, uvc.lst_array, uvc.integration_time = (
+                gains.times["time_array"],
+                lsts,
+                tint,
+            )
+            uvc.Ntimes = ntime_out
+        for key, value in data.items():
+            setattr(uvc, key, value)
         uvc.pol_convention = POL_CONVENTION
         uvc.diffuse_model = sky
         uvc.extra_keywords = {
@@ -333,34 +366,82 @@ def _pooled_chi2(solution: Solution, flags: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class _Gains:
-    """The ``G`` to write with its flags and ``|g|`` errors, ``(A, P, T, F)``, and times.
+    """The arrays of ``UVCal.new`` on pyuvdata's ``(A, F, T, J)`` axes, and its times.
 
-    ``times`` holds the time keywords of ``UVCal.new`` (``time_array`` or
-    ``time_range``, and ``integration_time``).
+    ``gain_array`` (complex64: |g| to 6e-8, far below any uncertainty, half the memory
+    and file of complex128) is ``|g| = sqrt(G)``, 1 where flagged or ``G <= 0``;
+    ``quality_array`` (float32) the ``|g|`` error, 0 where undefined; ``times`` the time
+    keywords of ``UVCal.new`` (``time_array`` or ``time_range``, and
+    ``integration_time``).
     """
 
-    big_g: np.ndarray
-    flags: np.ndarray
-    sigma: np.ndarray
+    gain_array: np.ndarray
+    flag_array: np.ndarray
+    quality_array: np.ndarray
     times: dict[str, np.ndarray]
 
 
+def _one_antenna(
+    big_g: np.ndarray, flags: np.ndarray, sigma: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return one antenna's gain, flag and quality arrays ``(F, T, J)``.
+
+    ``big_g`` and ``sigma`` (the ``|g|`` error) are ``(P, T, F)``, ``flags`` ``(P, F)``.
+    """
+    with np.errstate(invalid="ignore"):
+        amp = np.sqrt(big_g)
+    bad = flags[:, None, :] | ~np.isfinite(amp) | ~(big_g > 0)
+    quality = np.where(bad | ~np.isfinite(sigma), 0.0, sigma)
+    to_uvc = (2, 1, 0)  # (P, T, F) -> (F, T, J)
+    return (
+        np.where(bad, 1.0, amp).transpose(to_uvc).astype(np.complex64),
+        bad.transpose(to_uvc),
+        quality.transpose(to_uvc).astype(np.float32),
+    )
+
+
 def _per_time_gains(
-    solution: Solution, jds: np.ndarray, flags: np.ndarray, sigma_amp: np.ndarray
+    solution: Solution,
+    jds: np.ndarray,
+    flags: np.ndarray,
+    sigma_amp: np.ndarray,
+    shared_times: bool,
 ) -> _Gains:
-    """Return ``G(t)`` of the time model at every fitted integration (``per_time=True``)."""
-    ev = solution.evaluate()
-    big_g = ev["G"]  # (A, P, T, F)
+    """Return ``G(t)`` of the time model at every fitted integration (``per_time=True``).
+
+    Evaluated antenna by antenna into the output arrays, so no ``(A, P, T, F)`` float64
+    intermediate is made (a 350-antenna HERA file's took 21 GB); the ``|g|`` error is the
+    statistical error of ``G(t)`` scaled by the channel's total-to-statistical ratio.
+    """
     ntime = jds.size
     if ntime > 1 and np.any(np.diff(jds) <= 0):
         raise CalsolFormatError("per_time needs strictly increasing JDs")
     steps = np.diff(jds)
     tint = np.full(ntime, np.median(steps) * 86400.0 if steps.size else 1.0)
-    flag4 = np.broadcast_to(flags[:, :, None, :], big_g.shape)
+    times = {"time_array": jds, "integration_time": tint}
+    nb = solution.model.nbasis
+    basis = solution.model.basis(solution.lsts)  # (K, T)
+    constant = nb == 1 and bool(np.all(basis == basis[:, :1]))
+    if constant and shared_times:
+        basis = basis[:, :1]
+    coeffs, cov = solution.coeffs, solution.cov
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = sigma_amp / np.asarray(solution.sigma_abs_g_stat, dtype=np.float64)
-        sig4 = ev["sigma_G"] / (2 * np.sqrt(big_g)) * ratio[:, :, None, :]
-    return _Gains(big_g, flag4, sig4, {"time_array": jds, "integration_time": tint})
+    nant, npol, nfreq = flags.shape
+    shape = (nant, nfreq, basis.shape[1], npol)
+    gain = np.empty(shape, np.complex64)
+    flag = np.empty(shape, bool)
+    quality = np.empty(shape, np.float32)
+    for a in range(nant):
+        big_g = np.einsum("kt,pfk->ptf", basis, coeffs[a, ..., :nb])
+        var_g = np.einsum("kt,pfkl,lt->ptf", basis, cov[a, ..., :nb, :nb], basis)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sigma = np.sqrt(var_g) / (2 * np.sqrt(big_g)) * ratio[a, :, None, :]
+        gain[a], flag[a], quality[a] = _one_antenna(big_g, flags[a], sigma)
+    if basis.shape[1] != ntime:  # one integration's arrays, shared by all (read-only)
+        full = (nant, nfreq, ntime, npol)
+        gain, flag, quality = (np.broadcast_to(x, full) for x in (gain, flag, quality))
+    return _Gains(gain, flag, quality, times)
 
 
 def _averaged_gains(
@@ -392,40 +473,10 @@ def _averaged_gains(
         "time_range": np.array([[start, stop]]),
         "integration_time": np.array([(stop - start) * 86400.0]),
     }
-    big_g = np.asarray(solution.G, dtype=np.float64)[:, :, None, :]
-    return _Gains(big_g, flags[:, :, None, :], sigma_amp[:, :, None, :], times)
-
-
-def _uvcal_arrays(
-    gains: _Gains, total: np.ndarray, shape: tuple[int, int, int]
-) -> dict[str, np.ndarray]:
-    """Return the data arrays of ``UVCal.new`` on pyuvdata's (A, F, T, J) axes.
-
-    Gains ``|g| = sqrt(G)`` (1 where flagged or ``G <= 0``), flags, ``|g|`` errors (0
-    where undefined) and the pooled ``chi^2 / dof`` ``total`` ``(Npol, Nfreq)``;
-    ``shape`` is the solution's ``(Nant, Npol, Nfreq)``.
-    """
-    gain_g, flag4, sig4 = gains.big_g, gains.flags, gains.sigma
-    nant, npol, nfreq = shape
-    with np.errstate(invalid="ignore"):
-        amp = np.sqrt(gain_g)
-    bad = flag4 | ~np.isfinite(amp) | ~(gain_g > 0)
-    amp = np.where(bad, 1.0, amp)
-    ntime_out = amp.shape[2]
-    # autocal (A, P, T, F) -> pyuvdata (A, F, T, J)
-    to_uvc = (0, 3, 2, 1)
-    gain_array = np.ascontiguousarray(amp.transpose(to_uvc)).astype(np.complex128)
-    flag_array = np.ascontiguousarray(bad.transpose(to_uvc))
-    quality = np.where(bad | ~np.isfinite(sig4), 0.0, sig4)
-    quality_array = np.ascontiguousarray(
-        np.broadcast_to(quality, (nant, npol, ntime_out, nfreq)).transpose(to_uvc)
-    )
-    total_quality = np.ascontiguousarray(
-        np.broadcast_to(total[:, None, :], (npol, ntime_out, nfreq)).transpose(2, 1, 0)
-    )
-    return {
-        "gain_array": gain_array,
-        "flag_array": flag_array,
-        "quality_array": quality_array,
-        "total_quality_array": total_quality,
-    }
+    big_g = np.asarray(solution.G, dtype=np.float64)
+    parts = [
+        _one_antenna(big_g[a][:, None, :], flags[a], sigma_amp[a][:, None, :])
+        for a in range(big_g.shape[0])
+    ]
+    gain, flag, quality = (np.stack(x) for x in zip(*parts, strict=True))
+    return _Gains(gain, flag, quality, times)

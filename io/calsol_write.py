@@ -35,7 +35,7 @@ def _write(
     path = Path(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
-    uvc = solution_to_uvcal(solution, **kwargs)
+    uvc = solution_to_uvcal(solution, shared_times=True, **kwargs)
     with atomic_path(path) as tmp, _warnings_to_log(f"writing {path.name}"):
         tmp.unlink()  # pyuvdata writes a new file
         try:
