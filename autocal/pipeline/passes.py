@@ -103,6 +103,8 @@ def sum_passes(
     client = _dask_client_for(executor, source)
     execution = _execution(source, tasks, block_size, client)
     stats_total: dict[str, int] = {}
+    if rfi is not None and client is not None:
+        rfi = rfi.portable()  # workers flag their blocks again rather than receive the hits
 
     def one_pass(
         coeffs: np.ndarray | None, ipass: int, npass: int

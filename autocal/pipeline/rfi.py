@@ -9,7 +9,8 @@ never needs a night in memory:
 
 1. **RFI in frequency**, per spectrum: each spectrum is divided by the time-mean
    spectrum (the bandpass, stable in time, cancels and the ratio is smooth), detrended by
-   the medians of :data:`BLOCK`-channel blocks interpolated between block centres, and
+   the medians of :data:`BLOCK`-channel blocks interpolated between block centres (twice:
+   the second time on what the first trend leaves), and
    divided by one robust width per spectrum (relative radiometer noise is the same in
    every channel), block by block as the data are read (:func:`frequency_flags`, a
    compiled kernel). Where hera_qm slides a 17-channel median filter, which cost ~190 s
@@ -43,7 +44,7 @@ import logging
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -70,6 +71,10 @@ CHANNEL_FRACTION = 0.25
 INTEGRATION_FRACTION = 0.5
 #: Factor of hera_qm's ``detrend_medfilt``: ``median(z^2) = 0.456`` for a unit normal.
 MEDIAN_CHI2_1 = 0.456
+
+#: Frequency hits kept from the scan for the fit's reads (4 bytes each: 64 MB); blocks
+#: beyond are flagged again when read (the same flags, the kernel is deterministic).
+MAX_KEPT_HITS = 2**24
 
 #: Reasons counted in the summary, in the order they are applied.
 REASONS = ("band_edge", "rfi_frequency", "rfi_time")
@@ -152,8 +157,11 @@ def frequency_flags(
 
     Each spectrum is divided by the time-mean spectrum ``level`` first, so the bandpass's
     fine structure (stable in time) cancels; the ratio's smooth trend is the median of each
-    :data:`BLOCK` channels interpolated linearly between the blocks' centres (flat beyond
-    the first and last), and its width one robust number per spectrum,
+    :data:`BLOCK` channels interpolated linearly between the blocks' centres and continued
+    linearly beyond the first and last (:func:`trend_grid`), so a ratio that slopes across
+    the band does not flag the band's ends; it is found twice, the second time from the
+    block medians of what the first leaves (the median of a steep slope's block is as noisy
+    as one sample; of a flat one, a quarter of that), and its width one robust number per spectrum,
     ``sqrt(median(residual^2) / 0.456)`` (hera_qm's ``detrend_medfilt`` factor; relative
     radiometer noise is the same in every channel). Runs above :data:`NSIG_ADJACENT` that
     hold a sample above :data:`NSIG` are flagged (:func:`watershed`). Computed by the
@@ -201,6 +209,9 @@ def frequency_flags_numpy(
     with _quiet_nan():
         band = np.where(enough, np.nanmedian(med, axis=1), np.nan)
     resid = rows - _interpolate(_nearest_filled(med), nfreq, block)
+    resid -= _interpolate(
+        _nearest_filled(_block_medians(resid, block), np.isfinite(med)), nfreq, block
+    )
     width = np.sqrt(_row_median(resid**2) / MEDIAN_CHI2_1)[:, None]
     with np.errstate(divide="ignore", invalid="ignore"):
         z = np.where(width > 0, resid / width, np.where(resid == 0, 0.0, np.inf))
@@ -218,10 +229,13 @@ def _block_medians(rows: np.ndarray, block: int) -> np.ndarray:
     return _row_median(padded.reshape(nrow * nblock, block)).reshape(nrow, nblock)
 
 
-def _nearest_filled(med: np.ndarray) -> np.ndarray:
-    """Give each block without samples (NaN) the nearest block's median, left first."""
+def _nearest_filled(med: np.ndarray, have: np.ndarray | None = None) -> np.ndarray:
+    """Give each block without samples the nearest block's median, left first.
+
+    A block has samples where ``have`` (default: where its median is finite).
+    """
     nblock = med.shape[1]
-    have = np.isfinite(med)
+    have = np.isfinite(med) if have is None else have
     index = np.arange(nblock)
     left = np.maximum.accumulate(np.where(have, index, -1), axis=1)
     right = np.minimum.accumulate(np.where(have, index, nblock)[:, ::-1], axis=1)[:, ::-1]
@@ -229,17 +243,35 @@ def _nearest_filled(med: np.ndarray) -> np.ndarray:
     return np.take_along_axis(med, nearest, axis=1)
 
 
-def _interpolate(med: np.ndarray, n: int, block: int) -> np.ndarray:
-    """Return ``(R, n)`` the block medians interpolated linearly between block centres."""
-    nblock = med.shape[1]
-    if nblock == 1:
-        return np.repeat(med, n, axis=1)
+def trend_grid(nfreq: int, block: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return how each channel's trend is read off the block medians.
+
+    Channel ``j``'s trend is ``med[lo[j]] (1 - w[j]) + med[lo[j] + 1] w[j]``: linear
+    between block centres and continued linearly beyond the first and last. A last block
+    shorter than half a block (its median is one or a few samples) takes no part; its
+    channels are extrapolated from the two before it.
+
+    Returns
+    -------
+    lo, w : numpy.ndarray
+        ``(nfreq,)`` the left block of each channel and its weight on the right one.
+    """
+    nblock = -(-nfreq // block)
     starts = np.arange(nblock) * block
-    centres = (starts + np.minimum(starts + block, n) - 1) / 2.0
-    channel = np.arange(n, dtype=np.float64)
-    lo = np.clip(np.searchsorted(centres, channel, side="right") - 1, 0, nblock - 2)
-    w = np.clip((channel - centres[lo]) / (centres[lo + 1] - centres[lo]), 0.0, 1.0)
-    return med[:, lo] * (1.0 - w) + med[:, lo + 1] * w
+    centres = (starts + np.minimum(starts + block, nfreq) - 1) / 2.0
+    if nblock > 1 and nfreq - starts[-1] < block / 2:
+        nblock -= 1  # a short last block
+    channel = np.arange(nfreq, dtype=np.float64)
+    if nblock < 2:
+        return np.zeros(nfreq, np.int64), np.zeros(nfreq)
+    lo = np.clip(np.searchsorted(centres[:nblock], channel, side="right") - 1, 0, nblock - 2)
+    return lo.astype(np.int64), (channel - centres[lo]) / (centres[lo + 1] - centres[lo])
+
+
+def _interpolate(med: np.ndarray, n: int, block: int) -> np.ndarray:
+    """Return ``(R, n)`` block medians read off per channel (:func:`trend_grid`)."""
+    lo, w = trend_grid(n, block)
+    return med[:, lo] * (1.0 - w) + med[:, lo + 1 if med.shape[1] > 1 else lo] * w
 
 
 def _row_median(rows: np.ndarray) -> np.ndarray:
@@ -341,6 +373,10 @@ class RfiMask:
         ``(Nant, Npol, Nfreq)`` the time-mean spectra the frequency flags divide by.
     counts
         The summary's ``rfi`` block (:meth:`RfiScan.finish`).
+    hits
+        The scan's frequency hits of each block, ``{(offset, shape): flat indices}``, so
+        the fit's reads of the same blocks need not flag them again (:meth:`apply`; at
+        most :data:`MAX_KEPT_HITS`; empty once :meth:`portable`).
     """
 
     band_edge: np.ndarray
@@ -348,6 +384,11 @@ class RfiMask:
     integrations: np.ndarray
     level: np.ndarray
     counts: dict[str, Any] = field(default_factory=dict)
+    hits: dict[tuple[int, tuple[int, ...]], np.ndarray] = field(default_factory=dict)
+
+    def portable(self) -> RfiMask:
+        """Return this mask without the kept hits (for Dask workers: they flag again)."""
+        return replace(self, hits={})
 
     def apply(self, data: np.ndarray, flags: np.ndarray, offset: int) -> np.ndarray:
         """Return a block's flags with band edges and RFI added.
@@ -360,7 +401,12 @@ class RfiMask:
             Index of the block's first integration in the observation.
         """
         nt = data.shape[2]
-        out, _ = frequency_flags(data, flags, self.level)  # the same flags the scan counted
+        kept = self.hits.get((offset, data.shape))
+        if kept is not None:  # the scan's flags of this very block
+            out = np.zeros(data.shape, dtype=bool)
+            out.reshape(-1)[kept] = True
+        else:
+            out, _ = frequency_flags(data, flags, self.level)  # the same flags again
         out |= flags | self.band_edge[:, :, None, :] | self.channels[:, :, None, :]
         out |= self.integrations[:, :, offset : offset + nt, None]
         return out
@@ -413,6 +459,8 @@ class RfiScan:
     hits_per_time: np.ndarray | None = None
     usable_per_time: np.ndarray | None = None
     prior_flagged: int = 0
+    kept: dict[tuple[int, tuple[int, ...]], np.ndarray] = field(default_factory=dict)
+    nkept: int = 0
 
     def add(self, data: np.ndarray, flags: np.ndarray, offset: int) -> None:
         """Add one block ``(Nant, Npol, Ntime, Nfreq)`` starting at integration ``offset``."""
@@ -429,6 +477,7 @@ class RfiScan:
         usable = ~flags & np.isfinite(data) & (data > 0) & np.isfinite(lev) & (lev > 0)
         self.prior_flagged += int(np.count_nonzero(flags))
         hits, band = frequency_flags(data, flags, self.level)
+        self._keep(hits, offset)
         window = slice(offset, offset + nt)
         self.band_median[:, :, window] = band
         self.clean.add(data, flags | hits)
@@ -436,6 +485,15 @@ class RfiScan:
         self.freq_usable += usable.sum(axis=2)
         self.hits_per_time[:, :, window] = hits.sum(axis=-1)
         self.usable_per_time[:, :, window] = usable.sum(axis=-1)
+
+    def _keep(self, hits: np.ndarray, offset: int) -> None:
+        """Keep a block's hits as flat indices while they fit :data:`MAX_KEPT_HITS`."""
+        where = np.flatnonzero(hits)
+        if self.nkept + where.size > MAX_KEPT_HITS:
+            return
+        dtype = np.int32 if hits.size < 2**31 else np.int64
+        self.kept[(offset, hits.shape)] = where.astype(dtype)
+        self.nkept += where.size
 
     def finish(self) -> RfiMask:
         """Return the observation's mask and the summary counts of every reason."""
@@ -451,7 +509,7 @@ class RfiScan:
         bursts = self.hits_per_time > INTEGRATION_FRACTION * np.maximum(self.usable_per_time, 1)
         integrations = bursts | self._time_outliers()
         counts = self._counts(edge, channel, integrations, nfreq)
-        return RfiMask(edge, channel, integrations, self.level, counts)
+        return RfiMask(edge, channel, integrations, self.level, counts, self.kept)
 
     def _time_outliers(self) -> np.ndarray:
         """Integrations whose band median (of data / level) stands out from its neighbours."""

@@ -15,6 +15,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from autocal.pipeline.rfi import trend_grid
+
 
 def spectrum_hits(
     data: np.ndarray,
@@ -53,15 +55,7 @@ def spectrum_hits(
     """
     nfreq = data.shape[-1]
     block = max(1, min(int(block), nfreq))
-    nblock = -(-nfreq // block)
-    starts = np.arange(nblock) * block
-    centres = (starts + np.minimum(starts + block, nfreq) - 1) / 2.0
-    channel = np.arange(nfreq, dtype=np.float64)
-    if nblock > 1:
-        lo = np.clip(np.searchsorted(centres, channel, side="right") - 1, 0, nblock - 2)
-        weight = np.clip((channel - centres[lo]) / (centres[lo + 1] - centres[lo]), 0.0, 1.0)
-    else:
-        lo, weight = np.zeros(nfreq, np.int64), np.zeros(nfreq)
+    lo, weight = trend_grid(nfreq, block)
     out = np.zeros(data.shape, dtype=np.bool_)
     band = np.full(data.shape[:3], np.nan)
     _kernel(
@@ -70,7 +64,7 @@ def spectrum_hits(
         np.ascontiguousarray(inverse_level, dtype=np.float64),
         block,
         _network(block),
-        lo.astype(np.int64),
+        lo,
         weight,
         float(nsig),
         float(nsig_adjacent),
@@ -211,11 +205,35 @@ def _median_nonnegative(values, hist, scratch):  # type: ignore[no-untyped-def]
     return lo if below > n // 2 else 0.5 * (lo + above)
 
 
+@numba.njit(cache=True)
+def _filled(med, have):  # type: ignore[no-untyped-def]
+    """Give each block without samples the nearest block's median (left first), in place."""
+    first = 0
+    while not have[first]:
+        first += 1
+    last = first
+    for b in range(med.size):
+        if have[b]:
+            last = b
+        else:
+            med[b] = med[last] if b > first else med[first]
+    return med
+
+
+@numba.njit(cache=True)
+def _trend(med, lo, weight):  # type: ignore[no-untyped-def]
+    """Return the block medians interpolated (and extrapolated) linearly per channel."""
+    out = np.empty(lo.size)
+    for j in range(lo.size):
+        i = lo[j]
+        out[j] = med[i] * (1.0 - weight[j]) + med[min(i + 1, med.size - 1)] * weight[j]
+    return out
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _kernel(data, flags, inv, block, network, lo, weight, nsig, nadj, chi2, out, band):  # type: ignore[no-untyped-def]
     """Flag every spectrum of ``data`` into ``out`` (see :func:`spectrum_hits`)."""
     nant, npol, ntime, nfreq = data.shape
-    nblock = (nfreq + block - 1) // block
     for row in numba.prange(nant * npol * ntime):
         a = row // (npol * ntime)
         p = (row // ntime) % npol
@@ -233,27 +251,15 @@ def _kernel(data, flags, inv, block, network, lo, weight, nsig, nadj, chi2, out,
             continue
         med, have = _block_medians(ratio, usable, block, network)
         band[a, p, t] = np.median(med[have])
-        first = 0  # an empty block takes the nearest block's median
-        while not have[first]:
-            first += 1
-        last = first
-        for b in range(nblock):
-            if have[b]:
-                last = b
-            else:
-                med[b] = med[last] if b > first else med[first]
-        # residuals from the trend interpolated between block centres, and their width
-        resid = np.zeros(nfreq)
+        # the trend, twice: block medians of a steep slope are as noisy as one sample, so
+        # the medians of what the first trend leaves (flat within blocks) correct it
+        resid = ratio - _trend(_filled(med, have), lo, weight)
+        med2, _ = _block_medians(resid, usable, block, network)
+        resid -= _trend(_filled(med2, have), lo, weight)
         squares = np.empty(count)
         m = 0
         for j in range(nfreq):
             if usable[j]:
-                if nblock > 1:
-                    i = lo[j]
-                    trend = med[i] * (1.0 - weight[j]) + med[i + 1] * weight[j]
-                else:
-                    trend = med[0]
-                resid[j] = ratio[j] - trend
                 squares[m] = resid[j] * resid[j]
                 m += 1
         hist = np.empty(2049, dtype=np.int32)

@@ -123,6 +123,36 @@ def test_injected_spikes_and_a_burst_are_found_and_block_size_does_not_matter() 
     assert whole.counts["samples"]["band_edge"] == int(whole.band_edge.sum()) * 40
 
 
+def test_the_scans_kept_hits_are_the_flags_the_kernel_gives_again(monkeypatch) -> None:
+    """The fit's reads reuse the scan's frequency hits of each block; a block not kept (over
+    the budget, another offset or shape, or a portable mask for Dask) is flagged again, with
+    the same result."""
+    from autocal.pipeline import rfi as rfi_module
+
+    data = _bandpass()
+    rng = np.random.default_rng(4)
+    data = data * np.where(rng.random(data.shape) < 0.01, 1.02, 1.0)
+    flags = np.zeros(data.shape, bool)
+    mask = _mask(data, flags, block=8)
+    assert len(mask.hits) == 5 and sum(h.size for h in mask.hits.values()) > 10
+    portable = mask.portable()
+    assert portable.hits == {} and mask.hits
+    blocks = [(data[:, :, t : t + 8], flags[:, :, t : t + 8], t) for t in range(0, 40, 8)]
+    again = [portable.apply(*b) for b in blocks]
+    # the whole observation at once is not a kept block: flagged again, the same flags
+    assert np.array_equal(mask.apply(data, flags, 0), portable.apply(data, flags, 0))
+
+    def not_again(*args: object) -> None:
+        raise AssertionError("a kept block was flagged again")
+
+    monkeypatch.setattr(rfi_module, "frequency_flags", not_again)
+    for b, flagged in zip(blocks, again, strict=True):
+        assert np.array_equal(mask.apply(*b), flagged)
+    monkeypatch.undo()
+    monkeypatch.setattr(rfi_module, "MAX_KEPT_HITS", 0)
+    assert _mask(data, flags, block=8).hits == {k: v for k, v in mask.hits.items() if not v.size}
+
+
 def test_a_persistent_narrow_band_transmitter_flags_its_channel() -> None:
     data = _bandpass()
     data[0, 0, :, 128] *= 1.1

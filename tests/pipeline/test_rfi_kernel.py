@@ -95,3 +95,16 @@ def test_white_noise_is_rarely_flagged_and_spikes_are_found() -> None:
     assert hits[~spikes].mean() < 2e-3  # the watershed grows a few neighbours of spikes
     clean, _ = frequency_flags(data, np.zeros(shape, bool), level)
     assert clean.mean() < 1e-4
+
+
+def test_a_ratio_sloping_across_the_band_does_not_flag_its_ends() -> None:
+    """Over a day the sky's spectral shape changes, so a spectrum over the time-mean one
+    slopes across the band (here by 20 %); the trend is continued linearly beyond the first
+    and last block centres, so the band's first and last channels are not flagged."""
+    rng = np.random.default_rng(11)
+    shape = (2, 2, 40, 161)
+    slope = 1 + 0.2 * np.linspace(-1, 1, 161) * np.linspace(-1, 1, 40)[:, None]
+    data = slope * (1 + 1e-3 * rng.standard_normal(shape))
+    hits, _ = frequency_flags(data, np.zeros(shape, bool), np.ones((2, 2, 161)))
+    assert not hits[..., :8].any() and not hits[..., -8:].any()
+    assert hits.mean() < 1e-4
