@@ -29,7 +29,9 @@ calfits writers (:mod:`autocal.io.calsol_write`) write it:
   spacing; with ``per_time=False`` (or a ``time_range``) one time-averaged solution,
   ``Ntimes = 1``, over a ``time_range`` spanning the fitted integrations;
 * ``flag_array`` is the solution's channel flags (failed fits, non-positive ``G``);
-  flagged gains are written as 1 (never NaN);
+  flagged gains are written as 1 (never NaN); per time, the integrations flagged whole
+  before the fit (RFI in time, ``Solution.time_flags``) are flagged too (their gains are
+  the time model's);
 * ``quality_array`` holds the total 1-sigma uncertainty of the written gain amplitude
   ``|g|`` (:attr:`autocal.fit.solution.Solution.sigma_abs_g`: statistical, jackknife and drift
   terms, :mod:`autocal.fit.total_uncertainty`; with ``per_time=True`` the statistical error of
@@ -441,6 +443,10 @@ def _per_time_gains(
     if basis.shape[1] != ntime:  # one integration's arrays, shared by all (read-only)
         full = (nant, nfreq, ntime, npol)
         gain, flag, quality = (np.broadcast_to(x, full) for x in (gain, flag, quality))
+    if solution.time_flags is not None and solution.time_flags.any():
+        # integrations flagged whole before the fit: flagged at their times (the gain
+        # there is the time model's, still valid)
+        flag = flag | np.asarray(solution.time_flags).transpose(0, 2, 1)[:, None, :, :]
     return _Gains(gain, flag, quality, times)
 
 

@@ -16,7 +16,8 @@ Datasets (exactly what :class:`autocal.fit.solution.Solution` holds; read back b
     Hz), ``lsts`` (Ntime,; hours), ``jds`` (Ntime,), ``coeffs`` (Nant, Npol, Nfreq,
     nparam), ``cov`` (Nant, Npol, Nfreq, nparam, nparam), ``chi2``, ``dof``, ``count``,
     ``nflagged``, ``flag_reason`` (Nant, Npol, Nfreq), optional ``residuals`` (Nant, Npol,
-    Ntime, Nfreq).
+    Ntime, Nfreq) and ``time_flags`` (Nant, Npol, Ntime; integrations flagged whole
+    before the fit).
 Group ``derived`` (for readers that do not use autocal; recomputed on reading)
     ``G``, ``abs_g`` (``|g| = sqrt(G)``), ``n``, ``Trxr`` (K), ``sigma_G``, ``sigma_abs_g``,
     ``sigma_n``, ``sigma_Trxr`` (K) -- the TOTAL 1-sigma when the solution has one (see
@@ -313,6 +314,8 @@ def write_solution(
         h5["flag_reason"].attrs["legend"] = to_json({str(k): v for k, v in FLAG_REASONS.items()})
         if solution.residuals is not None:
             h5.create_dataset("residuals", data=np.asarray(solution.residuals))
+        if solution.time_flags is not None:
+            h5.create_dataset("time_flags", data=np.asarray(solution.time_flags, dtype=bool))
         der = h5.create_group("derived")
         with np.errstate(invalid="ignore", divide="ignore"):
             for name, (unit, text) in _DERIVED.items():
@@ -387,6 +390,7 @@ def read_solution(path: str | Path) -> Solution:
             )
             arrays = {name: h5[name][()] for name in _CORE}
             residuals = h5["residuals"][()] if "residuals" in h5 else None
+            time_flags = h5["time_flags"][()] if "time_flags" in h5 else None
             total = None
             if "uncertainty" in h5:
                 unc = h5["uncertainty"]
@@ -406,6 +410,7 @@ def read_solution(path: str | Path) -> Solution:
                 residuals=residuals,
                 antenna_names=_strings(h5["antenna_names"]),
                 total=total,
+                time_flags=time_flags,
                 **arrays,
             )
     except ProductFormatError:

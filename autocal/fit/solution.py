@@ -59,6 +59,9 @@ class Solution:
         The total uncertainty (:class:`autocal.fit.total_uncertainty.TotalUncertainty`): when set,
         ``sigma_G``, ``sigma_n``, ``sigma_Trxr`` and ``sigma_abs_g`` are total errors and
         the ``*_stat`` properties the statistical part alone.
+    time_flags
+        Optional ``(Nant, Npol, Ntime)`` integrations flagged whole before the fit (RFI in
+        time, :mod:`autocal.pipeline.rfi`); the per-time calh5/calfits flag them.
     """
 
     model: FitModel
@@ -78,6 +81,7 @@ class Solution:
     residuals: np.ndarray | None = None
     antenna_names: tuple[str, ...] = ()
     total: TotalUncertainty | None = None
+    time_flags: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         lead = (len(self.antennas), len(self.pols), len(self.freqs))
@@ -105,6 +109,12 @@ class Solution:
             raise FitError("Solution.residuals has the wrong shape")
         if self.total is not None and self.total.cov.shape != (*lead, 2, 2):
             raise FitError("Solution.total has the wrong shape")
+        if self.time_flags is not None and np.shape(self.time_flags) != (
+            lead[0],
+            lead[1],
+            len(self.lsts),
+        ):
+            raise FitError("Solution.time_flags has the wrong shape")
 
     @classmethod
     def from_solved(

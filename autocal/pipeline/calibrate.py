@@ -24,7 +24,7 @@ import logging
 import os
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -208,6 +208,8 @@ def _calibrate(
         {"calibration": config.model_dump(mode="json"), "provenance": provenance},
         total,
     )
+    if mask is not None and mask.integrations.any():
+        solution = replace(solution, time_flags=mask.integrations)
     comparison_inputs: dict[str, Any] = {}
     if config.reference:
         report(0.84, "alternative sky models for the comparison's systematics budget")

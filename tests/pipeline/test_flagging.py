@@ -58,6 +58,31 @@ def test_rfi_spikes_do_not_reach_the_fit_and_the_switch_turns_it_off(tmp_path) -
     assert provenance == counts
 
 
+def test_integrations_flagged_whole_are_flagged_at_their_times_in_the_products(tmp_path):
+    """A broad-band burst flags its integration before the fit; the solution records it
+    (time_flags, also in solution.h5) and the per-time calh5 flags that time in every
+    channel, the other times only where the channel is flagged."""
+    from autocal.io.products import read_solution
+
+    obs, _ = simulate(SIM)
+    burst = obs.ntime // 3
+    data = obs.data.copy()
+    data[:, :, burst] *= 1.2
+    hit = dataclasses.replace(obs, data=data)
+    config = CalibrationConfig(inputs=["sim"], beam="dipole", products=["hdf5", "calh5"])
+    result = run_calibration(config, tmp_path, observation=hit)
+    tflags = result.solution.time_flags
+    assert tflags is not None and tflags[0, 0].tolist() == [t == burst for t in range(obs.ntime)]
+    assert np.array_equal(read_solution(tmp_path / "solution.h5").time_flags, tflags)
+    uvc = UVCal.from_file(str(tmp_path / "solution.calh5"))
+    flags = uvc.flag_array[0, :, :, 0]  # (F, T) of antenna 0, ee
+    assert flags[:, burst].all()
+    others = np.delete(flags, burst, axis=1)
+    channels = np.broadcast_to(result.solution.flags[0, 0][:, None], others.shape)
+    np.testing.assert_array_equal(others, channels)
+    assert not others.all()
+
+
 @pytest.mark.data
 @pytest.mark.slow
 def test_real_band_edges_and_rfi_are_in_the_summary_and_the_products(data_root, tmp_path):
