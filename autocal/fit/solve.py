@@ -1,7 +1,8 @@
 """Solving the normal equations of every channel at once.
 
-All channels, antennas and polarisations are solved at once with batched numpy linear
-algebra (:func:`solve_sums`), in blocks that bound the temporaries. A channel with too few
+All channels, antennas and polarisations are solved at once (:func:`solve_sums`, a
+compiled loop over channels; :func:`solve_sums_numpy`, batched numpy linear algebra in
+blocks that bound the temporaries, is its reference). A channel with too few
 samples, a singular normal matrix or a non-positive gain is flagged with its reason
 (:data:`FLAG_REASONS`) and its values set to NaN, never filled.
 """
@@ -35,7 +36,7 @@ FLAG_RFI = 5
 MAX_CONDITION = 1e12
 
 
-#: Channel systems solved per block by :func:`solve_sums`: its temporaries (scaled normal
+#: Channel systems solved per block by :func:`solve_sums_numpy`: its temporaries (scaled normal
 #: matrices, inverses) are then a few MB per block instead of several copies of ``ata``
 #: (for a Legendre-2 fit of 350 antennas x 2 pols x 1536 channels, 310 MB each).
 SOLVE_BLOCK = 1 << 14
@@ -47,10 +48,13 @@ def solve_sums(
     min_samples: int | None = None,
     scale_covariance: bool | Literal["inflate"] = False,
     max_condition: float = MAX_CONDITION,
-    block: int = SOLVE_BLOCK,
     positive_gain: bool = True,
 ) -> dict[str, np.ndarray]:
     """Solve the normal equations of every channel.
+
+    Computed channel by channel by the compiled
+    :func:`autocal.fit.solve_kernel.solve_channels`; :func:`solve_sums_numpy` is the same
+    as batched numpy linear algebra (its reference).
 
     Parameters
     ----------
@@ -65,9 +69,6 @@ def solve_sums(
         in real data without being shrunk below the noise.
     max_condition
         Largest condition number of the column-scaled normal matrix.
-    block
-        Channel systems solved at once (bounds the temporaries; the result does not
-        depend on it).
     positive_gain
         Flag (reason 3) channels whose first gain coefficient is not positive. ``False``
         keeps such solutions (refits that only serve an error estimate).
@@ -77,15 +78,52 @@ def solve_sums(
     dict
         ``coeffs`` (..., M), ``cov`` (..., M, M), ``chi2``, ``dof``, ``flag_reason``.
     """
+    from autocal.fit.solve_kernel import solve_channels  # numba: only when solving
+
+    m, min_samples, flat = _flattened(sums, min_samples)
+    ata, aty, yty, count = flat
+    mode = 0 if not scale_covariance else (2 if scale_covariance == "inflate" else 1)
+    out = solve_channels(ata, aty, yty, count, min_samples, mode, max_condition, positive_gain)
+    out["dof"] = (count - m).astype(np.float64)
+    lead = sums.count.shape
+    return {name: value.reshape(*lead, *value.shape[1:]) for name, value in out.items()}
+
+
+def _flattened(
+    sums: NormalSums, min_samples: int | None
+) -> tuple[int, int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """Return ``M``, the checked ``min_samples`` and the sums as ``(N, ...)`` arrays."""
     m = sums.model.nparam
     min_samples = m + 1 if min_samples is None else int(min_samples)
     if min_samples < m:
         raise FitError(f"min_samples must be at least the number of parameters ({m})")
+    flat = (
+        sums.ata.reshape(-1, m, m),
+        sums.aty.reshape(-1, m),
+        sums.yty.reshape(-1),
+        sums.count.reshape(-1),
+    )
+    return m, min_samples, flat
+
+
+def solve_sums_numpy(
+    sums: NormalSums,
+    *,
+    min_samples: int | None = None,
+    scale_covariance: bool | Literal["inflate"] = False,
+    max_condition: float = MAX_CONDITION,
+    block: int = SOLVE_BLOCK,
+    positive_gain: bool = True,
+) -> dict[str, np.ndarray]:
+    """:func:`solve_sums` as batched numpy linear algebra, ``block`` channels at a time.
+
+    The compiled solver's reference (several times slower on a HERA file). ``block``
+    bounds the temporaries; the result does not depend on it.
+    """
     if block < 1:
         raise FitError(f"block must be at least 1 channel system, got {block}")
+    m, min_samples, (ata, aty, yty, count) = _flattened(sums, min_samples)
     lead = sums.count.shape
-    ata, aty = sums.ata.reshape(-1, m, m), sums.aty.reshape(-1, m)
-    yty, count = sums.yty.reshape(-1), sums.count.reshape(-1)
     n = count.size
     out = {
         "coeffs": np.empty((n, m)),

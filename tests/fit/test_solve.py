@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from autocal.fit.model import FitError, FitModel
-from autocal.fit.solve import MAX_CONDITION, solve_sums, sym_eigvalsh, sym_inv
+from autocal.fit.solve import MAX_CONDITION, solve_sums, solve_sums_numpy, sym_eigvalsh, sym_inv
 from autocal.fit.sums import NormalSums, accumulate
 from tests.fit.toy import LSTS, noisy, random_chunk, toy_tsky
 
@@ -88,12 +88,37 @@ def test_solve_in_blocks_gives_the_whole_solve() -> None:
     sums.count[0, 0, 0] = 2  # too few samples
     sums.ata[0, 1, 3] = 0.0  # singular
     sums.aty[1, 0, 6, 0] = -1e9  # non-positive gain
-    whole = solve_sums(sums, scale_covariance=True, block=sums.count.size)
+    whole = solve_sums_numpy(sums, scale_covariance=True, block=sums.count.size)
     assert {1, 2, 3} <= set(np.unique(whole["flag_reason"]))
     for block in (1, 5, 16):
-        part = solve_sums(sums, scale_covariance=True, block=block)
+        part = solve_sums_numpy(sums, scale_covariance=True, block=block)
         for name, value in whole.items():
             np.testing.assert_array_equal(part[name], value)
             assert part[name].shape == value.shape
     with pytest.raises(FitError, match="block must be at least 1"):
-        solve_sums(sums, block=0)
+        solve_sums_numpy(sums, block=0)
+
+
+@pytest.mark.parametrize(("kind", "order"), [("constant", 0), ("legendre", 1), ("legendre", 2)])
+@pytest.mark.parametrize("scale", [False, True, "inflate"])
+def test_the_compiled_solver_gives_the_numpy_solve(kind: str, order: int, scale) -> None:
+    """Every output of the compiled solver equals the numpy reference's (to rounding), and
+    every flag reason, on systems with too few samples, singular and ill-conditioned
+    matrices, non-finite sums and a non-positive gain."""
+    c = random_chunk(32, nant=3, ntime=30, nfreq=9)
+    model = FitModel.for_lsts(c["lsts"], kind, order)
+    sums = accumulate(model, c["data"], c["tsky"], c["lsts"], flags=c["flags"], weights="identity")
+    sums.count[0, 0, 0] = 2  # too few samples
+    sums.ata[0, 1, 3] = 0.0  # singular
+    sums.ata[0, 1, 4, 0, 0] = np.nan  # not finite
+    sums.ata[1, 0, 2, -1, -1] *= 1e-14  # ill-conditioned
+    sums.aty[1, 0, 6, 0] = -1e9  # non-positive gain
+    sums.count[2, 0, 1] = model.nparam  # dof 0: a NaN covariance scale, not a flag
+    got = solve_sums(sums, scale_covariance=scale)
+    ref = solve_sums_numpy(sums, scale_covariance=scale)
+    assert {1, 2, 3} <= set(np.unique(ref["flag_reason"]))
+    np.testing.assert_array_equal(got["flag_reason"], ref["flag_reason"])
+    for name in ("coeffs", "cov", "chi2", "dof"):
+        np.testing.assert_array_equal(np.isnan(got[name]), np.isnan(ref[name]), err_msg=name)
+        scale = np.nanmax(np.abs(ref[name]))  # cancellations: near-zero cross terms
+        np.testing.assert_allclose(got[name], ref[name], rtol=1e-8, atol=1e-12 * scale)
