@@ -21,6 +21,7 @@ import numpy as np
 
 from autocal.core.observation import Observation
 from autocal.fit.blocks import accumulate_blocks, block_edges, extended_model, sums_nbytes
+from autocal.fit.defaults import DEFAULT_INFLATE_ERRORS, DEFAULT_PASSES, Passes
 from autocal.fit.model import FitError, FitModel, check_tsky, design, mean_vectors, weights_for
 from autocal.fit.priors import add_trxr_prior
 from autocal.fit.solution import Solution
@@ -30,19 +31,9 @@ from autocal.fit.total_uncertainty import total_uncertainty
 
 logger = logging.getLogger(__name__)
 
-#: Radiometer weighting passes: ``"auto"`` (a second pass only when data weights would bias
-#: ``G`` by more than :data:`REWEIGHT_THRESHOLD`), ``1`` or ``2``.
-Passes = Literal["auto", 1, 2]
 #: Relative bias ``2 / (dnu dt N)`` of data-derived radiometer weights above which
 #: ``passes="auto"`` makes a second, model-weighted pass.
 REWEIGHT_THRESHOLD = 1e-5
-#: Default passes of every calibration (:class:`autocal.pipeline.config.CalibrationConfig` and
-#: :func:`fit` both use it).
-DEFAULT_PASSES: Passes = "auto"
-#: Default: radiometer-weighted covariances are multiplied by ``max(1, chi^2/dof)`` so the
-#: errors cover unmodelled structure (:class:`autocal.pipeline.config.CalibrationConfig` and
-#: :func:`fit` both use it).
-DEFAULT_INFLATE_ERRORS = True
 
 
 def covariance_scaling(

@@ -14,7 +14,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from autocal.errors import AutocalError
-from autocal.fit.passes import DEFAULT_INFLATE_ERRORS, DEFAULT_PASSES, Passes
+from autocal.fit.defaults import DEFAULT_INFLATE_ERRORS, DEFAULT_PASSES, Passes
 
 ProductName = Literal["calh5", "calfits", "hdf5", "png"]
 Progress = Callable[[float, str], None]
