@@ -223,6 +223,19 @@ def shade_band_edges(ax: Any, fmhz: np.ndarray, core: np.ndarray) -> None:
     ax.axvspan(hi, fmhz.max() + step, color="0.85", zorder=0, lw=0)
 
 
+#: Antenna-polarisations shown in a residual waterfall figure (``autocal calibrate``'s
+#: ``residuals.png`` and ``data_model.png``, ``autocal diagnose``'s residual figures).
+MAX_PLOTTED = 4
+
+
+def waterfall_antennas(npol: int) -> int:
+    """Return how many antennas (the first ones, with every pol) the waterfalls show.
+
+    Whole antennas, at least one: ``MAX_PLOTTED // npol`` (2 antennas of 2 pols).
+    """
+    return max(1, MAX_PLOTTED // max(npol, 1))
+
+
 def showing_note(fig: Any, shown: int, total: int, what: str = "antenna-pols") -> None:
     """Write 'showing N of M antenna-pols' in the figure's lower right when N < M."""
     if shown < total:
@@ -285,10 +298,19 @@ def plot_residuals(
     total: int | None = None,
     shown: int | None = None,
     channels: np.ndarray | None = None,
+    ncols: int = 1,
 ) -> Path:
     """Write :func:`residuals_figure` to ``path``; return it."""
     fig = residuals_figure(
-        labels, residuals, freqs, lsts, title=title, total=total, shown=shown, channels=channels
+        labels,
+        residuals,
+        freqs,
+        lsts,
+        title=title,
+        total=total,
+        shown=shown,
+        channels=channels,
+        ncols=ncols,
     )
     return save_figure(fig, path)
 
@@ -303,6 +325,7 @@ def residuals_figure(
     total: int | None = None,
     shown: int | None = None,
     channels: np.ndarray | None = None,
+    ncols: int = 1,
 ) -> Any:
     """Waterfalls of normalised residuals ``(R - model) / sigma``.
 
@@ -322,10 +345,13 @@ def residuals_figure(
     total
         Antenna-pols there are; more than ``shown`` writes 'showing <shown> of <total>'.
     shown
-        Antenna-pols the waterfalls show (default ``K``; 1 for one antenna-pol before and
-        after a change).
+        Antenna-pols the waterfalls show (default ``K``; ``K / 2`` for each antenna-pol
+        before and after a change).
     channels
         ``(Nfreq,)`` mask of the channels setting the colour range (default: all).
+    ncols
+        Waterfalls per row, filled row by row (2: each antenna-pol before and after a
+        change side by side); one colour bar per row.
 
     Returns
     -------
@@ -334,26 +360,32 @@ def residuals_figure(
     import matplotlib
 
     k = len(labels)
-    height = 2.6 * k + 1.2
-    fig = _pyplot().figure(figsize=(9, height))
-    # a fixed grid (constrained layout took 0.5 s of a HERA file's 1.1 s figure)
+    nrows = -(-k // ncols)
+    height = 2.6 * nrows + 1.2
+    width = 9.0 + 6.0 * (ncols - 1)
+    fig = _pyplot().figure(figsize=(width, height))
+    # a fixed grid (constrained layout took 0.5 s of a HERA file's 1.1 s figure); margins
+    # in inches: 0.81 left (LST ticks and label), 0.9 right (the colour bars' label)
     grid = fig.add_gridspec(
-        k, 2, width_ratios=[1.0, 0.025], left=0.09, right=0.9, wspace=0.04, hspace=0.5,
-        bottom=0.55 / height, top=1 - 0.95 / height,
+        nrows, 2, width_ratios=[1.0, 0.025 / ncols], left=0.81 / width, right=1 - 0.9 / width,
+        wspace=0.04, hspace=0.5, bottom=0.55 / height, top=1 - 0.95 / height,
     )  # fmt: skip
-    axes = [fig.add_subplot(grid[i, 0]) for i in range(k)]
+    cells = [grid[r, 0].subgridspec(1, ncols, wspace=0.2) for r in range(nrows)]
+    axes = [fig.add_subplot(cells[i // ncols][0, i % ncols]) for i in range(k)]
     fmhz = freqs / 1e6
     scaled = residuals if channels is None else residuals[..., channels]
     vmax = max(symmetric_limit(scaled), 1.0)
     cmap = matplotlib.colormaps["RdBu_r"].with_extremes(bad="0.8")
-    for row, (ax, label, res) in enumerate(zip(axes, labels, residuals, strict=True)):
+    for i, (ax, label, res) in enumerate(zip(axes, labels, residuals, strict=True)):
         mesh = channel_image(ax, fmhz, res, cmap=cmap, vmin=-vmax, vmax=vmax)
         ticks = np.unique(np.linspace(0, lsts.size - 1, 6).astype(int))
-        ax.set_yticks(ticks, [f"{lsts[i]:.2f}" for i in ticks])
+        ax.set_yticks(ticks, [f"{lsts[t]:.2f}" for t in ticks])
         rms = float(np.sqrt(np.nanmean(res**2))) if np.any(np.isfinite(res)) else float("nan")
         ax.set(ylabel="LST [h]", title=f"{label}: normalised residuals (rms {rms:.3g})")
-        fig.colorbar(mesh, cax=fig.add_subplot(grid[row, 1]), label=RESIDUAL_LABEL)
-    axes[-1].set_xlabel("frequency [MHz]")
+        if i % ncols == ncols - 1 or i == k - 1:  # the row's colour bar (one scale)
+            fig.colorbar(mesh, cax=fig.add_subplot(grid[i // ncols, 1]), label=RESIDUAL_LABEL)
+    for ax in axes[(nrows - 1) * ncols :]:
+        ax.set_xlabel("frequency [MHz]")
     note = f"colour range +-{vmax:.3g} sigma (99th percentile of |residual|)"
     fig.suptitle((title + "\n" if title else "") + note, fontsize=9)
     shown = k if shown is None else shown

@@ -429,14 +429,19 @@ class JobStore:
         products: dict[str, str] | None = None,
         provenance: dict[str, Any] | None = None,
         error: str | None = None,
+        message: str | None = None,
     ) -> bool:
-        """Close a running job; ``False`` (and nothing changed) if not its owner."""
+        """Close a running job; ``False`` (and nothing changed) if not its owner.
+
+        ``message``: the job's short message (default the state's: ``done``, ``failed``,
+        ``cancelled``), e.g. ``done, but ... (mostly flagged): see quality``.
+        """
         if state.value not in FINAL_STATES:
             raise StoreError(f"{state.value} is not a final state")
         with self.session() as s:
             job = self._owned(s, job_id, worker, attempt)
             if job is not None:
-                self._close(s, job, state, result, products, provenance, error)
+                self._close(s, job, state, result, products, provenance, error, message)
         if job is None:  # logged outside the session: a log handler may write to the store
             logger.warning("worker %s no longer owns job %s; result discarded", worker, job_id)
             return False
@@ -451,6 +456,7 @@ class JobStore:
         products: dict[str, str] | None,
         provenance: dict[str, Any] | None,
         error: str | None,
+        message: str | None = None,
     ) -> None:
         """Record a job's final state (its owner checked by the caller)."""
         job.state = state.value
@@ -462,9 +468,11 @@ class JobStore:
         job.products = products
         job.provenance = provenance
         job.error = error
-        job.message = {"succeeded": "done", "failed": "failed", "cancelled": "cancelled"}[
-            state.value
-        ]
+        job.message = (
+            message[:500]
+            if message
+            else {"succeeded": "done", "failed": "failed", "cancelled": "cancelled"}[state.value]
+        )
         if state == JobState.succeeded:
             job.completions += 1
 

@@ -15,7 +15,9 @@ or many, sharing a PostgreSQL store) for parallelism. A job's life in the worker
    ``settings.products_dir / job_id / "attempt-N"`` (all or nothing); progress lines and
    warnings go to the job's log.
 4. The job is closed by :meth:`JobStore.finish` (accepted only from its owner): succeeded
-   with the summary (the run's ``summary.json``), product paths and provenance;
+   with the summary (the run's ``summary.json``), product paths and provenance, and the
+   message ``done`` (``done, but <flagged> of <total> channels flagged (mostly flagged):
+   see quality`` for a solution that is fully or mostly flagged: :func:`done_message`);
    cancelled; or failed with a one-line reason (``"ExceptionType: message"``; the
    traceback goes to the worker's own log).
 
@@ -121,6 +123,33 @@ def describe_error(err: BaseException) -> str:
     else:
         text = " ".join(str(err).split()) or repr(err)
     return f"{type(err).__name__}: {text}"[:2000]
+
+
+def done_message(summary: Mapping[str, Any]) -> str:
+    """Return a succeeded job's message: ``done``, or what makes its result no calibration.
+
+    A calibration whose solution is fully or mostly flagged (its ``quality`` block, judged by
+    :func:`autocal.pipeline.quality.flagged_verdict`, the decision behind ``autocal
+    calibrate``'s exit status 3) is ``done, but <flagged> of <total> channels flagged
+    (mostly flagged): see quality``.
+
+    Parameters
+    ----------
+    summary
+        The run's summary (``summary.json``).
+
+    Returns
+    -------
+    str
+        The message.
+    """
+    if not summary.get("quality"):  # a diagnosis: nothing is judged
+        return "done"
+    # the science stack, loaded by the calibration that wrote the summary
+    from autocal.pipeline.quality import flagged_verdict
+
+    verdict = flagged_verdict(summary["quality"])
+    return "done" if verdict is None else f"done, but {verdict}: see quality"
 
 
 class _JobLogHandler(logging.Handler):
@@ -410,7 +439,8 @@ class Worker:
         if state != JobState.succeeded:
             run.log(f"{state.value}: {fields.get('error') or ''}".rstrip(": "))
         else:
-            run.log("succeeded")
+            note = fields.get("message")
+            run.log("succeeded" if note in (None, "done") else f"succeeded: {note}")
         try:
             ok = self.store.finish(run.job_id, self.worker_id, run.attempt, state, **fields)
         except Exception:
@@ -490,12 +520,18 @@ class Worker:
             provenance["dask_scheduler"] = self.settings.dask_scheduler
         summary = dict(run_summary)
         summary["provenance"] = provenance
+        message = done_message(summary)
+        if message != "done":  # the worker's log and, from the job's thread, the job's log
+            logger.warning(
+                "job %s: %s (%s)", run.job_id, message, summary["quality"].get("message")
+            )
         return self._finish(
             run,
             JobState.succeeded,
             result=jsonable(summary),
             products=jsonable(products),
             provenance=jsonable(provenance),
+            message=message,
         )
 
     def _stopped(self, run: _Run, err: BaseException) -> str | None:

@@ -172,6 +172,13 @@ class ExtendedFit:
         """``(Ntime, Nfreq)`` normalised residuals of one antenna (index) and pol (index)."""
         return self._source().residual_chunk(slice(antenna, antenna + 1))[0, pol]
 
+    def residuals_of_first(self, nant: int) -> np.ndarray:
+        """Return the normalised residuals of the first antennas: ``(a, Npol, Ntime, Nfreq)``.
+
+        ``a = min(nant, Nant)`` (at least 1).
+        """
+        return self._source().residual_chunk(slice(0, max(nant, 1)))
+
     def detached(self) -> ExtendedFit:
         """Return the fit without its :attr:`source` (no reference to data or weights)."""
         return dataclasses.replace(self, source=None)

@@ -19,7 +19,7 @@ from autocal.core.observation import Observation
 from autocal.diagnosis.extended_fit import ExtendedFit
 from autocal.diagnosis.impact import NEGLIGIBLE_G_FRACTION, NEGLIGIBLE_TRXR_K
 from autocal.diagnosis.normal_equations import IDENTIFIABLE_RESOLUTION, MIN_IDENTIFIABLE
-from autocal.plots import plot_gain_series, plot_residuals, run_title
+from autocal.plots import plot_gain_series, plot_residuals, run_title, waterfall_antennas
 
 logger = logging.getLogger(__name__)
 
@@ -45,7 +45,8 @@ class Diagnosis:
     config
         Statistic, threshold, prior and settings.
     residual_snapshots
-        ``[(label, (Ntime, Nfreq) normalised residuals of antenna 0, pol 0)]``.
+        ``[(label, (a, Npol, Ntime, Nfreq) normalised residuals)]`` of the antenna-pols the
+        residual plots show (:func:`residual_snapshot`: the first antennas, every pol).
     product_change
         How the calibration products change from the starting model to the diagnosed one
         (:func:`~autocal.diagnosis.impact.product_impact`); each step has its own under
@@ -212,6 +213,27 @@ def _time_change_text(impact: dict[str, Any]) -> str:
     return f"; in time: {', '.join(parts)}" if parts else ""
 
 
+def residual_snapshot(fit: ExtendedFit) -> np.ndarray:
+    """Return what the residual plots show of a fit: ``(a, Npol, Ntime, Nfreq)``.
+
+    The normalised residuals of the first :func:`~autocal.plots.waterfall_antennas`
+    antennas, every pol: the antenna-pols ``autocal calibrate``'s ``residuals.png`` shows
+    (at most :data:`~autocal.plots.MAX_PLOTTED`).
+    """
+    return fit.residuals_of_first(waterfall_antennas(fit.G.shape[1]))
+
+
+def _waterfall_labels(shape: tuple[int, ...], obs: Observation | None) -> list[str]:
+    """Return ``ant <number> <pol>`` of each shown antenna-pol, antenna by antenna.
+
+    Without ``obs``: ``antenna index <i>, pol index <j>``.
+    """
+    nant, npol = shape[:2]
+    if obs is None:
+        return [f"antenna index {a}, pol index {p}" for a in range(nant) for p in range(npol)]
+    return [f"ant {a} {p}" for a in obs.antennas[:nant].tolist() for p in obs.pols]
+
+
 def write_diagnosis(
     diag: Diagnosis,
     out_dir: str | Path,
@@ -221,10 +243,14 @@ def write_diagnosis(
 ) -> Path:
     """Write ``diagnosis.json``, ``summary.txt`` and plots.
 
-    The plots: residual waterfalls before/after each step, and ``gain_series.png`` (the
-    per-integration gain series of ``gain_jitter`` / ``antenna_gain_jitter`` steps). The
-    waterfalls are of the first antenna and pol; their panels name them, their title the
-    files, JD range and antennas, and they say 'showing 1 of M antenna-pols'.
+    The plots: residual waterfalls before/after each step (``residuals_step<i>.png``, each
+    antenna-pol's before and after side by side; ``residuals.png`` when no step was
+    accepted), and ``gain_series.png`` (the per-integration gain series of ``gain_jitter`` /
+    ``antenna_gain_jitter`` steps). The waterfalls are of every antenna-pol up to
+    :data:`~autocal.plots.MAX_PLOTTED` (the first antennas with every pol, as ``autocal
+    calibrate``'s ``residuals.png``; :func:`residual_snapshot`); each panel names its
+    antenna and pol, the title the files, JD range and antennas, and with more antenna-pols
+    the figure says 'showing N of M antenna-pols' (also logged).
 
     Parameters
     ----------
@@ -246,31 +272,38 @@ def write_diagnosis(
     out.mkdir(parents=True, exist_ok=True)
     (out / "diagnosis.json").write_text(json.dumps(_jsonable(diag.to_dict()), indent=2))
     (out / "summary.txt").write_text(summary_text(diag))
-    snaps = diag.residual_snapshots
-    shown, title, total = "antenna index 0, pol index 0", None, None
+    snaps = [(label, np.asarray(res)) for label, res in diag.residual_snapshots]
+    labels = _waterfall_labels(snaps[0][1].shape, obs) if snaps else []
+    title, total = None, None
     if obs is not None:
-        shown = f"ant {obs.antennas[0]} {obs.pols[0]}"
         title = run_title(obs.jds, obs.antennas, obs.pols, stems)
         total = len(obs.antennas) * len(obs.pols)
-    if total is not None and total > 1 and len(snaps) > 0:
-        logger.info("residual plots show 1 of %d antenna-pols (%s)", total, shown)
+    if total is not None and len(labels) < total:
+        logger.info(
+            "residual plots show %d of %d antenna-pols (%s)", len(labels), total, ", ".join(labels)
+        )
     for i in range(1, len(snaps)):
-        before, after = snaps[i - 1], snaps[i]
-        nt, nf = after[1].shape
+        (before, res0), (after, res1) = snaps[i - 1], snaps[i]
+        nt, nf = res1.shape[-2:]
         freqs = obs.freqs if obs is not None else np.arange(nf) * 1e6
         lsts = obs.lsts if obs is not None else np.arange(nt, dtype=float)
+        # each antenna-pol's before and after side by side: (K, 2, Ntime, Nfreq)
+        pairs = np.stack([res0.reshape(-1, nt, nf), res1.reshape(-1, nt, nf)], axis=1)
         plot_residuals(
-            [f"{shown}, {before[0]}", f"{shown}, {after[0]}"],
-            np.stack([before[1], after[1]]),
+            [f"{label}, {when}" for label in labels for when in (before, after)],
+            pairs.reshape(-1, nt, nf),
             freqs,
             lsts,
             out / f"residuals_step{i}.png",
             title=f"{title}\nstep {i}: before and after" if title else f"step {i}",
             total=total,
-            shown=1,
+            shown=len(labels),
+            ncols=2,
         )
     if len(snaps) == 1 and obs is not None:
-        plot_residuals([f"{shown}, {snaps[0][0]}"], snaps[0][1][None], obs.freqs, obs.lsts,
+        first, res0 = snaps[0]
+        plot_residuals([f"{label}, {first}" for label in labels],
+                       res0.reshape(-1, *res0.shape[-2:]), obs.freqs, obs.lsts,
                        out / "residuals.png", title=title, total=total)  # fmt: skip
     plot_gain_series(diag.steps, out / "gain_series.png", title=title)
     logger.info("wrote diagnosis to %s", out)

@@ -19,7 +19,7 @@ from autocal.core.observation import Observation
 from autocal.diagnosis.bandpass import BandpassFit
 from autocal.diagnosis.effects import Effect, SkyTemplates
 from autocal.diagnosis.extended_fit import ExtendedFit
-from autocal.diagnosis.report import Diagnosis
+from autocal.diagnosis.report import Diagnosis, residual_snapshot
 
 
 @dataclass(frozen=True)
@@ -131,5 +131,5 @@ class SearchState:
         self.diag.config["failed_candidates"][key] = reason
 
     def snapshot(self, label: str) -> None:
-        """Keep the current model's residuals of antenna 0, pol 0 for the plots."""
-        self.diag.residual_snapshots.append((label, self.current.residuals_of(0, 0)))
+        """Keep the current model's residuals of the antenna-pols the plots show."""
+        self.diag.residual_snapshots.append((label, residual_snapshot(self.current)))

@@ -68,7 +68,7 @@ from autocal.diagnosis.gap import describe_unexplained, gap_metrics
 from autocal.diagnosis.impact import product_impact, product_sigmas
 from autocal.diagnosis.normal_equations import MIN_IDENTIFIABLE, blas_single_thread
 from autocal.diagnosis.outliers import flag_outliers
-from autocal.diagnosis.report import Diagnosis
+from autocal.diagnosis.report import Diagnosis, residual_snapshot
 from autocal.diagnosis.screening import StepScreen
 from autocal.diagnosis.search_state import SearchContext, SearchSettings, SearchState
 from autocal.diagnosis.trials import ALPHA, BIC_THRESHOLD, ModelTrial, Trial
@@ -304,7 +304,7 @@ def _start(
         obs.freqs, current.G, current.sigma_G, smooth_order=settings.smooth_order
     )
     diag.initial_gap = gap_metrics(current, obs, tpl, bp_null)
-    diag.residual_snapshots.append(("initial model", current.residuals_of(0, 0)))
+    diag.residual_snapshots.append(("initial model", residual_snapshot(current)))
     ctx = SearchContext(
         tpl=tpl,
         candidates=tuple(cands),

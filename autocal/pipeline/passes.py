@@ -10,7 +10,8 @@ order either way, so the two give the same result bit for bit.
 
 The residual waterfall plot needs no second read: during the pass the weighted sums of the
 data and of the model's design columns are kept per time bin for the shown antennas
-(:data:`MAX_PLOTTED` antenna-polarisations, at most :data:`MAX_WATERFALL_ROWS` bins), which
+(:data:`autocal.plots.MAX_PLOTTED` antenna-polarisations, whole antennas:
+:func:`autocal.plots.waterfall_antennas`; at most :data:`MAX_WATERFALL_ROWS` bins), which
 give the normalised residuals once solved.
 """
 
@@ -32,11 +33,10 @@ from autocal.pipeline.config import CalibrationConfig, PipelineError, Progress, 
 from autocal.pipeline.partials import FilePartial, FileTask, PartialSpec, compute_partial, fold
 from autocal.pipeline.rfi import RfiMask
 from autocal.pipeline.sources import Source
+from autocal.plots import waterfall_antennas
 
 logger = logging.getLogger(__name__)
 
-#: Antenna-polarisations shown in the residual waterfall.
-MAX_PLOTTED = 4
 #: Rows (time bins) of the residual waterfall; longer observations are binned in time.
 MAX_WATERFALL_ROWS = 512
 
@@ -98,7 +98,7 @@ def sum_passes(
     ntime = source.lsts.size
     bin_size = max(1, -(-ntime // MAX_WATERFALL_ROWS))
     nbins = -(-ntime // bin_size)
-    nshow = max(1, MAX_PLOTTED // len(pols))
+    nshow = waterfall_antennas(len(pols))
     edges = _time_block_edges(config, source, pols, model)
     client = _dask_client_for(executor, source)
     execution = _execution(source, tasks, block_size, client)

@@ -3,11 +3,13 @@
 A solution whose channels are all or mostly flagged is not a calibration. Every caller of
 :func:`autocal.pipeline.calibrate.calibrate` (the CLI, service jobs, nightly runs, a
 notebook) finds the counts and reasons under ``quality`` in ``summary.json``; ``autocal
-calibrate`` exits with status 3 on such a result.
+calibrate`` exits with status 3 on such a result, and a service job's message says so
+(:func:`flagged_verdict`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -17,6 +19,8 @@ from autocal.fit.solve import FLAG_REASONS
 
 #: Fraction of flagged channels above which a solution counts as mostly flagged.
 MOSTLY_FLAGGED = 0.5
+#: Words of the ``status`` of a solution that is not a calibration.
+FLAGGED_WORDS = {"mostly_flagged": "mostly flagged", "fully_flagged": "fully flagged"}
 
 
 def flag_quality(solution: Solution) -> dict[str, Any]:
@@ -74,3 +78,25 @@ def flag_quality(solution: Solution) -> dict[str, Any]:
         "fully_flagged": dead,
         "message": message,
     }
+
+
+def flagged_verdict(quality: Mapping[str, Any] | None) -> str | None:
+    """Say in a few words that a solution is fully or mostly flagged (``None`` if not).
+
+    Parameters
+    ----------
+    quality
+        A summary's ``quality`` block (:func:`flag_quality`); ``None`` (a summary without
+        one) is not judged.
+
+    Returns
+    -------
+    str or None
+        ``"<flagged> of <total> channels flagged (mostly flagged)"`` (or ``fully
+        flagged``) when ``status`` is ``mostly_flagged`` or ``fully_flagged``; ``None`` for
+        ``ok`` or no block.
+    """
+    if not quality or quality.get("status") not in FLAGGED_WORDS:
+        return None
+    words = FLAGGED_WORDS[quality["status"]]
+    return f"{quality['flagged']} of {quality['total']} channels flagged ({words})"

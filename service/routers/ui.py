@@ -7,7 +7,9 @@
                                           night, every antenna
 ``GET /ui/nights/{night}``                a night: values per antenna (outliers
                                           highlighted, with reasons), failed jobs with
-                                          reasons, each job's products and figures
+                                          reasons, each job's products and figures (and
+                                          its message when not ``done``: a fully or
+                                          mostly flagged result)
 ``GET /ui/antennas/{antenna}``            ``|g|``, Trxr and G against night with 1-sigma
                                           error bars, per band
 ``GET /ui/static/{name}``                 the page's CSS and JS (shipped in the package)
@@ -198,9 +200,13 @@ def _jobs_section(store: JobStore, job_ids: list[str]) -> str:
             for p in FIGURES
             if p in products
         )
+        # a succeeded job's message other than "done": its result is fully or mostly flagged
+        message = job.get("message") or ""
+        note = f'<p class="bad">{escape(message)}</p>' if message not in ("", "done") else ""
         parts.append(
             f'<h3>job <a href="/jobs/{job_id}">{job_id}</a> '
-            f'(<a href="/jobs/{job_id}/results">results</a>)</h3><p>products: {links}</p>{figures}'
+            f'(<a href="/jobs/{job_id}/results">results</a>)</h3>{note}'
+            f"<p>products: {links}</p>{figures}"
         )
     return "".join(parts)
 

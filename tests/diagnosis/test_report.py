@@ -4,25 +4,27 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
+import pytest
 
 import autocal.plots
 from autocal.diagnosis.candidate_fits import try_feed_gains
 from autocal.diagnosis.catalogue import catalogue
+from autocal.diagnosis.effects import SkyTemplates
 from autocal.diagnosis.report import Diagnosis, summary_text, write_diagnosis
 from autocal.diagnosis.stepwise import diagnose
-from tests.diagnosis.simulated import PRIOR_SIGMA, hidden
+from autocal.simulate.mock import mock_autos
+from tests.diagnosis.simulated import BT, PRIOR_SIGMA, hidden
 
 
-def test_write_diagnosis(setup, tmp_path: Path, monkeypatch):
-    obs, tpl = setup
-    diag = diagnose(
-        hidden(obs, tpl.total - tpl.cmb), tpl, trxr_prior=150.0, trxr_prior_sigma=PRIOR_SIGMA
-    )
-    figures = {}
+def _keep_figures(monkeypatch) -> dict[str, Any]:
+    """Keep every figure saved (file name -> figure) for inspection."""
+    figures: dict[str, Any] = {}
     save = autocal.plots.save_figure
 
     def keep(fig, path):
@@ -30,6 +32,15 @@ def test_write_diagnosis(setup, tmp_path: Path, monkeypatch):
         return save(fig, path)
 
     monkeypatch.setattr(autocal.plots, "save_figure", keep)
+    return figures
+
+
+def test_write_diagnosis(setup, tmp_path: Path, monkeypatch):
+    obs, tpl = setup
+    diag = diagnose(
+        hidden(obs, tpl.total - tpl.cmb), tpl, trxr_prior=150.0, trxr_prior_sigma=PRIOR_SIGMA
+    )
+    figures = _keep_figures(monkeypatch)
     out = write_diagnosis(diag, tmp_path / "diag", obs, stems=("zen.1.HH",))
     doc = json.loads((out / "diagnosis.json").read_text())
     assert doc["effects"] == ["missing_cmb"]
@@ -38,16 +49,78 @@ def test_write_diagnosis(setup, tmp_path: Path, monkeypatch):
     assert (out / "residuals_step1.png").stat().st_size > 1000
     # the waterfalls say which antenna and pol they show, of how many, from which run
     fig = figures["residuals_step1.png"]
+    assert obs.shape[:2] == (1, 1)  # its one antenna-pol, before and after
     shown = f"ant {obs.antennas[0]} {obs.pols[0]}"
     titles = [ax.get_title() for ax in fig.axes if ax.images]
+    assert len(titles) == 2
     assert titles[0].startswith(f"{shown}, initial model")
     assert titles[1].startswith(f"{shown}, after missing_cmb")
-    total = len(obs.antennas) * len(obs.pols)
-    notes = " ".join(t.get_text() for t in fig.texts)
-    assert (f"showing 1 of {total} antenna-pols" in notes) == (total > 1)
+    assert "showing" not in " ".join(t.get_text() for t in fig.texts)
     head = fig._suptitle.get_text()
     assert head.startswith("zen.1.HH | JD ") and f"{obs.jds.min():.5f}" in head
     assert "missing_cmb" in (out / "summary.txt").read_text()
+
+
+def _two_pols(tpl: SkyTemplates) -> SkyTemplates:
+    """The same templates for pols ee and nn."""
+    fields: dict[str, Any] = {
+        name: np.repeat(getattr(tpl, name), 2, axis=0)
+        for name in ("total", "galactic", "cmb", "ground", "f_above", "f_below")
+    }
+    for name in ("beam_dwidth", "lst_derivative"):
+        if getattr(tpl, name) is not None:
+            fields[name] = np.repeat(getattr(tpl, name), 2, axis=0)
+    if tpl.beam_width_poly is not None:
+        fields["beam_width_poly"] = np.repeat(tpl.beam_width_poly, 2, axis=1)
+    return dataclasses.replace(tpl, **fields)
+
+
+@pytest.mark.parametrize("nant", [2, 3])
+def test_residual_plots_show_every_antenna_pol_up_to_calibrates_limit(
+    setup, nant, tmp_path: Path, monkeypatch, caplog
+) -> None:
+    """As ``autocal calibrate``'s residuals.png: a labelled waterfall (before and after, side
+    by side) of each antenna-pol up to the same limit, 'showing N of M' (figure and log)
+    beyond it."""
+    obs, tpl = setup
+    tpl2 = _two_pols(tpl)
+    data = mock_autos(
+        tpl2.total - tpl2.cmb, np.ones(obs.ntime), 150.0, nant=nant, bandwidth_time=BT,
+        rng=np.random.default_rng(5),
+    )  # fmt: skip
+    many = dataclasses.replace(
+        obs, data=data, antennas=np.arange(nant) + 10, pols=("ee", "nn"), flags=None,
+        nsamples=np.broadcast_to(obs.nsamples, data.shape).copy(), antenna_names=(),
+    )  # fmt: skip
+    diag = diagnose(many, tpl2, trxr_prior=150.0, trxr_prior_sigma=PRIOR_SIGMA)
+    assert diag.effects == ["missing_cmb"]
+    figures = _keep_figures(monkeypatch)
+    with caplog.at_level(logging.INFO, logger="autocal.diagnosis.report"):
+        write_diagnosis(diag, tmp_path / "diag", many, stems=("zen.2.HH",))
+    total = 2 * nant
+    shown_ants = many.antennas[: autocal.plots.waterfall_antennas(2)].tolist()
+    shown = [f"ant {a} {p}" for a in shown_ants for p in ("ee", "nn")]
+    assert len(shown) == min(total, autocal.plots.MAX_PLOTTED)
+    fig = figures["residuals_step1.png"]
+    waterfalls = [ax for ax in fig.axes if ax.images]
+    assert len(waterfalls) == 2 * len(shown)
+    for i, label in enumerate(shown):
+        before, after = waterfalls[2 * i : 2 * i + 2]
+        assert before.get_title().startswith(f"{label}, initial model")
+        assert after.get_title().startswith(f"{label}, after missing_cmb")
+        assert before.get_position().y0 == pytest.approx(after.get_position().y0)  # one row
+        assert before.get_position().x0 < after.get_position().x0
+    head = fig._suptitle.get_text()
+    assert head.startswith("zen.2.HH | JD ") and f"{many.jds.min():.5f}" in head
+    note = f"showing {len(shown)} of {total} antenna-pols"
+    notes = " ".join(t.get_text() for t in fig.texts)
+    logged = [r.getMessage() for r in caplog.records if "residual plots show" in r.getMessage()]
+    if len(shown) < total:
+        assert note in notes
+        assert logged == [f"residual plots show {len(shown)} of {total} antenna-pols "
+                          f"({', '.join(shown)})"]  # fmt: skip
+    else:
+        assert "showing" not in notes and not logged
 
 
 def test_summary_marks_superseded_and_dropped_steps() -> None:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from autocal.pipeline.calibrate import calibrate, read_summary
-from autocal.pipeline.quality import flag_quality
+from autocal.pipeline.quality import flag_quality, flagged_verdict
 
 HERA_FILE = "hera/autos/zen.2458043.40141.xx.HH.XRAA.uvh5"
 
@@ -34,3 +34,17 @@ def test_every_summary_has_the_quality_the_solution_flags_say(data_root, tmp_pat
     assert "no solved channel for" in one_dead["message"]
     dead[:] = 3
     assert flag_quality(dataclasses.replace(sol, flag_reason=dead))["status"] == "fully_flagged"
+
+
+def test_the_verdict_of_a_flagged_solution_follows_its_status() -> None:
+    """The few words a service job's message carries: only a fully or mostly flagged status
+    (flag_quality's decision) gets them, with the counts."""
+    block = {"flagged": 1405, "total": 2048}
+    assert flagged_verdict({**block, "status": "mostly_flagged"}) == (
+        "1405 of 2048 channels flagged (mostly flagged)"
+    )
+    assert flagged_verdict({"flagged": 8, "total": 8, "status": "fully_flagged"}) == (
+        "8 of 8 channels flagged (fully flagged)"
+    )
+    assert flagged_verdict({**block, "status": "ok"}) is None
+    assert flagged_verdict(None) is None and flagged_verdict({}) is None

@@ -585,3 +585,59 @@ def test_nightly_command_with_real_submission(tmp_path: Path, tiny_uvh5, monkeyp
         store.engine.dispose()
     finally:
         get_settings.cache_clear()
+
+
+def test_a_mostly_flagged_result_is_done_and_its_message_says_so(tmp_path: Path, tiny_uvh5) -> None:
+    """A calibration whose solution is mostly flagged succeeds (its products are written, as
+    the CLI writes them) but its message says so in the pipeline's words (the quality
+    block's decision), in GET /jobs/{id}, the job's log and the night's /ui page; a good
+    calibration's message is 'done'."""
+    import dataclasses
+    import html
+    import shutil
+    import warnings
+
+    import numpy as np
+
+    from autocal.io.uvh5 import write_uvh5
+    from autocal.pipeline.quality import flagged_verdict
+    from autocal.service.app import create_app
+    from autocal.service.nightly import submit_calibration
+    from autocal.simulate.mock import SimulationConfig, simulate
+
+    with warnings.catch_warnings():  # starlette's notice about httpx2, raised at import
+        warnings.filterwarnings("ignore", message=".*httpx2")
+        from fastapi.testclient import TestClient
+
+    data = tmp_path / "data"
+    data.mkdir()
+    settings, store, worker = _inprocess(tmp_path, data)
+    obs, _ = simulate(  # the observation of tiny_uvh5
+        SimulationConfig(beam="dipole", channel_width_khz=4000, duration_h=4, cadence_s=900)
+    )
+    flags = np.zeros(obs.shape, bool)
+    flags[..., : 2 * obs.nfreq // 3] = True  # two thirds of the channels, every integration
+    flagged = write_uvh5(dataclasses.replace(obs, flags=flags), data / "zen.2458098.60000.HH.uvh5")
+    good = shutil.copy(tiny_uvh5, data / "zen.2458098.50000.HH.uvh5")
+    options = {"beam": "dipole", "products": ["hdf5", "png"]}
+    bad_id, good_id = (
+        submit_calibration(store, settings, [str(p)], options)[0]["id"] for p in (flagged, good)
+    )
+    assert worker.run_once() and worker.run_once()
+    bad = store.get(bad_id)
+    quality = bad["result"]["quality"]
+    assert bad["state"] == "succeeded" and quality["status"] == "mostly_flagged", bad
+    assert bad["message"] == f"done, but {flagged_verdict(quality)}: see quality"
+    counts = f"{quality['flagged']} of {quality['total']} channels flagged (mostly flagged)"
+    assert counts in bad["message"]
+    assert quality["message"] in bad["log"]  # the warning with the reasons, in the job's log
+    assert store.get(good_id)["message"] == "done"
+    with TestClient(create_app(settings, store)) as client:
+        detail = client.get(f"/jobs/{bad_id}").json()
+        assert detail["state"] == "succeeded" and detail["message"] == bad["message"]
+        assert detail["products"]["hdf5"]  # the products are written all the same
+        listed = {j["id"]: j["message"] for j in client.get("/jobs").json()["items"]}
+        assert listed == {bad_id: bad["message"], good_id: "done"}
+        page = client.get(f"/ui/nights/{bad['night']}")
+        assert page.status_code == 200 and html.escape(bad["message"]) in page.text
+    store.engine.dispose()
