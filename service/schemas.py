@@ -186,8 +186,9 @@ class CalibrationOptions(BaseModel):
     )
     rfi_flagging: StrictBool | None = Field(
         None,
-        description="flag band edges and RFI from the autos before the fit (default true); "
-        "the counts per reason are in the result's summary under rfi_flagging",
+        description="flag band edges and RFI from the autos before the fit (default true; "
+        "calibrate and diagnose alike); the counts per reason are in the results and the "
+        "summary under rfi_flagging",
     )
     trxr_prior: Annotated[Number, Field(ge=-100_000.0, le=100_000.0)] | PathText | None = Field(
         None,
@@ -243,7 +244,6 @@ CALIBRATE_ONLY = frozenset(
         "weights",
         "passes",
         "inflate_errors",
-        "rfi_flagging",
         "products",
         "reference",
         "input_format",
@@ -260,8 +260,9 @@ class JobCreate(DiagnoseOptions, CalibrationOptions):
 
     ``kind: "calibrate"`` (default) takes the calibration options; ``kind: "diagnose"``
     takes ``sky``, ``beam``, ``tgnd_k``, ``nside``, ``antennas``, ``pols``,
-    ``freq_range_mhz``, ``lst_range_h`` and the ``diagnose:`` options. An option of the
-    other kind is a 422 naming it.
+    ``freq_range_mhz``, ``lst_range_h``, ``rfi_flagging``, ``trxr_prior``,
+    ``trxr_prior_sigma_k`` and the ``diagnose:`` options. An option of the other kind is a
+    422 naming it.
     """
 
     model_config = ConfigDict(
@@ -552,6 +553,13 @@ class DiagnosisResults(BaseModel):
         default_factory=dict,
         description="catalogue entries the search did not test, each with the reason (e.g. "
         "per-antenna entries above the feed limit)",
+    )
+    rfi_flagging: dict[str, Any] | None = Field(
+        None,
+        description="band edges and RFI flagged from the autos before the fits, as a "
+        "calibration flags them: samples per reason (band_edge, rfi_frequency, rfi_time), "
+        "channels, integrations, method; or applied false and why (the outliers of the "
+        "residual rounds are in config.outlier_flagging)",
     )
     summary: dict[str, Any] | None = Field(
         None, description="the job's summary: observation, config, timings"

@@ -14,6 +14,7 @@ from autocal.cli.args import (
     parse_str_list,
     validation_message,
 )
+from autocal.cli.options import HELP_DEFAULTS, default_text
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -22,7 +23,8 @@ def add(sub: argparse._SubParsersAction) -> None:
         "diagnose",
         help="name the physical effects missing from the model (gain drift, reflections, ...)",
         description="Fit the current model (sky x beam + CMB + ground, constant gain per "
-        "channel) to the autos of one observation, measure the gap, fit each candidate "
+        "channel) to the autos of one observation (band edges and RFI flagged first, as "
+        "calibrate does), measure the gap, fit each candidate "
         "effect of the catalogue (gain_drift, gain_jitter, antenna_gain_jitter, "
         "antenna_gain_drift, noise_drift, sky_scale, sky_offset, sky_spectral_index, "
         "ground_temperature, beam_width, missing_cmb, timing_offset, cable_reflection), "
@@ -66,6 +68,14 @@ def add(sub: argparse._SubParsersAction) -> None:
         help="largest chi^2 probability of an accepted effect's Delta chi^2 (default 1e-4)",
     )
     p.add_argument("--max-steps", type=int, help="most effects added (default 5)")
+    p.add_argument(
+        "--rfi-flagging",
+        action=argparse.BooleanOptionalAction,
+        help="flag band edges and RFI from the autos before the fits, as calibrate does "
+        "(counts per reason in diagnosis.json and summary.txt); --no-rfi-flagging fits every "
+        "sample the data do not flag (outliers of the residuals are flagged either way) "
+        f"({default_text(HELP_DEFAULTS['rfi_flagging'])})",
+    )
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.set_defaults(func=run)
 
@@ -84,6 +94,7 @@ def run(args: argparse.Namespace) -> int:
         "alpha": args.alpha,
         "max_steps": args.max_steps,
         "trxr_prior_sigma_k": args.trxr_prior_sigma,
+        "rfi_flagging": args.rfi_flagging,
     }
     try:
         config = DiagnoseConfig(

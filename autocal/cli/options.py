@@ -23,10 +23,12 @@ from autocal.cli.args import (
     parse_str_list,
 )
 
-#: The defaults of :class:`~autocal.pipeline.config.CalibrationConfig` that ``--help`` shows.
-#: A copy, so that building the parser does not import the configuration (which imports the
-#: fit and, through it, scipy and pyuvdata: ~1 s of a fresh process); the options test checks
-#: that it equals the configuration's own defaults (``tests/cli/test_cli_startup.py``).
+#: The defaults of :class:`~autocal.pipeline.config.CalibrationConfig` that ``--help`` shows
+#: (``autocal diagnose --help`` shows ``rfi_flagging``'s too, the default of
+#: :class:`~autocal.diagnosis.run.DiagnoseConfig`). A copy, so that building the parser does
+#: not import the configurations (which import the fit and, through it, scipy and pyuvdata:
+#: ~1 s of a fresh process); the options test checks that it equals the configurations' own
+#: defaults (``tests/cli/test_cli_startup.py``).
 HELP_DEFAULTS: dict[str, Any] = {
     "sky": "gsm2008",
     "beam": "hera",

@@ -9,5 +9,7 @@ The candidate effects (:mod:`.effects`, listed by :mod:`.catalogue`); the extend
 domain (:mod:`.bandpass`), the per-antenna gains (:mod:`.feeds`), outlier flagging
 (:mod:`.outliers`), the gap (:mod:`.gap`) and the products' impact (:mod:`.impact`); its
 result and products (:mod:`.report`); the stage's entry point (:mod:`.run`, reading the data
-with :mod:`.reading`) and hidden-effect test cases (:mod:`.hidden`).
+with :mod:`.reading` and flagging band edges and RFI in it as a calibration does,
+:func:`autocal.pipeline.flagging.flag_observation`) and hidden-effect test cases
+(:mod:`.hidden`).
 """

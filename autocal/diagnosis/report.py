@@ -65,6 +65,14 @@ class Diagnosis:
         (e.g. the per-antenna entries above
         :data:`~autocal.diagnosis.feeds.FEED_JITTER_MAX_FEEDS` antenna-pols), so that their
         absence from :attr:`effects` is not read as "not present".
+    rfi_flagging
+        The band edges and RFI flagged from the autos before the first fit, as a
+        calibration flags them (:func:`autocal.pipeline.flagging.flag_observation`;
+        :func:`autocal.diagnosis.run.run_diagnosis` sets it): the calibration summary's
+        ``rfi_flagging`` block, counts per reason or why nothing was flagged. ``None``:
+        the caller did not flag (:func:`~autocal.diagnosis.stepwise.diagnose` on an
+        observation). The outliers of the residual rounds are in
+        ``config["outlier_flagging"]``.
     """
 
     steps: list[dict[str, Any]] = field(default_factory=list)
@@ -80,6 +88,7 @@ class Diagnosis:
     unexplained: dict[str, Any] | None = None
     negligible: list[str] = field(default_factory=list)
     not_tested: dict[str, str] = field(default_factory=dict)
+    rfi_flagging: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form (without residual arrays)."""
@@ -87,6 +96,7 @@ class Diagnosis:
             "effects": self.effects,
             "negligible": self.negligible,
             "not_tested": self.not_tested,
+            "rfi_flagging": self.rfi_flagging,
             "unexplained": self.unexplained,
             "steps": self.steps,
             "initial_gap": self.initial_gap,
@@ -122,6 +132,7 @@ def summary_text(diag: Diagnosis) -> str:
         f"p < {diag.config.get('alpha')}",
         f"initial gap: chi2/dof = {g0.get('reduced_chi2', float('nan')):.4f}, "
         f"rms residual = {g0.get('rms_normalised_residual', float('nan')):.3f}",
+        *_flagging_lines(diag),
         "",
     ]
     if not diag.steps and not diag.unexplained:
@@ -175,6 +186,42 @@ def summary_text(diag: Diagnosis) -> str:
         lines.append("calibration products, starting model -> diagnosed model: ")
         lines.append("  " + _impact_text(diag.product_change))
     return "\n".join(lines) + "\n"
+
+
+#: How summary.txt names the reasons of the flagging before the fit.
+_REASON_TEXT = {
+    "band_edge": "band edge",
+    "rfi_frequency": "RFI in frequency",
+    "rfi_time": "RFI in time",
+}
+
+
+def _flagging_lines(diag: Diagnosis) -> list[str]:
+    """Return the lines of summary.txt on what was flagged: before the fit, then as outliers."""
+    lines = []
+    rfi = diag.rfi_flagging
+    if rfi is not None and not rfi.get("applied"):
+        lines.append(f"flagged before the fit: nothing; {rfi.get('why', 'not applied')}")
+    elif rfi is not None:
+        fractions = rfi.get("fractions", {})
+        shares = ", ".join(
+            f"{text} {100 * fractions.get(reason, 0.0):.3g} %"
+            for reason, text in _REASON_TEXT.items()
+        )
+        lines.append(
+            f"flagged before the fit (band edges and RFI from the autos): "
+            f"{rfi.get('band_edge_channels', 0)} band-edge channel(s), "
+            f"{rfi.get('rfi_channels', 0)} RFI channel(s), "
+            f"{rfi.get('rfi_integrations', 0)} RFI integration(s); samples: {shares}"
+        )
+    outliers = diag.config.get("outlier_flagging")
+    if outliers and outliers.get("enabled"):
+        lines.append(
+            f"outliers flagged in the residuals: {outliers.get('samples_flagged', 0)} samples "
+            f"in {outliers.get('rounds', 0)} round(s) "
+            f"({outliers.get('threshold_robust_sigma')} robust sigma)"
+        )
+    return lines
 
 
 def _impact_text(impact: dict[str, Any]) -> str:

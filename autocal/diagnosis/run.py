@@ -1,10 +1,13 @@
 """Diagnose one observation end to end: configuration in, products out.
 
-``UVH5 files -> Observation -> model Tsky and effect templates -> diagnose -> products``
+``UVH5 files -> Observation -> band edges and RFI flagged -> model Tsky and effect templates
+-> diagnose -> products``
 
 The shared entry point of ``autocal diagnose`` and the service's ``diagnose`` jobs
 (:mod:`autocal.service.worker`). :func:`run_diagnosis` reads the autos
 (:func:`autocal.diagnosis.reading.read_observation`, a block of integrations at a time),
+flags band edges and RFI in them as a calibration does before its fit
+(:func:`autocal.pipeline.flagging.flag_observation`; ``rfi_flagging=False`` turns it off),
 computes the model Tsky and the templates of the candidate effects
 (:func:`autocal.diagnosis.effects.sky_templates`), runs the discrepancy workflow
 (:func:`autocal.diagnosis.stepwise.diagnose`, DESIGN.md section 5) and writes its products:
@@ -53,6 +56,7 @@ from autocal.diagnosis.trials import ALPHA, BIC_THRESHOLD
 from autocal.fit.priors import parse_trxr_prior
 from autocal.io.uvh5_integrity import input_integrity
 from autocal.pipeline.config import PipelineError, check_prior_spec, check_ranges
+from autocal.pipeline.flagging import TURNED_OFF, flag_observation
 from autocal.plots import file_stems
 
 logger = logging.getLogger(__name__)
@@ -115,6 +119,12 @@ class DiagnoseConfig(BaseModel):
         description="largest chi^2 survival probability of an accepted effect's Delta chi^2",
     )
     max_steps: int = Field(5, ge=0, le=50, description="most effects added")
+    rfi_flagging: bool = Field(
+        True,
+        description="flag band edges and RFI from the autos before the fits, as calibrate "
+        "does (autocal.pipeline.flagging); false: the data's own flags only (the outliers "
+        "of the residuals are flagged either way)",
+    )
 
     @field_validator("pols", mode="before")
     @classmethod
@@ -275,8 +285,8 @@ def run_diagnosis(
         ``diagnosis.json``, ``summary.txt``, ``residuals_step<i>.png`` (before/after each
         accepted step; ``residuals.png`` when nothing was accepted), ``gain_series.png``
         (when a per-integration gain series was accepted) and ``summary.json``
-        (``effects``, ``final_gap``, ``config``, ``provenance``, ``products``,
-        ``timings_s``).
+        (``effects``, ``final_gap``, ``rfi_flagging``, ``config``, ``provenance``,
+        ``products``, ``timings_s``).
     progress
         Called with (fraction done, message) at each stage.
     should_stop
@@ -327,6 +337,12 @@ def run_diagnosis(
         check=check_memory,
     )
     timings["read_s"] = time.perf_counter() - t0
+    flagging = dict(TURNED_OFF)
+    if config.rfi_flagging:
+        advance(0.1, "flagging band edges and RFI from the autos")
+        t_flag = time.perf_counter()
+        obs, flagging = flag_observation(obs)
+        timings["flagging_s"] = time.perf_counter() - t_flag
     prior_mean = prior_sigma = None
     if prior is not None:
         prior_mean, prior_sigma = prior.at(obs.freqs, antennas=obs.antennas, pols=obs.pols)
@@ -358,6 +374,7 @@ def run_diagnosis(
         progress=lambda fraction, message: advance(0.5 + 0.4 * fraction, message),
     )
     timings["diagnose_s"] = time.perf_counter() - t2
+    diag.rfi_flagging = flagging
     logger.info("accepted effects: %s", ", ".join(diag.effects) or "none")
 
     advance(0.9, "writing products")
@@ -432,6 +449,7 @@ def _summary(
         ],
         "initial_gap": doc.get("initial_gap"),
         "final_gap": doc.get("final_gap"),
+        "rfi_flagging": diag.rfi_flagging,
         "observation": obs.describe(),
         "config": config.model_dump(mode="json"),
         "provenance": provenance,

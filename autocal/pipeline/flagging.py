@@ -8,23 +8,38 @@ sums. :func:`mark_flag_reasons` tells, in the solution's ``flag_reason``, the ch
 no sample left because of band edges or RFI. On by default; ``rfi_flagging=False``
 (``autocal calibrate --no-rfi-flagging``) turns it off. EDGES spectra (``Q`` ratios, their
 own format's weights) are not flagged here.
+
+:func:`flag_observation` is the same stage for an observation held in memory (``autocal
+diagnose``, which reads its UVH5 files whole): the same two scans (:func:`scan_blocks`) over
+blocks of its integrations, the mask ORed into its flags. Both give the same flags for the
+same data whatever the blocks.
 """
 
 from __future__ import annotations
 
+import copy
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
 
+from autocal.core.observation import Observation
 from autocal.fit.solve import FLAG_BAND_EDGE, FLAG_RFI, FLAG_TOO_FEW
+from autocal.io.uvh5_blocks import BLOCK_SAMPLES
 from autocal.pipeline.config import CalibrationConfig, read_selection
 from autocal.pipeline.partials import read_chunks
 from autocal.pipeline.rfi import LevelScan, RfiMask, RfiScan
 from autocal.pipeline.sources import Source
 
 logger = logging.getLogger(__name__)
+
+#: The summary's ``rfi_flagging`` block when the flagging is turned off.
+TURNED_OFF: dict[str, Any] = {"applied": False, "why": "turned off (rfi_flagging=false)"}
+
+#: Blocks of an observation's data and flags: ``(offset, data, flags)``, each block
+#: ``(Nant, Npol, Ntime_block, Nfreq)`` starting at integration ``offset``, in time order.
+Blocks = Iterable[tuple[int, np.ndarray, np.ndarray]]
 
 
 def scan_flags(
@@ -57,24 +72,47 @@ def scan_flags(
         or why nothing was flagged.
     """
     if not config.rfi_flagging:
-        return None, {"applied": False, "why": "turned off (rfi_flagging=false)"}
+        return None, dict(TURNED_OFF)
     if source.kind == "edges":
         return None, {"applied": False, "why": "EDGES spectra are not flagged from the autos"}
     report(0.07, "flagging band edges and RFI from the autos")
     selection = read_selection(config)
     tasks = source.tasks(tsky_all)
+
+    def blocks() -> Blocks:
+        for task in tasks:
+            offset = task.offset
+            for chunk in read_chunks(selection, block_size, task):
+                yield offset, chunk.data, chunk.flags
+                offset += chunk.ntime
+                del chunk
+
+    mask = scan_blocks(blocks, int(source.lsts.size))
+    return mask, mask.counts
+
+
+def scan_blocks(blocks: Callable[[], Blocks], ntime: int) -> RfiMask:
+    """Scan an observation's blocks twice and return its band-edge and RFI mask.
+
+    Parameters
+    ----------
+    blocks
+        Called once per scan, returns the observation's blocks ``(offset, data, flags)``
+        in time order (each block is used up before the next is asked for).
+    ntime
+        Integrations of the observation.
+
+    Returns
+    -------
+    RfiMask
+        The mask, its ``counts`` the summary's ``rfi_flagging`` block.
+    """
     levels = LevelScan()
-    for task in tasks:  # first read: the time-mean spectra
-        for chunk in read_chunks(selection, block_size, task):
-            levels.add(chunk.data, chunk.flags)
-            del chunk
-    scan = RfiScan(int(source.lsts.size), levels.level())
-    for task in tasks:  # second read: the outliers, given the mean spectra
-        offset = task.offset
-        for chunk in read_chunks(selection, block_size, task):
-            scan.add(chunk.data, chunk.flags, offset)
-            offset += chunk.ntime
-            del chunk
+    for _, data, flags in blocks():  # first read: the time-mean spectra
+        levels.add(data, flags)
+    scan = RfiScan(ntime, levels.level())
+    for offset, data, flags in blocks():  # second read: the outliers, given the mean spectra
+        scan.add(data, flags, offset)
     mask = scan.finish()
     counts = mask.counts
     logger.info(
@@ -85,7 +123,52 @@ def scan_flags(
         counts["rfi_integrations"],
         counts["samples"],
     )
-    return mask, counts
+    return mask
+
+
+def flag_observation(
+    obs: Observation, block_size: int | None = None
+) -> tuple[Observation, dict[str, Any]]:
+    """Flag band edges and RFI in an observation held in memory, as a calibration does.
+
+    The observation is scanned in blocks of integrations (:func:`scan_blocks`: the same
+    :class:`~autocal.pipeline.rfi.RfiScan` as :func:`scan_flags`) and the mask is ORed into
+    its flags block by block (:meth:`~autocal.pipeline.rfi.RfiMask.apply`: band edges, RFI
+    channels, RFI integrations and each spectrum's frequency hits). For UVH5 and Miriad
+    autos; EDGES spectra are not flagged from the autos (:func:`scan_flags`).
+
+    Parameters
+    ----------
+    obs
+        The observation (not modified).
+    block_size
+        Integrations per block (default: about
+        :data:`~autocal.io.uvh5_blocks.BLOCK_SAMPLES` samples; the flags do not depend
+        on it).
+
+    Returns
+    -------
+    tuple
+        A shallow copy of ``obs`` with the new flags (its data are ``obs``'s), and the
+        summary's ``rfi_flagging`` block (counts per reason, as :func:`scan_flags`).
+    """
+    nant, npol, ntime, nfreq = obs.shape
+    if block_size is None:
+        block_size = max(1, BLOCK_SAMPLES // max(1, nant * npol * nfreq))
+    step = max(1, int(block_size))
+
+    def blocks() -> Blocks:
+        for t in range(0, ntime, step):
+            window = slice(t, min(t + step, ntime))
+            yield t, obs.data[:, :, window], obs.flags[:, :, window]
+
+    mask = scan_blocks(blocks, ntime)
+    flags = np.empty_like(obs.flags)
+    for offset, data, old in blocks():  # the scan's hits of these very blocks are reused
+        flags[:, :, offset : offset + data.shape[2]] = mask.apply(data, old, offset)
+    flagged = copy.copy(obs)  # the data are shared; already-validated flags need no check
+    object.__setattr__(flagged, "flags", flags)
+    return flagged, mask.counts
 
 
 def mark_flag_reasons(solved: dict[str, np.ndarray], mask: RfiMask | None) -> None:

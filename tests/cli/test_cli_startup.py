@@ -161,3 +161,13 @@ def test_help_defaults_are_the_configurations() -> None:
         field = CalibrationConfig.model_fields[name]
         assert value == field.get_default(call_default_factory=True), name
         assert default_text(value) == default_text(field.get_default(call_default_factory=True))
+
+
+def test_diagnose_help_shows_the_diagnosis_defaults() -> None:
+    """``autocal diagnose --help`` reads ``--rfi-flagging``'s default from HELP_DEFAULTS:
+    it must be DiagnoseConfig's own (and calibrate's)."""
+    from autocal.diagnosis.run import DiagnoseConfig
+
+    assert (
+        DiagnoseConfig.model_fields["rfi_flagging"].get_default() is HELP_DEFAULTS["rfi_flagging"]
+    )

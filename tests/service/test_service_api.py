@@ -300,6 +300,7 @@ def test_the_schema_states_which_options_each_kind_takes(client: TestClient) -> 
         ({"kind": "calibrate", "max_steps": 3}, False),
         ({"kind": "diagnose", "passes": 2}, False),
         ({"kind": "diagnose", "edges_bin": 4}, False),
+        ({"kind": "diagnose", "rfi_flagging": False}, True),  # an option of both kinds
     ]:
         body = {"inputs": [HH], **extra}
         assert validator.is_valid(body) is ok, extra

@@ -179,6 +179,9 @@ def test_diagnose_job_end_to_end(
     assert step["delta"] > 0
     assert step["gap_after"]["reduced_chi2"] < step["gap_before"]["reduced_chi2"]
     assert body["final_gap"]["reduced_chi2"] < body["initial_gap"]["reduced_chi2"]
+    # band edges and RFI were flagged before the fits, as a calibration flags them
+    assert body["rfi_flagging"]["applied"] is True
+    assert body["rfi_flagging"] == job["result"]["rfi_flagging"]
     # what the accepted effect does to the calibration products, against the total errors
     impact = step["details"]["product_impact"]
     assert impact["G"]["median_change_over_sigma"] > 0 and "Trxr" in impact
