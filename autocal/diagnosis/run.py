@@ -268,6 +268,23 @@ def check_memory(shape: tuple[int, ...]) -> None:
     logger.debug("diagnosis of %d samples: about %.1f GB", nsamples, need / 1e9)
 
 
+#: Fewest channels a diagnosis fits: a smooth bandpass and a cable reflection across the band
+#: (four channels made the reflection fit's least squares empty).
+MIN_CHANNELS = 8
+
+
+def _check_channels(obs: Observation) -> None:
+    """Refuse a selection too narrow for the frequency-domain fits, saying what to do."""
+    if obs.nfreq >= MIN_CHANNELS:
+        return
+    band = f"{obs.freqs.min() / 1e6:.3f}-{obs.freqs.max() / 1e6:.3f} MHz" if obs.nfreq else "none"
+    raise DiagnoseError(
+        f"the selection has {obs.nfreq} channel(s) ({band}): the diagnosis fits smooth "
+        f"bandpasses and cable reflections across the band and needs at least {MIN_CHANNELS}; "
+        "widen --freq-range (freq_range_mhz)"
+    )
+
+
 def run_diagnosis(
     config: DiagnoseConfig,
     out: str | Path,
@@ -337,6 +354,7 @@ def run_diagnosis(
         check=check_memory,
     )
     timings["read_s"] = time.perf_counter() - t0
+    _check_channels(obs)
     flagging = dict(TURNED_OFF)
     if config.rfi_flagging:
         advance(0.1, "flagging band edges and RFI from the autos")

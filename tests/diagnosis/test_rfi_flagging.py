@@ -135,3 +135,14 @@ def test_diagnose_flags_what_calibrate_flags(files: list[Path]) -> None:
             offset += chunk.ntime
     assert np.array_equal(flagged.flags, np.concatenate(parts, axis=2))
     assert flagged.flags.sum() > before.sum()
+
+
+def test_a_selection_too_narrow_is_refused_with_the_band(files, tmp_path, capsys) -> None:
+    """Four 1 MHz channels: the reflection fit's least squares were empty (a LinAlgError
+    traceback), one channel an IndexError; now a usage error that says what to do."""
+    argv = ["diagnose", *map(str, files), "--out", str(tmp_path / "d"), *FAST]
+    for band, nchan in (("150:153.5", 4), ("150:150.5", 1)):
+        assert main([*argv, "--freq-range", band]) == 2
+        err = capsys.readouterr().err
+        assert f"has {nchan} channel(s)" in err and "widen --freq-range" in err
+    assert not (tmp_path / "d").exists()
