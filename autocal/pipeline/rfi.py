@@ -45,10 +45,13 @@ import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.ndimage import find_objects, label, median_filter
+
+if TYPE_CHECKING:
+    from autocal.pipeline.rfi_kernel import BlockScan, ScanSums
 
 logger = logging.getLogger(__name__)
 
@@ -151,8 +154,8 @@ def _quiet_nan() -> Iterator[None]:
 
 
 def frequency_flags(
-    data: np.ndarray, flags: np.ndarray, level: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+    data: np.ndarray, flags: np.ndarray, level: np.ndarray, sums: ScanSums | None = None
+) -> tuple[np.ndarray, BlockScan]:
     """Flag RFI along frequency in each spectrum of a block.
 
     Each spectrum is divided by the time-mean spectrum ``level`` first, so the bandpass's
@@ -175,18 +178,24 @@ def frequency_flags(
         non-finite and non-positive samples take no part and are not flagged again here).
     level
         ``(Nant, Npol, Nfreq)`` time-mean auto-correlations (:class:`LevelScan`).
+    sums
+        Per-channel sums over integrations to add the block to (the scan's), or ``None``.
 
     Returns
     -------
     hits : numpy.ndarray
         ``(..., Nfreq)`` the new RFI flags.
-    band : numpy.ndarray
-        ``(Nant, Npol, Ntime)`` each spectrum's level relative to ``level``: the median of
-        its block medians (NaN: fewer than three usable samples).
+    scan : autocal.pipeline.rfi_kernel.BlockScan
+        Each spectrum's level relative to ``level`` (``band``: the median of its block
+        medians; NaN with fewer than three usable samples) and its usable and flagged
+        sample counts.
     """
     from autocal.pipeline.rfi_kernel import spectrum_hits  # numba: only when flagging
 
-    return spectrum_hits(data, flags, _inverse(level), BLOCK, NSIG, NSIG_ADJACENT, MEDIAN_CHI2_1)
+    level_inverse = _inverse(level)
+    return spectrum_hits(
+        data, flags, level_inverse, BLOCK, NSIG, NSIG_ADJACENT, MEDIAN_CHI2_1, sums
+    )
 
 
 def _inverse(level: np.ndarray) -> np.ndarray:
@@ -420,13 +429,18 @@ class LevelScan:
     count: np.ndarray | None = None
 
     def add(self, data: np.ndarray, flags: np.ndarray) -> None:
-        """Add one block ``(Nant, Npol, Ntime, Nfreq)``."""
-        usable = ~flags & np.isfinite(data) & (data > 0)
+        """Add one block ``(Nant, Npol, Ntime, Nfreq)``: its finite, positive, unflagged samples."""
+        from autocal.pipeline.rfi_kernel import level_sums  # numba: only when flagging
+
         if self.total is None or self.count is None:
             self.total = np.zeros(data.shape[:2] + data.shape[3:])
             self.count = np.zeros(self.total.shape, np.int64)
-        self.total += np.where(usable, data, 0.0).sum(axis=2)
-        self.count += usable.sum(axis=2)
+        level_sums(
+            np.ascontiguousarray(data, dtype=np.float64),
+            np.ascontiguousarray(flags, dtype=bool),
+            self.total,
+            self.count,
+        )
 
     def level(self) -> np.ndarray:
         """Return ``(Nant, Npol, Nfreq)`` the mean of the usable samples (NaN: none)."""
@@ -446,16 +460,15 @@ class RfiScan:
         Integrations of the observation.
     level
         ``(Nant, Npol, Nfreq)`` time-mean spectra (:meth:`LevelScan.level`).
-    clean
-        The time-mean spectra of the samples the frequency flags keep.
+    sums
+        Per-channel sums over integrations: samples flagged and usable, and the mean of
+        the samples the frequency flags keep (:class:`~autocal.pipeline.rfi_kernel.ScanSums`).
     """
 
     ntime: int
     level: np.ndarray
-    clean: LevelScan = field(default_factory=LevelScan)
+    sums: ScanSums | None = None
     band_median: np.ndarray | None = None
-    freq_hits: np.ndarray | None = None
-    freq_usable: np.ndarray | None = None
     hits_per_time: np.ndarray | None = None
     usable_per_time: np.ndarray | None = None
     prior_flagged: int = 0
@@ -464,27 +477,23 @@ class RfiScan:
 
     def add(self, data: np.ndarray, flags: np.ndarray, offset: int) -> None:
         """Add one block ``(Nant, Npol, Ntime, Nfreq)`` starting at integration ``offset``."""
+        from autocal.pipeline.rfi_kernel import ScanSums  # numba: only when flagging
+
         nant, npol, nt, nfreq = data.shape
-        if self.band_median is None:
+        if self.sums is None:
+            self.sums = ScanSums.zeros((nant, npol, nfreq))
             self.band_median = np.full((nant, npol, self.ntime), np.nan)
-            self.freq_hits = np.zeros((nant, npol, nfreq), np.int64)
-            self.freq_usable = np.zeros((nant, npol, nfreq), np.int64)
             self.hits_per_time = np.zeros((nant, npol, self.ntime), np.int64)
             self.usable_per_time = np.zeros((nant, npol, self.ntime), np.int64)
-        assert self.freq_hits is not None and self.freq_usable is not None
+        assert self.band_median is not None
         assert self.hits_per_time is not None and self.usable_per_time is not None
-        lev = self.level[:, :, None, :]
-        usable = ~flags & np.isfinite(data) & (data > 0) & np.isfinite(lev) & (lev > 0)
         self.prior_flagged += int(np.count_nonzero(flags))
-        hits, band = frequency_flags(data, flags, self.level)
+        hits, scan = frequency_flags(data, flags, self.level, self.sums)
         self._keep(hits, offset)
         window = slice(offset, offset + nt)
-        self.band_median[:, :, window] = band
-        self.clean.add(data, flags | hits)
-        self.freq_hits += hits.sum(axis=2)
-        self.freq_usable += usable.sum(axis=2)
-        self.hits_per_time[:, :, window] = hits.sum(axis=-1)
-        self.usable_per_time[:, :, window] = usable.sum(axis=-1)
+        self.band_median[:, :, window] = scan.band
+        self.hits_per_time[:, :, window] = scan.hit
+        self.usable_per_time[:, :, window] = scan.usable
 
     def _keep(self, hits: np.ndarray, offset: int) -> None:
         """Keep a block's hits as flat indices while they fit :data:`MAX_KEPT_HITS`."""
@@ -497,14 +506,15 @@ class RfiScan:
 
     def finish(self) -> RfiMask:
         """Return the observation's mask and the summary counts of every reason."""
-        if self.band_median is None:
+        if self.sums is None:
             raise ValueError("no data were scanned for flagging")
-        assert self.freq_hits is not None and self.freq_usable is not None
+        sums = self.sums
         assert self.hits_per_time is not None and self.usable_per_time is not None
         edge = band_edges(self.level)
         with np.errstate(divide="ignore", invalid="ignore"):
-            channel = (self.freq_hits > CHANNEL_FRACTION * self.freq_usable) & ~edge
-        channel |= persistent_channels(self.clean.level()) & ~edge
+            channel = (sums.hits > CHANNEL_FRACTION * sums.usable) & ~edge
+            clean = np.where(sums.clean_count > 0, sums.clean_total / sums.clean_count, np.nan)
+        channel |= persistent_channels(clean) & ~edge
         nfreq = edge.shape[-1]
         bursts = self.hits_per_time > INTEGRATION_FRACTION * np.maximum(self.usable_per_time, 1)
         integrations = bursts | self._time_outliers()
@@ -524,12 +534,12 @@ class RfiScan:
         self, edge: np.ndarray, channel: np.ndarray, integrations: np.ndarray, nfreq: int
     ) -> dict[str, Any]:
         """Return the numbers of channels, integrations and samples flagged per reason."""
-        assert self.freq_hits is not None
+        assert self.sums is not None
         nant, npol, ntime = integrations.shape
         total = nant * npol * ntime * nfreq
         edge_samples = int(edge.sum()) * ntime
         channel_samples = int(channel.sum()) * ntime
-        scattered = int(np.where(edge | channel, 0, self.freq_hits).sum())
+        scattered = int(np.where(edge | channel, 0, self.sums.hits).sum())
         time_samples = int((integrations[..., None] & ~(edge | channel)[:, :, None, :]).sum())
         samples = {
             "band_edge": edge_samples,

@@ -12,10 +12,60 @@ writable).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numba
 import numpy as np
 
 from autocal.pipeline.rfi import trend_grid
+
+
+@dataclass(frozen=True, eq=False)
+class BlockScan:
+    """What one block's flagging found, besides the hits (:func:`spectrum_hits`).
+
+    Attributes
+    ----------
+    band
+        ``(Nant, Npol, Ntime)`` the median of each spectrum's block medians (its level
+        relative to the time-mean spectrum; NaN for a spectrum with fewer than three
+        usable samples), which the flags in time are found from.
+    usable, hit
+        ``(Nant, Npol, Ntime)`` usable and flagged samples of each spectrum.
+    """
+
+    band: np.ndarray
+    usable: np.ndarray
+    hit: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class ScanSums:
+    """Per-channel sums over integrations that a scan adds block after block.
+
+    Attributes
+    ----------
+    hits, usable
+        ``(Nant, Npol, Nfreq)`` flagged and usable samples of each channel.
+    clean_total, clean_count
+        ``(Nant, Npol, Nfreq)`` the sum and number of the usable samples left unflagged
+        (their mean is the time-mean spectrum of clean data).
+    """
+
+    hits: np.ndarray
+    usable: np.ndarray
+    clean_total: np.ndarray
+    clean_count: np.ndarray
+
+    @classmethod
+    def zeros(cls, shape: tuple[int, int, int]) -> ScanSums:
+        """Return empty sums of ``(Nant, Npol, Nfreq)``."""
+        return cls(
+            np.zeros(shape, np.int64),
+            np.zeros(shape, np.int64),
+            np.zeros(shape),
+            np.zeros(shape, np.int64),
+        )
 
 
 def spectrum_hits(
@@ -26,8 +76,9 @@ def spectrum_hits(
     nsig: float,
     nsig_adjacent: float,
     median_chi2: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Return the RFI hits and the band level of every spectrum of a block.
+    sums: ScanSums | None = None,
+) -> tuple[np.ndarray, BlockScan]:
+    """Return the RFI hits of every spectrum of a block and what else the scan needs.
 
     Parameters
     ----------
@@ -43,21 +94,26 @@ def spectrum_hits(
     median_chi2
         ``median(z^2)`` of a unit normal (0.456): the width is
         ``sqrt(median(residual^2) / median_chi2)``.
+    sums
+        Per-channel sums to add this block to (in place), or ``None``.
 
     Returns
     -------
     hits : numpy.ndarray
         ``(Nant, Npol, Ntime, Nfreq)`` bool, True where a usable sample is flagged.
-    band : numpy.ndarray
-        ``(Nant, Npol, Ntime)`` the median of each spectrum's block medians (its level
-        relative to the time-mean spectrum; NaN for a spectrum with fewer than three
-        usable samples), which the flags in time are found from.
+    scan : BlockScan
+        Each spectrum's band level and its usable and flagged sample counts.
     """
-    nfreq = data.shape[-1]
+    nant, npol, ntime, nfreq = data.shape
     block = max(1, min(int(block), nfreq))
     lo, weight = trend_grid(nfreq, block)
     out = np.zeros(data.shape, dtype=np.bool_)
-    band = np.full(data.shape[:3], np.nan)
+    scan = BlockScan(
+        np.full((nant, npol, ntime), np.nan),
+        np.zeros((nant, npol, ntime), np.int64),
+        np.zeros((nant, npol, ntime), np.int64),
+    )
+    acc = ScanSums.zeros((nant, npol, nfreq)) if sums is None else sums
     _kernel(
         np.ascontiguousarray(data, dtype=np.float64),
         np.ascontiguousarray(flags, dtype=np.bool_),
@@ -66,13 +122,31 @@ def spectrum_hits(
         _network(block),
         lo,
         weight,
-        float(nsig),
-        float(nsig_adjacent),
-        float(median_chi2),
+        (float(nsig), float(nsig_adjacent), float(median_chi2)),
         out,
-        band,
+        (scan.band, scan.usable, scan.hit),
+        (acc.hits, acc.usable, acc.clean_total, acc.clean_count),
     )
-    return out, band
+    return out, scan
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def level_sums(data, flags, total, count):  # type: ignore[no-untyped-def]
+    """Add each channel's usable samples (finite, positive, unflagged) and their number.
+
+    ``data``, ``flags`` ``(Nant, Npol, Ntime, Nfreq)``; ``total``, ``count`` ``(Nant, Npol,
+    Nfreq)``, in place; in parallel over antenna-pols.
+    """
+    nant, npol, ntime, nfreq = data.shape
+    for ap in numba.prange(nant * npol):
+        a = ap // npol
+        p = ap % npol
+        for t in range(ntime):
+            for j in range(nfreq):
+                x = data[a, p, t, j]
+                if (not flags[a, p, t, j]) and x > 0.0 and x < np.inf:
+                    total[a, p, j] += x
+                    count[a, p, j] += 1
 
 
 def _network(block: int) -> np.ndarray:
@@ -231,50 +305,96 @@ def _trend(med, lo, weight):  # type: ignore[no-untyped-def]
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _kernel(data, flags, inv, block, network, lo, weight, nsig, nadj, chi2, out, band):  # type: ignore[no-untyped-def]
-    """Flag every spectrum of ``data`` into ``out`` (see :func:`spectrum_hits`)."""
+def _kernel(data, flags, inv, block, network, lo, weight, sig, out, per_time, per_channel):  # type: ignore[no-untyped-def]
+    """Flag every spectrum of ``data`` into ``out`` (see :func:`spectrum_hits`).
+
+    In parallel over antenna-pols, so each one's per-channel sums have one writer.
+    """
+    nsig, nadj, chi2 = sig
+    band, n_usable, n_hit = per_time
+    f_hits, f_usable, c_total, c_count = per_channel
     nant, npol, ntime, nfreq = data.shape
-    for row in numba.prange(nant * npol * ntime):
-        a = row // (npol * ntime)
-        p = (row // ntime) % npol
-        t = row % ntime
+    for ap in numba.prange(nant * npol):
+        a = ap // npol
+        p = ap % npol
         ratio = np.empty(nfreq)
         usable = np.zeros(nfreq, dtype=np.bool_)
-        count = 0
-        for j in range(nfreq):
-            r = data[a, p, t, j] * inv[a, p, j]
-            if (not flags[a, p, t, j]) and r > 0.0 and r < np.inf:
-                ratio[j] = r
-                usable[j] = True
-                count += 1
-        if count < 3:
-            continue
-        med, have = _block_medians(ratio, usable, block, network)
-        band[a, p, t] = np.median(med[have])
-        # the trend, twice: block medians of a steep slope are as noisy as one sample, so
-        # the medians of what the first trend leaves (flat within blocks) correct it
-        resid = ratio - _trend(_filled(med, have), lo, weight)
-        med2, _ = _block_medians(resid, usable, block, network)
-        resid -= _trend(_filled(med2, have), lo, weight)
-        squares = np.empty(count)
-        m = 0
-        for j in range(nfreq):
-            if usable[j]:
-                squares[m] = resid[j] * resid[j]
-                m += 1
+        squares = np.empty(nfreq)
+        scratch = np.empty(nfreq)
         hist = np.empty(2049, dtype=np.int32)
-        width = np.sqrt(_median_nonnegative(squares, hist, np.empty(count)) / chi2)
-        # watershed: runs of |z| > nadj that hold a sample with z > nsig
-        j = 0
-        while j < nfreq:
-            if not (usable[j] and _beyond(resid[j], width, nadj, True)):
-                j += 1
-                continue
-            start = j
-            strong = False
-            while j < nfreq and usable[j] and _beyond(resid[j], width, nadj, True):
-                strong = strong or _beyond(resid[j], width, nsig, False)
-                j += 1
-            if strong:
-                for k in range(start, j):
-                    out[a, p, t, k] = True
+        for t in range(ntime):
+            count = 0
+            for j in range(nfreq):
+                r = data[a, p, t, j] * inv[a, p, j]
+                ok = (not flags[a, p, t, j]) and r > 0.0 and r < np.inf
+                usable[j] = ok
+                if ok:
+                    ratio[j] = r
+                    count += 1
+                    f_usable[a, p, j] += 1
+            n_usable[a, p, t] = count
+            if count >= 3:
+                band[a, p, t] = _flag_spectrum(
+                    ratio,
+                    usable,
+                    count,
+                    block,
+                    network,
+                    lo,
+                    weight,
+                    nsig,
+                    nadj,
+                    chi2,
+                    out[a, p, t],
+                    squares,
+                    scratch,
+                    hist,
+                )
+            hits = 0
+            for j in range(nfreq):
+                if out[a, p, t, j]:
+                    hits += 1
+                    f_hits[a, p, j] += 1
+                elif usable[j]:
+                    c_total[a, p, j] += data[a, p, t, j]
+                    c_count[a, p, j] += 1
+            n_hit[a, p, t] = hits
+
+
+@numba.njit(cache=True)
+def _flag_spectrum(
+    ratio, usable, count, block, network, lo, weight, nsig, nadj, chi2, out, squares, scratch, hist
+):  # type: ignore[no-untyped-def]
+    """Flag one spectrum's ``ratio`` (to the time-mean spectrum) into ``out``.
+
+    Returns the spectrum's band level: the median of its block medians.
+    """
+    nfreq = ratio.size
+    med, have = _block_medians(ratio, usable, block, network)
+    level = np.median(med[have])
+    # the trend, twice: block medians of a steep slope are as noisy as one sample, so
+    # the medians of what the first trend leaves (flat within blocks) correct it
+    resid = ratio - _trend(_filled(med, have), lo, weight)
+    med2, _ = _block_medians(resid, usable, block, network)
+    resid -= _trend(_filled(med2, have), lo, weight)
+    m = 0
+    for j in range(nfreq):
+        if usable[j]:
+            squares[m] = resid[j] * resid[j]
+            m += 1
+    width = np.sqrt(_median_nonnegative(squares[:count], hist, scratch) / chi2)
+    # watershed: runs of |z| > nadj that hold a sample with z > nsig
+    j = 0
+    while j < nfreq:
+        if not (usable[j] and _beyond(resid[j], width, nadj, True)):
+            j += 1
+            continue
+        start = j
+        strong = False
+        while j < nfreq and usable[j] and _beyond(resid[j], width, nadj, True):
+            strong = strong or _beyond(resid[j], width, nsig, False)
+            j += 1
+        if strong:
+            for k in range(start, j):
+                out[k] = True
+    return level

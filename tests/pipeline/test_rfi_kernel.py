@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from autocal.pipeline.rfi import frequency_flags, frequency_flags_numpy
-from autocal.pipeline.rfi_kernel import _median_nonnegative, sorting_network
+from autocal.pipeline.rfi_kernel import ScanSums, _median_nonnegative, level_sums, sorting_network
 
 
 @pytest.mark.parametrize("n", [2, 4, 8, 16])
@@ -72,13 +72,35 @@ def _awkward(nfreq: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 @pytest.mark.parametrize(("nfreq", "seed"), [(256, 0), (1000, 1), (37, 2), (16, 3)])
 def test_the_kernel_gives_the_reference_flags_and_band_levels(nfreq: int, seed: int) -> None:
     data, flags, level = _awkward(nfreq, seed)
-    hits, band = frequency_flags(data, flags, level)
+    sums = ScanSums.zeros((data.shape[0], data.shape[1], nfreq))
+    hits, scan = frequency_flags(data, flags, level, sums)
+    band = scan.band
     ref_hits, ref_band = frequency_flags_numpy(data, flags, level)
     assert hits.any() and (hits == ref_hits).all()
     np.testing.assert_array_equal(np.isnan(band), np.isnan(ref_band))
     np.testing.assert_allclose(band, ref_band, rtol=0, atol=1e-12)
     assert np.isnan(band[2, 0, 4]) and np.isnan(band[2, 1, 5])  # dead, and < 3 samples
     assert not hits[2, 0, 4].any() and not hits[flags].any()
+    # the scan's counts and sums, as numpy computes them from the hits
+    with np.errstate(invalid="ignore", divide="ignore"):
+        usable = ~flags & (data > 0) & np.isfinite(data / level[:, :, None, :])
+    np.testing.assert_array_equal(scan.usable, usable.sum(axis=-1))
+    np.testing.assert_array_equal(scan.hit, hits.sum(axis=-1))
+    np.testing.assert_array_equal(sums.hits, hits.sum(axis=2))
+    np.testing.assert_array_equal(sums.usable, usable.sum(axis=2))
+    clean = usable & ~hits
+    np.testing.assert_array_equal(sums.clean_count, clean.sum(axis=2))
+    np.testing.assert_allclose(sums.clean_total, np.where(clean, data, 0).sum(axis=2), rtol=1e-12)
+
+
+def test_the_level_sums_add_finite_positive_unflagged_samples() -> None:
+    data, flags, _ = _awkward(100, 5)
+    total, count = np.zeros((3, 2, 100)), np.zeros((3, 2, 100), np.int64)
+    for _ in range(2):  # added in place, block after block
+        level_sums(data, flags, total, count)
+    usable = ~flags & np.isfinite(data) & (data > 0)
+    np.testing.assert_array_equal(count, 2 * usable.sum(axis=2))
+    np.testing.assert_allclose(total, 2 * np.where(usable, data, 0).sum(axis=2), rtol=1e-12)
 
 
 def test_white_noise_is_rarely_flagged_and_spikes_are_found() -> None:
