@@ -355,12 +355,6 @@ def run_diagnosis(
     )
     timings["read_s"] = time.perf_counter() - t0
     _check_channels(obs)
-    flagging = dict(TURNED_OFF)
-    if config.rfi_flagging:
-        advance(0.1, "flagging band edges and RFI from the autos")
-        t_flag = time.perf_counter()
-        obs, flagging = flag_observation(obs)
-        timings["flagging_s"] = time.perf_counter() - t_flag
     prior_mean = prior_sigma = None
     if prior is not None:
         prior_mean, prior_sigma = prior.at(obs.freqs, antennas=obs.antennas, pols=obs.pols)
@@ -374,6 +368,12 @@ def run_diagnosis(
     t1 = time.perf_counter()
     templates = _templates(config, obs, beam_pols, epoch)
     timings["templates_s"] = time.perf_counter() - t1
+    flagging = dict(TURNED_OFF)
+    if config.rfi_flagging:  # the flags in time follow the model sky's band level
+        advance(0.45, "flagging band edges and RFI from the autos")
+        t_flag = time.perf_counter()
+        obs, flagging = flag_observation(obs, tsky=templates.total)
+        timings["flagging_s"] = time.perf_counter() - t_flag
 
     advance(
         0.5,

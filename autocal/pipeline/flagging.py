@@ -29,7 +29,7 @@ from autocal.fit.solve import FLAG_BAND_EDGE, FLAG_RFI, FLAG_TOO_FEW
 from autocal.io.uvh5_blocks import BLOCK_SAMPLES
 from autocal.pipeline.config import CalibrationConfig, read_selection
 from autocal.pipeline.partials import read_chunks
-from autocal.pipeline.rfi import LevelScan, RfiMask, RfiScan
+from autocal.pipeline.rfi import LevelScan, RfiMask, RfiScan, band_sky
 from autocal.pipeline.sources import Source
 
 logger = logging.getLogger(__name__)
@@ -87,11 +87,12 @@ def scan_flags(
                 offset += chunk.ntime
                 del chunk
 
-    mask = scan_blocks(blocks, int(source.lsts.size))
+    sky = band_sky(tsky_all, len(source.pols if config.pols is None else config.pols))
+    mask = scan_blocks(blocks, int(source.lsts.size), sky)
     return mask, mask.counts
 
 
-def scan_blocks(blocks: Callable[[], Blocks], ntime: int) -> RfiMask:
+def scan_blocks(blocks: Callable[[], Blocks], ntime: int, sky: np.ndarray | None = None) -> RfiMask:
     """Scan an observation's blocks twice and return its band-edge and RFI mask.
 
     Parameters
@@ -101,6 +102,9 @@ def scan_blocks(blocks: Callable[[], Blocks], ntime: int) -> RfiMask:
         in time order (each block is used up before the next is asked for).
     ntime
         Integrations of the observation.
+    sky
+        ``(Npol, Ntime)`` the model sky's band level
+        (:func:`~autocal.pipeline.rfi.band_sky`): the flags in time follow it.
 
     Returns
     -------
@@ -110,7 +114,7 @@ def scan_blocks(blocks: Callable[[], Blocks], ntime: int) -> RfiMask:
     levels = LevelScan()
     for _, data, flags in blocks():  # first read: the time-mean spectra
         levels.add(data, flags)
-    scan = RfiScan(ntime, levels.level())
+    scan = RfiScan(ntime, levels.level(), sky)
     for offset, data, flags in blocks():  # second read: the outliers, given the mean spectra
         scan.add(data, flags, offset)
     mask = scan.finish()
@@ -127,7 +131,7 @@ def scan_blocks(blocks: Callable[[], Blocks], ntime: int) -> RfiMask:
 
 
 def flag_observation(
-    obs: Observation, block_size: int | None = None
+    obs: Observation, block_size: int | None = None, tsky: np.ndarray | None = None
 ) -> tuple[Observation, dict[str, Any]]:
     """Flag band edges and RFI in an observation held in memory, as a calibration does.
 
@@ -145,6 +149,9 @@ def flag_observation(
         Integrations per block (default: about
         :data:`~autocal.io.uvh5_blocks.BLOCK_SAMPLES` samples; the flags do not depend
         on it).
+    tsky
+        ``(Npol, Ntime, Nfreq)`` the model Tsky, whose band level the flags in time follow
+        (:func:`~autocal.pipeline.rfi.band_sky`), or ``None``.
 
     Returns
     -------
@@ -162,7 +169,8 @@ def flag_observation(
             window = slice(t, min(t + step, ntime))
             yield t, obs.data[:, :, window], obs.flags[:, :, window]
 
-    mask = scan_blocks(blocks, ntime)
+    sky = None if tsky is None else band_sky(tsky, npol)
+    mask = scan_blocks(blocks, ntime, sky)
     flags = np.empty_like(obs.flags)
     for offset, data, old in blocks():  # the scan's hits of these very blocks are reused
         flags[:, :, offset : offset + data.shape[2]] = mask.apply(data, old, offset)

@@ -366,6 +366,50 @@ def persistent_channels(level: np.ndarray) -> np.ndarray:
     return watershed(np.where(usable, z, 0.0), NSIG, NSIG_ADJACENT) & usable
 
 
+def band_sky(tsky: np.ndarray, npol: int) -> np.ndarray:
+    """Return the model sky's band level ``(npol, Ntime)``, as the data's is measured.
+
+    The median over channels of ``Tsky(t, nu)`` over its time mean (as each spectrum's
+    band level is the median over its channels of data over the time-mean spectrum). A
+    model with one polarisation (or another number than ``npol``) is averaged and shared.
+    """
+    tsky = np.asarray(tsky, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"), _quiet_nan():
+        rel = tsky / np.nanmean(tsky, axis=1, keepdims=True)
+        level = np.nanmedian(rel, axis=-1)  # (P, T)
+    if level.shape[0] != npol:
+        level = np.broadcast_to(np.nanmean(level, axis=0), (npol, level.shape[1]))
+    return level
+
+
+def sky_trend(band: np.ndarray, ok: np.ndarray, sky: np.ndarray) -> np.ndarray:
+    """Return ``a + b sky(t)`` fitted to each antenna-pol's band level ``(Nant, Npol, Ntime)``.
+
+    Least squares over the usable integrations, then again without those more than five
+    robust sigma off (an RFI burst must not pull the line); zero where it cannot be fitted
+    (fewer than three integrations or a constant sky).
+    """
+    x = np.broadcast_to(np.asarray(sky, dtype=np.float64)[None], band.shape)
+    w = (ok & np.isfinite(x)).astype(np.float64)
+    y = np.where(w > 0, band, 0.0)
+    xs = np.where(w > 0, x, 0.0)
+    fit = np.zeros(band.shape)
+    for _ in range(2):
+        sw, sx, sy = w.sum(-1), (w * xs).sum(-1), (w * y).sum(-1)
+        sxx, sxy = (w * xs * xs).sum(-1), (w * xs * y).sum(-1)
+        det = sw * sxx - sx * sx
+        good = (sw >= 3) & (det > 1e-12 * np.maximum(sw * sxx, 1e-300))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            b = np.where(good, (sw * sxy - sx * sy) / det, 0.0)
+            a = np.where(good, (sy - b * sx) / np.where(sw > 0, sw, 1.0), 0.0)
+        fit = np.where(good[..., None], a[..., None] + b[..., None] * xs, 0.0)
+        resid = np.where(w > 0, y - fit, np.nan)
+        with _quiet_nan():
+            mad = 1.4826 * np.nanmedian(np.abs(resid), axis=-1, keepdims=True)
+        w = np.where(np.abs(resid) <= 5 * np.maximum(mad, 1e-300), w, 0.0)
+    return fit
+
+
 @dataclass(frozen=True)
 class RfiMask:
     """The flags of the whole observation that do not depend on one block alone.
@@ -463,10 +507,13 @@ class RfiScan:
     sums
         Per-channel sums over integrations: samples flagged and usable, and the mean of
         the samples the frequency flags keep (:class:`~autocal.pipeline.rfi_kernel.ScanSums`).
+    sky
+        ``(Npol, Ntime)`` the model sky's band level (:func:`band_sky`), or ``None``.
     """
 
     ntime: int
     level: np.ndarray
+    sky: np.ndarray | None = None
     sums: ScanSums | None = None
     band_median: np.ndarray | None = None
     hits_per_time: np.ndarray | None = None
@@ -522,10 +569,22 @@ class RfiScan:
         return RfiMask(edge, channel, integrations, self.level, counts, self.kept)
 
     def _time_outliers(self) -> np.ndarray:
-        """Integrations whose band median (of data / level) stands out from its neighbours."""
+        """Integrations whose band level (of data / level) stands out from its neighbours.
+
+        With the model sky's band level (:attr:`sky`), the band level is first divided by
+        the part that follows the sky (``a + b sky(t)``, fitted per antenna-pol): at a
+        coarse cadence the galaxy's transit through a narrow beam is sharper than the
+        median filter, which would otherwise flag it (a day at 15-minute cadence through
+        the HERA beam had three transit integrations flagged and the diagnosis named a
+        sky-scale error that was not there).
+        """
         assert self.band_median is not None
         med = self.band_median
         ok = np.isfinite(med)
+        if self.sky is not None:  # relative to it: a gain drift times the transit stays smooth
+            trend = sky_trend(med, ok, self.sky)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                med = np.where(trend > 0, med / trend, med)
         filled = _filled(med, ok)
         z = robust_zscores(filled, KT) if self.ntime >= 3 else np.zeros_like(med)
         return watershed(np.where(ok, z, 0.0), NSIG, NSIG_ADJACENT) & ok

@@ -17,6 +17,7 @@ from autocal.pipeline.rfi import (
     RfiMask,
     RfiScan,
     band_edges,
+    band_sky,
     robust_zscores,
     watershed,
 )
@@ -151,6 +152,34 @@ def test_the_scans_kept_hits_are_the_flags_the_kernel_gives_again(monkeypatch) -
     monkeypatch.undo()
     monkeypatch.setattr(rfi_module, "MAX_KEPT_HITS", 0)
     assert _mask(data, flags, block=8).hits == {k: v for k, v in mask.hits.items() if not v.size}
+
+
+def test_flags_in_time_follow_the_model_sky_not_its_transit() -> None:
+    """A day at coarse cadence through a narrow beam: the galaxy's transit is sharper than
+    the time median filter. Given the model sky's band level, the transit is not flagged
+    (with a slow gain drift on top) and a +3 % broad-band burst still is; without it, the
+    transit is flagged."""
+    rng = np.random.default_rng(8)
+    nt, nf = 96, 128
+    t = np.arange(nt)
+    freqs = np.linspace(1.0, 1.8, nf)
+    sky = 200 * (1 + 3 * np.exp(-0.5 * ((t - 60) / 1.5) ** 2))[:, None] * freqs**-2.5
+    gain = (1 + 0.03 * np.linspace(-1, 1, nt))[:, None]  # a 3 % drift over the day
+    data = gain * (sky + 100.0) * (1 + 1e-3 * rng.standard_normal((nt, nf)))
+    data[20] *= 1.03  # a broad-band burst
+    data = data[None, None]
+    flags = np.zeros(data.shape, bool)
+
+    def time_flags(with_sky: bool) -> np.ndarray:
+        levels = LevelScan()
+        levels.add(data, flags)
+        scan = RfiScan(nt, levels.level(), band_sky(sky[None], 1) if with_sky else None)
+        scan.add(data, flags, 0)
+        return scan.finish().integrations[0, 0]
+
+    followed = time_flags(True)
+    assert followed[20] and not followed[55:66].any()
+    assert time_flags(False)[55:66].any()  # the transit, flagged without the model sky
 
 
 def test_a_persistent_narrow_band_transmitter_flags_its_channel() -> None:
