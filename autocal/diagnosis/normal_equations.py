@@ -372,11 +372,18 @@ def _pair_sum(v: np.ndarray, y1: np.ndarray, f1: str, y2: np.ndarray, f2: str) -
 def identifiable_fractions(
     blocks: list[tuple[Effect, slice]], h: np.ndarray, raw: np.ndarray
 ) -> dict[str, float]:
-    """Return each free block's Fisher fraction left after the ``(G, n)`` projection."""
+    """Return each free block's Fisher fraction left after the ``(G, n)`` projection.
+
+    Parameters without any data (``raw`` 0: e.g. the jitter factor of an integration
+    flagged whole) take no part: they are not constrained, and not degenerate with ``(G,
+    n)`` either; a block with no constrained parameter gets 0.
+    """
     ident: dict[str, float] = {}
     for eff, sl in blocks:
         if sl.stop > sl.start:
-            frac = float(np.min(np.diag(h)[sl] / np.where(raw[sl] > 0, raw[sl], np.inf)))
+            projected, unprojected = np.diag(h)[sl], raw[sl]
+            seen = unprojected > 0
+            frac = float(np.min(projected[seen] / unprojected[seen])) if seen.any() else 0.0
             ident[eff.name] = frac if frac >= IDENTIFIABLE_RESOLUTION else 0.0
     return ident
 

@@ -9,6 +9,7 @@ from autocal.diagnosis.catalogue import catalogue
 from autocal.diagnosis.extended_fit import radiometer_weights
 from autocal.diagnosis.normal_equations import (
     FitProblem,
+    identifiable_fractions,
     projected_normal_equations,
 )
 
@@ -102,3 +103,18 @@ def test_fast_normal_equations_equal_the_reference_sums(several) -> None:
     np.testing.assert_allclose(h, h_ref, rtol=1e-9, atol=1e-9 * np.abs(h_ref).max())
     np.testing.assert_allclose(grad, grad_ref, rtol=1e-7, atol=1e-7 * np.abs(grad_ref).max())
     np.testing.assert_allclose(raw, raw_ref, rtol=1e-12)
+
+
+def test_a_parameter_without_data_does_not_make_its_block_degenerate() -> None:
+    """The jitter factor of an integration flagged whole has no data (unprojected Fisher
+    information 0): the block's fraction is that of its other parameters, as without it;
+    it was 0 ("degenerate") and a real gain jitter went unnamed."""
+    from types import SimpleNamespace
+
+    jitter = SimpleNamespace(name="gain_jitter")
+    h = np.diag([0.5, 0.0, 0.25])  # projected: parameter 1 has no data
+    raw = np.array([1.0, 0.0, 1.0])
+    got = identifiable_fractions([(jitter, slice(0, 3))], h, raw)
+    assert got == {"gain_jitter": 0.25}
+    none = identifiable_fractions([(jitter, slice(1, 2))], h, raw)
+    assert none == {"gain_jitter": 0.0}  # nothing constrained at all
