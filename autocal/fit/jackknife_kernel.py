@@ -2,7 +2,8 @@
 
 :func:`expected_jackknife` computes what
 :func:`autocal.fit.total_uncertainty.expected_jackknife_numpy` does (see its notes for the
-algebra) in one loop per channel, in parallel over channels: the refit's normal matrix of
+algebra) in one loop per channel, chunks of channels on threads
+(:func:`autocal.fit.threads.in_threads`): the refit's normal matrix of
 each left-out block is inverted in place (Gauss-Jordan: the matrices are positive definite)
 and the products are sums over ``M`` terms. numpy's batched ``inv``, ``det`` and ``@`` on
 a million 2 x 2 systems (one 350-antenna HERA file) spend ~10 s in per-matrix overhead;
@@ -14,6 +15,8 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+
+from autocal.fit.threads import in_threads
 
 
 def expected_jackknife(
@@ -47,7 +50,9 @@ def expected_jackknife(
         else np.ascontiguousarray(np.broadcast_to(p, a.shape), dtype=np.float64).reshape(-1, m, m)
     )
     out = np.empty((flat.shape[0], 2, 2))
-    _kernel(flat, blocks, prior, np.ascontiguousarray(proj, dtype=np.float64), out)
+    proj = np.ascontiguousarray(proj, dtype=np.float64)
+    nchunk = -(-flat.shape[0] // _CHUNK)
+    in_threads(lambda c0, c1: _kernel(flat, blocks, prior, proj, out, c0, c1), nchunk)
     return out.reshape(*lead, 2, 2)
 
 
@@ -88,16 +93,19 @@ def _matmul(x: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
             out[i, j] = acc
 
 
-#: Channels per task of the parallel loop (its scratch arrays are allocated once per task).
+#: Channels per chunk of the loop (its scratch arrays are allocated once per chunk).
 _CHUNK = 4096
 
 
-@numba.njit(parallel=True, cache=True, nogil=True)
-def _kernel(a, blocks, prior, proj, out):  # type: ignore[no-untyped-def]
-    """Fill ``out[n]`` for every channel ``n`` (see :func:`expected_jackknife`)."""
+@numba.njit(cache=True, nogil=True)
+def _kernel(a, blocks, prior, proj, out, c0, c1):  # type: ignore[no-untyped-def]
+    """Fill ``out[n]`` for the channels of chunks ``c0`` to ``c1 - 1``.
+
+    See :func:`expected_jackknife`.
+    """
     nblk, nchan, m, _ = blocks.shape
     frac = (nblk - 1) / nblk
-    for c in numba.prange((nchan + _CHUNK - 1) // _CHUNK):
+    for c in range(c0, c1):
         ysum = np.empty((2, m))
         cross = np.empty((2, m))  # sum_b Y_b A_b
         own = np.empty((2, 2))  # sum_b Y_b (A - A_b) Y_b^T

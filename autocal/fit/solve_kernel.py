@@ -2,19 +2,21 @@
 
 :func:`solve_channels` does what :func:`autocal.fit.solve.solve_sums_numpy` does (column
 scaling, a 2-norm condition number from the eigenvalues, the inverse, coefficients,
-``chi^2``, covariance scaling, the flag reasons) in one loop per channel, in parallel over
-channels, with no temporaries: numpy's batched linear algebra spends most of its time in
-per-matrix overhead on a HERA file's million small systems (LAPACK ``inv`` and ``eigvalsh``
-for 4 x 4 ones ~4 us each). Eigenvalues are in closed form for 2 x 2 systems and by cyclic
-Jacobi rotations otherwise; the inverse is Gauss-Jordan on the scaled, positive-definite
-matrix. numba is imported with this module, which :mod:`autocal.fit.solve` imports when it
-solves.
+``chi^2``, covariance scaling, the flag reasons) in one loop per channel, chunks of channels
+on threads (:func:`autocal.fit.threads.in_threads`), with no temporaries: numpy's batched
+linear algebra spends most of its time in per-matrix overhead on a HERA file's million small
+systems (LAPACK ``inv`` and ``eigvalsh`` for 4 x 4 ones ~4 us each). Eigenvalues are in
+closed form for 2 x 2 systems and by cyclic Jacobi rotations otherwise; the inverse is
+Gauss-Jordan on the scaled, positive-definite matrix. numba is imported with this module,
+which :mod:`autocal.fit.solve` imports when it solves.
 """
 
 from __future__ import annotations
 
 import numba
 import numpy as np
+
+from autocal.fit.threads import in_threads
 
 #: Flag reason codes (as :data:`autocal.fit.solve.FLAG_REASONS`).
 _TOO_FEW, _SINGULAR, _NON_POSITIVE = 1, 2, 3
@@ -43,7 +45,7 @@ def solve_channels(
         "chi2": np.empty(n),
         "flag_reason": np.zeros(n, np.int8),
     }
-    _kernel(
+    args = (
         np.ascontiguousarray(ata, dtype=np.float64),
         np.ascontiguousarray(aty, dtype=np.float64),
         np.ascontiguousarray(yty, dtype=np.float64),
@@ -57,6 +59,7 @@ def solve_channels(
         out["chi2"],
         out["flag_reason"],
     )
+    in_threads(lambda c0, c1: _kernel(*args, c0, c1), -(-n // _CHUNK))
     return out
 
 
@@ -128,15 +131,17 @@ def _invert(mat: np.ndarray) -> None:
                     mat[r, j] -= f * mat[col, j]
 
 
-#: Channels per task of the parallel loop (its scratch arrays are allocated once per task).
+#: Channels per chunk of the loop (its scratch arrays are allocated once per chunk).
 _CHUNK = 4096
 
 
-@numba.njit(parallel=True, cache=True, nogil=True)
-def _kernel(ata, aty, yty, count, min_samples, scale_mode, max_condition, positive, co, cv, ch, rs):  # type: ignore[no-untyped-def]
-    """Solve every channel into ``co``, ``cv``, ``ch``, ``rs`` (see :func:`solve_channels`)."""
+@numba.njit(cache=True, nogil=True)
+def _kernel(
+    ata, aty, yty, count, min_samples, scale_mode, max_condition, positive, co, cv, ch, rs, c0, c1
+):  # type: ignore[no-untyped-def]  # noqa: E501
+    """Solve the channels of chunks ``c0`` to ``c1 - 1`` (see :func:`solve_channels`)."""
     n, m = aty.shape
-    for c in numba.prange((n + _CHUNK - 1) // _CHUNK):
+    for c in range(c0, c1):
         scaled = np.empty((m, m))
         work = np.empty((m, m))
         d = np.empty(m)

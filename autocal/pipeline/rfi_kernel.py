@@ -1,13 +1,14 @@
-"""The compiled frequency flagger: one pass over each spectrum, in parallel over spectra.
+"""The compiled frequency flagger: one pass over each spectrum, antenna-pols on threads.
 
 :func:`spectrum_hits` does what :func:`autocal.pipeline.rfi.frequency_flags` describes
 (ratio to the time-mean spectrum, block-median trend, one robust width per spectrum,
 watershed) in one loop per spectrum, so a 350-antenna HERA file (2 x 10^8 samples) is
-flagged in about a second per core instead of the ~14 s the same steps take as numpy array
-passes. This module imports numba: :mod:`autocal.pipeline.rfi` imports it only when it
-flags (the command line never loads it). The machine code is cached on disk (numba's
-``cache=True``: beside this module, or numba's per-user cache directory when that is not
-writable).
+flagged in a few seconds instead of the ~14 s the same steps take as numpy array passes (and
+the ~190 s of a sliding median filter); antenna-pols run on threads
+(:func:`autocal.fit.threads.in_threads`). This module imports numba:
+:mod:`autocal.pipeline.rfi` imports it only when it flags (the command line never loads it).
+The machine code is cached on disk (numba's ``cache=True``: beside this module, or numba's
+per-user cache directory when that is not writable).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from autocal.fit.threads import in_threads
 from autocal.pipeline.rfi import trend_grid
 
 
@@ -114,7 +116,7 @@ def spectrum_hits(
         np.zeros((nant, npol, ntime), np.int64),
     )
     acc = ScanSums.zeros((nant, npol, nfreq)) if sums is None else sums
-    _kernel(
+    args = (
         np.ascontiguousarray(data, dtype=np.float64),
         np.ascontiguousarray(flags, dtype=np.bool_),
         np.ascontiguousarray(inverse_level, dtype=np.float64),
@@ -127,18 +129,29 @@ def spectrum_hits(
         (scan.band, scan.usable, scan.hit),
         (acc.hits, acc.usable, acc.clean_total, acc.clean_count),
     )
+    in_threads(lambda ap0, ap1: _kernel(*args, ap0, ap1), nant * npol)
     return out, scan
 
 
-@numba.njit(parallel=True, cache=True, nogil=True)
-def level_sums(data, flags, total, count):  # type: ignore[no-untyped-def]
+def level_sums(data: np.ndarray, flags: np.ndarray, total: np.ndarray, count: np.ndarray) -> None:
     """Add each channel's usable samples (finite, positive, unflagged) and their number.
 
     ``data``, ``flags`` ``(Nant, Npol, Ntime, Nfreq)``; ``total``, ``count`` ``(Nant, Npol,
-    Nfreq)``, in place; in parallel over antenna-pols.
+    Nfreq)``, in place; antenna-pols on threads (:func:`autocal.fit.threads.in_threads`).
     """
-    nant, npol, ntime, nfreq = data.shape
-    for ap in numba.prange(nant * npol):
+    data = np.ascontiguousarray(data, dtype=np.float64)
+    flags = np.ascontiguousarray(flags, dtype=np.bool_)
+    in_threads(
+        lambda lo, hi: _level_sums(data, flags, total, count, lo, hi),
+        data.shape[0] * data.shape[1],
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _level_sums(data, flags, total, count, ap0, ap1):  # type: ignore[no-untyped-def]
+    """:func:`level_sums` for antenna-pols ``ap0`` to ``ap1 - 1``."""
+    _, npol, ntime, nfreq = data.shape
+    for ap in range(ap0, ap1):
         a = ap // npol
         p = ap % npol
         for t in range(ntime):
@@ -304,17 +317,20 @@ def _trend(med, lo, weight):  # type: ignore[no-untyped-def]
     return out
 
 
-@numba.njit(parallel=True, cache=True, nogil=True)
-def _kernel(data, flags, inv, block, network, lo, weight, sig, out, per_time, per_channel):  # type: ignore[no-untyped-def]
+@numba.njit(cache=True, nogil=True)
+def _kernel(
+    data, flags, inv, block, network, lo, weight, sig, out, per_time, per_channel, ap0, ap1
+):  # type: ignore[no-untyped-def]
     """Flag every spectrum of ``data`` into ``out`` (see :func:`spectrum_hits`).
 
-    In parallel over antenna-pols, so each one's per-channel sums have one writer.
+    Antenna-pols ``ap0`` to ``ap1 - 1``: threads take whole antenna-pols, so each one's
+    per-channel sums have one writer.
     """
     nsig, nadj, chi2 = sig
     band, n_usable, n_hit = per_time
     f_hits, f_usable, c_total, c_count = per_channel
-    nant, npol, ntime, nfreq = data.shape
-    for ap in numba.prange(nant * npol):
+    _, npol, ntime, nfreq = data.shape
+    for ap in range(ap0, ap1):
         a = ap // npol
         p = ap % npol
         ratio = np.empty(nfreq)
