@@ -138,7 +138,7 @@ _CHUNK = 4096
 @numba.njit(cache=True, nogil=True)
 def _kernel(
     ata, aty, yty, count, min_samples, scale_mode, max_condition, positive, co, cv, ch, rs, c0, c1
-):  # type: ignore[no-untyped-def]  # noqa: E501
+):  # type: ignore[no-untyped-def]
     """Solve the channels of chunks ``c0`` to ``c1 - 1`` (see :func:`solve_channels`)."""
     n, m = aty.shape
     for c in range(c0, c1):
