@@ -95,7 +95,8 @@ def fit_feed_gains(
     Raises
     ------
     DiagnoseError
-        When an antenna-pol cannot be fitted or some of its own parameters have no data.
+        When an antenna-pol cannot be fitted or its own parameters are not identifiable
+        (parameters without any data take no part).
     """
     model = _feed_model(obs, active, current, eff)
     if model is None:
@@ -231,7 +232,7 @@ def _fit_feed(
         raise DiagnoseError(f"{label} could not be fitted: {exc}") from exc
     if fit.identifiable.get(model.own.name, 1.0) < MIN_IDENTIFIABLE:
         raise DiagnoseError(
-            f"{label}: some of its own parameters have no data (e.g. an "
-            "integration flagged for this antenna-pol only)"
+            f"{label}: its own parameters are not identifiable from these data "
+            "(degenerate with G and n)"
         )
     return fit
