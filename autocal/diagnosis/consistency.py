@@ -52,8 +52,9 @@ def wald_statistic(fit: ExtendedFit, eff: Effect) -> float | None:
     ok = np.isfinite(values) & np.isfinite(sigmas) & (sigmas > 0)
     cov = fit.covariances.get(eff.name)
     if cov is not None and cov.shape == (values.size, values.size) and ok.all():
-        scale = np.sqrt(np.diag(cov))
-        if np.all(np.isfinite(cov)) and np.all(scale > 0):
+        diag = np.diag(cov)  # a rounding-negative variance falls back on the sigmas
+        if np.all(np.isfinite(cov)) and np.all(diag > 0):
+            scale = np.sqrt(diag)
             z = values / scale
             corr = cov / np.outer(scale, scale)
             return float(z @ np.linalg.pinv(corr, rcond=1e-12, hermitian=True) @ z)
