@@ -57,17 +57,18 @@ def expected_jackknife(
 
 
 @numba.njit(cache=True)
-def _invert(mat: np.ndarray) -> bool:
+def invert_in_place(mat: np.ndarray, check: bool) -> bool:
     """Invert the small symmetric positive-definite matrix ``mat`` in place.
 
-    Gauss-Jordan without pivoting (stable for the positive-definite normal matrices of a
-    refit). Returns ``False`` (``mat`` then undefined) at a pivot that is not positive and
-    finite: a singular refit.
+    Gauss-Jordan without pivoting (stable for positive-definite normal matrices; also the
+    solver's, :mod:`autocal.fit.solve_kernel`, which checks the condition first and passes
+    ``check=False``). With ``check``, returns ``False`` (``mat`` then undefined) at a pivot
+    that is not positive and finite: a singular matrix.
     """
     m = mat.shape[0]
     for col in range(m):
         piv = mat[col, col]
-        if not (piv > 0.0 and piv < np.inf):
+        if check and not (piv > 0.0 and piv < np.inf):
             return False
         inv_p = 1.0 / piv
         mat[col, col] = 1.0
@@ -125,7 +126,7 @@ def _kernel(a, blocks, prior, proj, out, c0, c1):  # type: ignore[no-untyped-def
                 for i in range(m):
                     for j in range(m):
                         k[i, j] = a[n, i, j] - blocks[b, n, i, j] + pn[i, j]
-                if not _invert(k):
+                if not invert_in_place(k, True):
                     ok = False
                     break
                 _matmul(proj, k, y)  # Y_b

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from autocal.fit.jackknife_kernel import invert_in_place
 from autocal.fit.threads import in_threads
 
 #: Flag reason codes (as :data:`autocal.fit.solve.FLAG_REASONS`).
@@ -114,23 +115,6 @@ def _eig_extremes(a: np.ndarray, work: np.ndarray) -> tuple[float, float]:
     return lo, hi
 
 
-@numba.njit(cache=True)
-def _invert(mat: np.ndarray) -> None:
-    """Invert the positive-definite matrix ``mat`` in place (Gauss-Jordan, no pivoting)."""
-    m = mat.shape[0]
-    for col in range(m):
-        inv_p = 1.0 / mat[col, col]
-        mat[col, col] = 1.0
-        for j in range(m):
-            mat[col, j] *= inv_p
-        for r in range(m):
-            if r != col:
-                f = mat[r, col]
-                mat[r, col] = 0.0
-                for j in range(m):
-                    mat[r, j] -= f * mat[col, j]
-
-
 #: Channels per chunk of the loop (its scratch arrays are allocated once per chunk).
 _CHUNK = 4096
 
@@ -167,7 +151,7 @@ def _kernel(
             if not ok:
                 _flagged(i, reason, co, cv, ch, rs)
                 continue
-            _invert(scaled)
+            invert_in_place(scaled, False)  # the condition number was checked above
             fit = 0.0
             for k in range(m):
                 acc = 0.0
