@@ -27,6 +27,7 @@ import numpy as np
 from autocal.core.observation import Observation
 from autocal.fit.solve import FLAG_BAND_EDGE, FLAG_RFI, FLAG_TOO_FEW
 from autocal.io.uvh5_blocks import BLOCK_SAMPLES
+from autocal.io.uvh5_chunks import ReadStats
 from autocal.pipeline.config import CalibrationConfig, read_selection
 from autocal.pipeline.partials import read_chunks
 from autocal.pipeline.rfi import LevelScan, RfiMask, RfiScan, band_sky
@@ -69,7 +70,8 @@ def scan_flags(
     tuple
         The mask (``None`` when flagging is off or does not apply) and the summary's
         ``rfi`` block: counts per reason (``band_edge``, ``rfi_frequency``, ``rfi_time``)
-        or why nothing was flagged.
+        and the read counters of the flagging's two reads (``io``, as the fit's
+        ``execution.io``), or why nothing was flagged.
     """
     if not config.rfi_flagging:
         return None, dict(TURNED_OFF)
@@ -78,17 +80,19 @@ def scan_flags(
     report(0.07, "flagging band edges and RFI from the autos")
     selection = read_selection(config)
     tasks = source.tasks(tsky_all)
+    stats = ReadStats()  # the flagging's own reads, reported beside the fit's
 
     def blocks() -> Blocks:
         for task in tasks:
             offset = task.offset
-            for chunk in read_chunks(selection, block_size, task):
+            for chunk in read_chunks(selection, block_size, task, stats):
                 yield offset, chunk.data, chunk.flags
                 offset += chunk.ntime
                 del chunk
 
     sky = band_sky(tsky_all, len(source.pols if config.pols is None else config.pols))
     mask = scan_blocks(blocks, int(source.lsts.size), sky)
+    mask.counts["io"] = stats.as_dict()
     return mask, mask.counts
 
 
