@@ -126,7 +126,9 @@ def test_diagnose_flags_what_calibrate_flags(files: list[Path]) -> None:
     source = open_source(config)
     tsky = np.zeros((1, source.lsts.size, source.freqs.size))  # only to build the tasks
     mask, calibrate_counts = scan_flags(config, source, tsky, 7, lambda *_: None)
+    reads = calibrate_counts.pop("io")  # the calibration's flagging reads (files, not memory)
     assert mask is not None and counts == calibrate_counts
+    assert reads["integrations"] == 2 * source.lsts.size
     parts = []
     for task in source.tasks(tsky):
         offset = task.offset
