@@ -115,6 +115,18 @@ def commands(path: Path, tsky: Path, work: Path) -> dict[str, list[str]]:
             "--products",
             "hdf5",
         ],
+        "autocal calibrate --products hdf5 --no-rfi-flagging": [
+            sys.executable,
+            "-m",
+            "autocal",
+            "calibrate",
+            str(path),
+            "--out",
+            str(work / f"autocal-bare-{stamp}"),
+            "--products",
+            "hdf5",
+            "--no-rfi-flagging",
+        ],
     }
 
 
@@ -234,7 +246,10 @@ def main() -> None:
     parser.add_argument(
         "--variants",
         default="user,autocal,autocal-hdf5",
-        help="commands to run: user, autocal (all products), autocal-hdf5 (default: all three)",
+        help=(
+            "commands to run: user, autocal (all products), autocal-hdf5, autocal-bare "
+            "(hdf5 without flagging: the work the script does) (default: the first three)"
+        ),
     )
     parser.add_argument("--results", type=Path, default=RESULTS, help="folder of the reports")
     args = parser.parse_args()
@@ -252,6 +267,7 @@ def main() -> None:
         "user": "user script (pyuvdata + numpy)",
         "autocal": "autocal calibrate (calh5, hdf5, png)",
         "autocal-hdf5": "autocal calibrate --products hdf5",
+        "autocal-bare": "autocal calibrate --products hdf5 --no-rfi-flagging",
     }
     variants = [names[v.strip()] for v in args.variants.split(",")]
     report = measure(path.resolve(), args.repeats, env, not args.no_warmup, variants)

@@ -173,7 +173,9 @@ def _calibrate(
     tsky_all, tsky_meta = tsky_per_pol(config.sky, config, source, pols, epoch)
     timings["tsky_s"] = time.perf_counter() - t1
 
+    t_flag = time.perf_counter()
     mask, flagging = scan_flags(config, source, tsky_all, block_size, report)
+    timings["flagging_s"] = time.perf_counter() - t_flag
     model = FitModel.for_lsts(
         source.lsts, config.model, 0 if config.model == "constant" else config.order
     )
@@ -195,7 +197,9 @@ def _calibrate(
 
     scaling = covariance_scaling(config.weights, config.inflate_errors)
     prior_fn = _prior_term(prior, source, run, pols, scaling)
+    t_solve = time.perf_counter()
     solved, total = _solve(run, model, source, scaling, prior_fn, report)
+    timings["solve_s"] = time.perf_counter() - t_solve  # with the total uncertainty
     mark_flag_reasons(solved, mask)
     provenance = _provenance(config, source, run, tsky_meta, epoch, total, prior)
     provenance["rfi_flagging"] = flagging
