@@ -45,6 +45,7 @@ from pydantic import (
 from autocal import __version__
 from autocal.core.coords import night_epoch
 from autocal.core.files import publish_staged
+from autocal.core.memory import available_memory
 from autocal.core.observation import Observation
 from autocal.diagnosis import effects, report
 from autocal.diagnosis.effects import SkyTemplates
@@ -215,29 +216,6 @@ BYTES_PER_SAMPLE = 26.0
 #: time (float64 data and nsamples, bool flags: 17 bytes per sample of the half), and that
 #: benchmark's night (the model's own sky) never accepts a candidate.
 HALF_BAND_BYTES_PER_SAMPLE = 8.5
-
-
-def available_memory() -> float | None:
-    """Return the bytes this process can still allocate, or ``None`` when unknown.
-
-    ``MemAvailable`` of ``/proc/meminfo``, lowered to what a cgroup v2 memory limit leaves
-    (containers, systemd units with ``MemoryMax``).
-    """
-    avail: float | None = None
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                avail = float(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        return None
-    try:
-        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
-        used = float(Path("/sys/fs/cgroup/memory.current").read_text().strip())
-        if limit != "max" and avail is not None:
-            avail = min(avail, float(limit) - used)
-    except (OSError, ValueError):
-        pass
-    return avail
 
 
 def check_memory(shape: tuple[int, ...]) -> None:

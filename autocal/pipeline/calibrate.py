@@ -50,6 +50,7 @@ from autocal.pipeline.flagging import mark_flag_reasons, scan_flags
 from autocal.pipeline.passes import PassesResult, solution_of, sum_passes
 from autocal.pipeline.products import (
     SUMMARY_NAME,
+    check_per_time_memory,
     comparison_summary,
     write_products,
 )
@@ -165,6 +166,10 @@ def _calibrate(
 
     pols = tuple(p.lower() for p in (config.pols or source.pols))
     prior = _read_prior(config, source, pols)  # read and checked before any work is done
+    if out is not None:  # a per-time calh5 too large to hold is refused before any reading
+        nant = len(source.antenna_numbers(config.antennas))
+        shape = (nant, len(pols), source.freqs.size, source.lsts.size)
+        check_per_time_memory(config.products, shape)
     epoch = night_epoch(source.jds, source.site.lon_deg)
     report(
         0.05, f"Tsky for {len(pols)} pol(s), {source.freqs.size} channels, {source.lsts.size} LSTs"

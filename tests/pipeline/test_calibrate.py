@@ -377,3 +377,35 @@ def test_a_prior_table_reaches_the_fit(night, tmp_path, capsys) -> None:
     # the prior pulls Trxr towards 150 K and shrinks its error below the prior's 2 K
     assert np.nanmedian(np.abs(held.Trxr - 150)) < np.nanmedian(np.abs(free.Trxr - 150)) + 0.5
     assert np.nanmedian(held.sigma_Trxr_stat) < 2.0
+
+
+def test_a_per_time_calh5_too_large_for_memory_is_refused_before_reading(
+    night, tmp_path, monkeypatch
+) -> None:
+    """A night of HERA files asks for a per-time calh5 of tens of GB (pyuvdata holds it whole):
+    refused before any data are read, with what to do, and nothing written; hdf5 alone runs."""
+    import autocal.pipeline.flagging
+    import autocal.pipeline.partials
+    import autocal.pipeline.products
+
+    ntime = sum(read_uvh5([p]).ntime for p in night)
+    value_bytes = autocal.pipeline.products.PER_TIME_BYTES_PER_VALUE * 2 * 2 * ntime
+    nfreq = read_uvh5([night[0]]).nfreq
+    need = value_bytes * nfreq
+    monkeypatch.setattr(autocal.pipeline.products, "available_memory", lambda: 0.5 * need)
+
+    def no_reading(*args, **kwargs):
+        raise AssertionError("data were read before the refusal")
+
+    for module in (autocal.pipeline.partials, autocal.pipeline.flagging):
+        monkeypatch.setattr(module, "read_chunks", no_reading)
+    config = CalibrationConfig(inputs=[str(p) for p in night], beam="dipole")
+    out = tmp_path / "out"
+    with pytest.raises(PipelineError, match=r"per-time calh5 .* calibrate the files one by one"):
+        run_calibration(config, out)
+    assert not out.exists() or list(out.iterdir()) == []
+    monkeypatch.undo()
+    monkeypatch.setattr(autocal.pipeline.products, "available_memory", lambda: 0.5 * need)
+    hdf5_only = config.model_copy(update={"products": ["hdf5"]})
+    run_calibration(hdf5_only, out)
+    assert (out / "solution.h5").exists()
