@@ -436,17 +436,19 @@ def _chi2_drop(
 ) -> np.ndarray:
     """Return the chi2 drop of nested least squares from the fitted to the extended model.
 
-    ``dx^T A_ext dx`` (``dx``: the extended solution less the fitted one embedded; 0 where
-    either is not finite) rather than a difference of two chi2 that are each a small
-    difference of large sums. Evaluated in the sky-centred frame
-    (:func:`autocal.fit.centring.quadratic_form`): ``dx`` lies near the null direction of
-    ``A_ext`` on a short span, where the plain quadratic form keeps only ~6 digits (errors of
-    ~1 in a statistic of ~1e3 on 10-minute HERA files).
+    ``dx^T A_ext dx`` (``dx``: the extended solution less the fitted one embedded) rather
+    than a difference of two chi2 that are each a small difference of large sums. Evaluated
+    in the sky-centred frame (:func:`autocal.fit.centring.quadratic_form`): ``dx`` lies near
+    the null direction of ``A_ext`` on a short span, where the plain quadratic form keeps
+    only ~6 digits (errors up to ~1 in statistics of ~1e3 on 10-minute HERA files). NaN
+    where either solution is not finite: without the fitted solution (e.g. a non-positive
+    gain) the extended one's extra coefficients alone are no chi2 drop.
     """
     embedded = np.zeros_like(ext_coeffs)
     embedded[..., base_index(model)] = coeffs
-    dx = np.nan_to_num(ext_coeffs - embedded)
-    return quadratic_form(dx, ext_ata)
+    dx = ext_coeffs - embedded
+    finite = np.all(np.isfinite(dx), axis=-1)
+    return np.where(finite, quadratic_form(np.where(finite[..., None], dx, 0.0), ext_ata), np.nan)
 
 
 def positive_gain(theta: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
