@@ -10,18 +10,19 @@ Both solve in the sky-centred frame (:mod:`autocal.fit.centring`): the congruenc
 replaces each gain column ``Tsky P_k`` by ``(Tsky - c) P_k``, ``c`` the weighted time mean
 of ``Tsky`` taken from the sums, and maps the solution and covariance back. Over a short
 span the sky changes by ~1 % of its mean and the column-scaled normal matrix is nearly
-singular in the original frame (condition ~1e11 for a 10-minute HERA file's extended
-model): solved there, coefficients kept ~5 digits (1e-6 median relative error, 6e-4 at
+singular in the original frame (condition ~5e10 for a 10-minute HERA file's extended
+model): solved there, coefficients kept ~6 digits (1e-6 median relative error, 6e-4 at
 worst, against exact rational solves of the same sums) and the total uncertainty built on
-them moved by up to x300. In the centred frame the condition is ~1e6 and the same
-comparison gives 1e-10 (median).
+them moved by up to x300. In the centred frame the condition is ~5e5 and the same
+comparison gives 1e-10 (median; 1e-6 at worst).
 
 Singular: the column-scaled centred matrix's condition number, or the digits the
 centring cancelled (:func:`autocal.fit.centring.cancellation_bound`, which for the
-constant model is the original matrix's condition number), reaches
-:data:`MAX_CONDITION`. So a sky that does not change stays singular; a short span whose
-sky changes by ~1 % is not (a Legendre fit of 10 minutes: the original frame's condition
-reached 1e12 for ~2 % of such channels, now solved to ~1e-9).
+constant model is, as it nears singularity, the original matrix's condition number: the
+same channels as before), reaches :data:`MAX_CONDITION`. So a sky that does not change
+stays singular, while a 10-minute span whose sky changes by ~1 % solves even where the
+original frame's condition passes 1e12 (~2 % of the extended fits of those files, now
+solved to 7e-9, median).
 
 ``chi^2`` is the residual sum of squares at the solution (``y^T y - 2 x^T b + x^T A x``),
 which an error of the solve changes only to second order.
