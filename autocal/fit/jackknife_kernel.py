@@ -5,7 +5,9 @@
 algebra) in one loop per channel, chunks of channels on threads
 (:func:`autocal.fit.threads.in_threads`): the refit's normal matrix of
 each left-out block is inverted in place (Gauss-Jordan: the matrices are positive definite)
-and the products are sums over ``M`` terms. numpy's batched ``inv``, ``det`` and ``@`` on
+in the sky-centred frame of :mod:`autocal.fit.centring` (the inverse is ``S (S^T K S)^-1
+S^T``: on a short span ``K`` itself is too ill-conditioned to invert to more than a few
+digits) and the products are sums over ``M`` terms. numpy's batched ``inv``, ``det`` and ``@`` on
 a million 2 x 2 systems (one 350-antenna HERA file) spend ~10 s in per-matrix overhead;
 this takes a fraction of a second. numba is imported with this module, which
 :mod:`autocal.fit.total_uncertainty` imports only when it computes a total uncertainty.
@@ -16,6 +18,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from autocal.fit.centring_kernel import centre_into, uncentre_cov_into
 from autocal.fit.threads import in_threads
 
 
@@ -111,6 +114,7 @@ def _kernel(a, blocks, prior, proj, out, c0, c1):  # type: ignore[no-untyped-def
         cross = np.empty((2, m))  # sum_b Y_b A_b
         own = np.empty((2, 2))  # sum_b Y_b (A - A_b) Y_b^T
         same = np.empty((2, 2))  # sum_b Y_b A_b Y_b^T
+        rest = np.empty((m, m))
         k = np.empty((m, m))
         y = np.empty((2, m))
         ya = np.empty((2, m))
@@ -125,10 +129,12 @@ def _kernel(a, blocks, prior, proj, out, c0, c1):  # type: ignore[no-untyped-def
             for b in range(nblk):
                 for i in range(m):
                     for j in range(m):
-                        k[i, j] = a[n, i, j] - blocks[b, n, i, j] + pn[i, j]
+                        rest[i, j] = a[n, i, j] - blocks[b, n, i, j] + pn[i, j]
+                sky = centre_into(rest, k)  # inverted in the sky-centred frame
                 if not invert_in_place(k, True):
                     ok = False
                     break
+                uncentre_cov_into(k, sky, k)
                 _matmul(proj, k, y)  # Y_b
                 _matmul(y, blocks[b, n], ya)  # Y_b A_b
                 _matmul(y, a[n], yr)

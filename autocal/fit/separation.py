@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from autocal.fit.blocks import base_index
+from autocal.fit.centring import centre, centre_rhs, sky_mean, uncentre
 from autocal.fit.model import FitModel
 from autocal.fit.sums import NormalSums
 
@@ -67,9 +68,12 @@ def drift_sensitivity(
     ok = np.all(np.isfinite(theta), axis=-1)
     rhs = b @ np.where(ok[..., None], theta, 0.0)[..., None] / 2.0  # (..., m, 1)
     eye = np.eye(a.shape[-1])
+    # solved in the sky-centred frame, as the fit is (a short span's A is ill-conditioned)
+    c = sky_mean(a)
+    a, rhs = centre(a, c), centre_rhs(rhs[..., 0], c)[..., None]
     good = ok & (np.linalg.det(np.where(ok[..., None, None], a, eye)) != 0)
     with np.errstate(all="ignore"):
-        dx = np.linalg.solve(np.where(good[..., None, None], a, eye), rhs)[..., 0]
+        dx = uncentre(np.linalg.solve(np.where(good[..., None, None], a, eye), rhs)[..., 0], c)
         return np.where(good, (dx @ vg) / theta[..., 0], np.nan)
 
 

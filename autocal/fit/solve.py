@@ -5,6 +5,27 @@ compiled loop over channels; :func:`solve_sums_numpy`, batched numpy linear alge
 blocks that bound the temporaries, is its reference). A channel with too few
 samples, a singular normal matrix or a non-positive gain is flagged with its reason
 (:data:`FLAG_REASONS`) and its values set to NaN, never filled.
+
+Both solve in the sky-centred frame (:mod:`autocal.fit.centring`): the congruence that
+replaces each gain column ``Tsky P_k`` by ``(Tsky - c) P_k``, ``c`` the weighted time mean
+of ``Tsky`` taken from the sums, and maps the solution and covariance back. Over a short
+span the sky changes by ~1 % of its mean and the column-scaled normal matrix is nearly
+singular in the original frame (condition ~5e10 for a 10-minute HERA file's extended
+model): solved there, coefficients kept ~6 digits (1e-6 median relative error, 6e-4 at
+worst, against exact rational solves of the same sums) and the total uncertainty built on
+them moved by up to x300. In the centred frame the condition is ~5e5 and the same
+comparison gives 1e-10 (median; 1e-6 at worst).
+
+Singular: the column-scaled centred matrix's condition number, or the digits the
+centring cancelled (:func:`autocal.fit.centring.cancellation_bound`, which for the
+constant model is, as it nears singularity, the original matrix's condition number: the
+same channels as before), reaches :data:`MAX_CONDITION`. So a sky that does not change
+stays singular, while a 10-minute span whose sky changes by ~1 % solves even where the
+original frame's condition passes 1e12 (~2 % of the extended fits of those files, now
+solved to 7e-9, median).
+
+``chi^2`` is the residual sum of squares at the solution (``y^T y - 2 x^T b + x^T A x``),
+which an error of the solve changes only to second order.
 """
 
 from __future__ import annotations
@@ -13,6 +34,14 @@ from typing import Literal
 
 import numpy as np
 
+from autocal.fit.centring import (
+    cancellation_bound,
+    centre,
+    centre_rhs,
+    sky_mean,
+    uncentre,
+    uncentre_cov,
+)
 from autocal.fit.model import FitError
 from autocal.fit.sums import NormalSums
 
@@ -32,7 +61,8 @@ FLAG_TOO_FEW = 1
 FLAG_BAND_EDGE = 4
 #: ``flag_reason`` of a channel flagged whole (or at every integration) for RFI before the fit.
 FLAG_RFI = 5
-#: Largest condition number of the (column-scaled) normal matrix accepted as solvable.
+#: Largest condition number of the (column-scaled, sky-centred) normal matrix accepted as
+#: solvable (see the module notes).
 MAX_CONDITION = 1e12
 
 
@@ -68,7 +98,8 @@ def solve_sums(
         dof)``, so errors from inverse-variance weights also cover unmodelled structure
         in real data without being shrunk below the noise.
     max_condition
-        Largest condition number of the column-scaled normal matrix.
+        Largest condition number of the column-scaled normal matrix in the sky-centred
+        frame (or of the centring's cancellation), see the module notes.
     positive_gain
         Flag (reason 3) channels whose first gain coefficient is not positive. ``False``
         keeps such solutions (refits that only serve an error estimate).
@@ -184,31 +215,34 @@ def _solve_block(
     max_condition: float,
     positive_gain: bool = True,
 ) -> dict[str, np.ndarray]:
-    """Solve ``(n, M, M)`` normal systems (see :func:`solve_sums`)."""
+    """Solve ``(n, M, M)`` normal systems (see :func:`solve_sums`), in the sky-centred frame."""
     m = ata.shape[-1]
     reason = np.zeros(count.shape, np.int8)
     reason[count < min_samples] = 1
-    diag = np.diagonal(ata, axis1=-2, axis2=-1)
+    c = sky_mean(ata)
+    centred, rhs = centre(ata, c), centre_rhs(aty, c)
+    diag = np.diagonal(centred, axis1=-2, axis2=-1)
     d = np.where(diag > 0, np.sqrt(np.where(diag > 0, diag, 1.0)), 1.0)
-    scaled = ata / (d[..., :, None] * d[..., None, :])
+    scaled = centred / (d[..., :, None] * d[..., None, :])
     ok = (reason == 0) & np.all(diag > 0, axis=-1) & np.all(np.isfinite(scaled), axis=(-2, -1))
     reason[(reason == 0) & ~ok] = 2
     eye = np.eye(m)
     scaled = np.where(ok[..., None, None], scaled, eye)
     # 2-norm condition number of the symmetric matrix from its eigenvalues (as
-    # np.linalg.cond, but eigvalsh is several times faster than an SVD per channel)
+    # np.linalg.cond, but eigvalsh is several times faster than an SVD per channel), and
+    # the digits the centring cancelled (centring.cancellation_bound)
     ev = np.abs(sym_eigvalsh(scaled))
     with np.errstate(divide="ignore", invalid="ignore"):
-        cond = ev.max(axis=-1) / ev.min(axis=-1)
+        cond = np.maximum(ev.max(axis=-1) / ev.min(axis=-1), cancellation_bound(ata, centred))
     singular = ok & ~(np.isfinite(cond) & (cond < max_condition))
     reason[singular] = 2
     ok &= ~singular
     scaled = np.where(ok[..., None, None], scaled, eye)
     inv = sym_inv(scaled)
     cov = inv / (d[..., :, None] * d[..., None, :])
-    coeffs = (cov @ aty[..., None])[..., 0]
-    # a difference of large sums: rounding can make a (near-)perfect fit's chi2 negative
-    chi2 = np.maximum(yty - np.einsum("...m,...m->...", coeffs, aty), 0.0)
+    coeffs = (cov @ rhs[..., None])[..., 0]
+    chi2 = _chi2(yty, centred, rhs, coeffs)
+    coeffs, cov = uncentre(coeffs, c), uncentre_cov(cov, c)
     dof = (count - m).astype(np.float64)
     if scale_covariance:
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -223,3 +257,17 @@ def _solve_block(
     cov = np.where(bad[..., None, None], np.nan, cov)
     chi2 = np.where(bad, np.nan, chi2)
     return {"coeffs": coeffs, "cov": cov, "chi2": chi2, "flag_reason": reason}
+
+
+def _chi2(yty: np.ndarray, ata: np.ndarray, aty: np.ndarray, coeffs: np.ndarray) -> np.ndarray:
+    """``chi^2 = y^T y - 2 x^T b + x^T A x`` at the solution ``x``, at least 0.
+
+    The residual sum of squares is stationary at the solution, so an error ``dx`` of the
+    solve changes it by ``dx^T A dx`` only: ``y^T y - x^T b`` (equal for the exact ``x``)
+    changes by ``dx^T b``, which on an ill-conditioned system (a 10-minute span's extended
+    model, a few samples) is as large as ``chi^2`` itself. Evaluated as ``y^T y - x^T (b +
+    r)`` with the residual ``r = b - A x``. Still a difference of large sums: rounding can
+    make a (near-)perfect fit's ``chi^2`` negative, hence the floor.
+    """
+    resid = aty - np.einsum("...kj,...j->...k", ata, coeffs)
+    return np.maximum(yty - np.einsum("...m,...m->...", coeffs, aty + resid), 0.0)

@@ -1,13 +1,14 @@
 """The compiled solver of every channel's normal equations, one channel at a time.
 
-:func:`solve_channels` does what :func:`autocal.fit.solve.solve_sums_numpy` does (column
-scaling, a 2-norm condition number from the eigenvalues, the inverse, coefficients,
-``chi^2``, covariance scaling, the flag reasons) in one loop per channel, chunks of channels
+:func:`solve_channels` does what :func:`autocal.fit.solve.solve_sums_numpy` does (the
+sky-centred frame of :mod:`autocal.fit.centring`, column scaling, a 2-norm condition number
+from the eigenvalues and the centring's cancellation, the inverse, coefficients, ``chi^2``,
+covariance scaling, the flag reasons) in one loop per channel, chunks of channels
 on threads (:func:`autocal.fit.threads.in_threads`), with no temporaries: numpy's batched
 linear algebra spends most of its time in per-matrix overhead on a HERA file's million small
 systems (LAPACK ``inv`` and ``eigvalsh`` for 4 x 4 ones ~4 us each). Eigenvalues are in
 closed form for 2 x 2 systems and by cyclic Jacobi rotations otherwise; the inverse is
-Gauss-Jordan on the scaled, positive-definite matrix. numba is imported with this module,
+Gauss-Jordan on the scaled, centred, positive-definite matrix. numba is imported with this module,
 which :mod:`autocal.fit.solve` imports when it solves.
 """
 
@@ -16,6 +17,12 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from autocal.fit.centring_kernel import (
+    centre_into,
+    centre_rhs_into,
+    uncentre_cov_into,
+    uncentre_into,
+)
 from autocal.fit.jackknife_kernel import invert_in_place
 from autocal.fit.threads import in_threads
 
@@ -125,26 +132,34 @@ def _kernel(
 ):  # type: ignore[no-untyped-def]
     """Solve the channels of chunks ``c0`` to ``c1 - 1`` (see :func:`solve_channels`)."""
     n, m = aty.shape
+    nb = m // 2
     for c in range(c0, c1):
+        centred = np.empty((m, m))
         scaled = np.empty((m, m))
         work = np.empty((m, m))
+        rhs = np.empty(m)
+        x = np.empty(m)
         d = np.empty(m)
         for i in range(c * _CHUNK, min((c + 1) * _CHUNK, n)):
             reason = _TOO_FEW if count[i] < min_samples else 0
+            sky = centre_into(ata[i], centred)
+            centre_rhs_into(aty[i], sky, rhs)
             ok = reason == 0
             for k in range(m):
-                dk = ata[i, k, k]
+                dk = centred[k, k]
                 ok = ok and dk > 0.0
                 d[k] = np.sqrt(dk) if dk > 0.0 else 1.0
             for k in range(m):
                 for j in range(m):
-                    scaled[k, j] = ata[i, k, j] / (d[k] * d[j])
+                    scaled[k, j] = centred[k, j] / (d[k] * d[j])
                     ok = ok and np.isfinite(scaled[k, j])
             if reason == 0 and not ok:
                 reason = _SINGULAR
             if ok:
                 lo, hi = _eig_extremes(scaled, work)
                 cond = hi / lo if lo > 0.0 else np.inf
+                for k in range(nb):  # the digits the centring cancelled
+                    cond = max(cond, 4.0 * ata[i, k, k] / centred[k, k])
                 if not (cond < max_condition):  # NaN or too large
                     reason = _SINGULAR
                     ok = False
@@ -152,15 +167,21 @@ def _kernel(
                 _flagged(i, reason, co, cv, ch, rs)
                 continue
             invert_in_place(scaled, False)  # the condition number was checked above
-            fit = 0.0
             for k in range(m):
                 acc = 0.0
                 for j in range(m):
-                    cv[i, k, j] = scaled[k, j] / (d[k] * d[j])
+                    scaled[k, j] = scaled[k, j] / (d[k] * d[j])  # the centred covariance
                 for j in range(m):
-                    acc += cv[i, k, j] * aty[i, j]
-                co[i, k] = acc
-                fit += acc * aty[i, k]
+                    acc += scaled[k, j] * rhs[j]
+                x[k] = acc
+            fit = 0.0  # x^T (b + r), r = b - A x: chi2 stationary in x (solve._chi2)
+            for k in range(m):
+                acc = 0.0
+                for j in range(m):
+                    acc += centred[k, j] * x[j]
+                fit += x[k] * (rhs[k] + (rhs[k] - acc))
+            uncentre_into(x, sky, co[i])
+            uncentre_cov_into(scaled, sky, cv[i])
             chi2 = max(yty[i] - fit, 0.0)
             if scale_mode != 0:
                 dof = count[i] - m

@@ -10,7 +10,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from autocal.fit.blocks import BlockSums, accumulate_blocks, block_edges, subtract_sums
+from autocal.fit.model import FitModel
 from autocal.fit.passes import fit
+from autocal.fit.solve import solve_sums
+from autocal.fit.sums import NormalSums
+from autocal.fit.total_uncertainty import total_uncertainty
 from tests.fit.toy import SHORT_FREQS as FREQS
 from tests.fit.toy import SHORT_NF as NF
 from tests.fit.toy import make_obs as day_obs
@@ -71,3 +76,48 @@ def test_the_jackknife_is_judged_against_what_the_model_predicts(order: int) -> 
         assert sol.total is not None
         factors.append(sol.total.jackknife_factor)
     assert 0.7 < np.nanmedian(factors) < 1.2
+
+
+def test_a_channel_without_a_fitted_solution_adds_nothing_to_the_drift_statistic() -> None:
+    """A channel whose fit is flagged (here: non-positive gain, as solve_sums reports it)
+    has no chi2 drop to the extended model, whose solution it may still have: its
+    antenna-pol's joint statistic, and so every other channel's drift weight, is that of
+    the same data without the channel. (The extended model's extra coefficients alone
+    are not a chi2 drop: on a gain that drifts, or a channel with RFI, they made the
+    joint statistic, and the weight of every channel, jump to 1.)"""
+    rng = np.random.default_rng(5)
+    nt = 60
+    lsts, tsky = short_sky(nt)
+    model = FitModel.for_lsts(lsts)
+    drift = np.ones((nt, NF))
+    drift[:, 5] += 0.05 * np.linspace(-0.5, 0.5, nt)  # channel 5's gain drifts by 5 %
+    data = noisy((drift * (tsky + 150.0))[None, None], rng, 1e6)
+    blocks = accumulate_blocks(model, data, tsky, lsts, block_edges(nt), bandwidth_time=1e6)
+    solved = solve_sums(blocks.fitted_total(), scale_covariance="inflate")
+    flagged = {name: value.copy() for name, value in solved.items()}
+    for name in ("coeffs", "cov", "chi2"):
+        flagged[name][0, 0, 5] = np.nan
+    flagged["flag_reason"][0, 0, 5] = 3
+    with_flag = total_uncertainty(blocks, flagged)
+
+    def without(s: NormalSums) -> NormalSums:
+        out = subtract_sums(s, s)  # zeros of the same shapes
+        keep = np.arange(NF) != 5
+        for name in ("ata", "aty", "yty", "count"):
+            getattr(out, name)[0, 0, keep] = getattr(s, name)[0, 0, keep]
+        return out
+
+    gone = BlockSums(
+        [without(b) for b in blocks.blocks],
+        model,
+        blocks.edges,
+        blocks.lsts,
+        without(blocks.extended),
+    )
+    reference = total_uncertainty(gone, solve_sums(gone.fitted_total(), scale_covariance="inflate"))
+    others = np.arange(NF) != 5
+    assert np.all(np.isfinite(reference.drift_weight[0, 0, others]))
+    np.testing.assert_array_equal(
+        with_flag.drift_weight[0, 0, others], reference.drift_weight[0, 0, others]
+    )
+    assert np.isnan(with_flag.drift_weight[0, 0, 5]) and np.isnan(with_flag.cov[0, 0, 5]).all()

@@ -1,0 +1,76 @@
+"""The sky-centred frame of :mod:`autocal.fit.centring`, compiled for one channel's system.
+
+The same operations in the same order as the numpy functions there (columns, then the gain
+rows, the upper triangle mirrored; rows, then columns back), on one ``(M, M)`` system into
+scratch arrays, for the compiled solver (:mod:`autocal.fit.solve_kernel`) and the expected
+jackknife (:mod:`autocal.fit.jackknife_kernel`). numba is imported with this module.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from autocal.fit.centring import minus_product as _minus_product_py
+
+#: Compiled :func:`autocal.fit.centring.minus_product` (the same arithmetic).
+minus_product = numba.njit(cache=True)(_minus_product_py)
+
+
+@numba.njit(cache=True)
+def centre_into(a: np.ndarray, out: np.ndarray) -> float:
+    """Fill ``out = S^T a S`` (:func:`autocal.fit.centring.centre`) and return ``c``.
+
+    ``c = a[0, nb] / a[nb, nb]`` (0 where not finite: no change of frame).
+    """
+    m = a.shape[0]
+    nb = m // 2
+    c = a[0, nb] / a[nb, nb] if a[nb, nb] != 0.0 else 0.0  # (numba raises on / 0)
+    if not np.isfinite(c):
+        c = 0.0
+    for r in range(m):
+        for k in range(nb):
+            out[r, k] = minus_product(a[r, k], c, a[r, nb + k])
+        for k in range(nb, m):
+            out[r, k] = a[r, k]
+    for k in range(nb):
+        for j in range(k, m):  # the gain rows' upper triangle (the offset rows are final)
+            out[k, j] = minus_product(out[k, j], c, out[nb + k, j])
+    for k in range(m):
+        for j in range(k):
+            out[k, j] = out[j, k]
+    return c
+
+
+@numba.njit(cache=True)
+def centre_rhs_into(b: np.ndarray, c: float, rhs: np.ndarray) -> None:
+    """Fill ``rhs = S^T b`` (:func:`autocal.fit.centring.centre_rhs`)."""
+    nb = b.shape[0] // 2
+    for k in range(nb):
+        rhs[k] = minus_product(b[k], c, b[nb + k])
+        rhs[nb + k] = b[nb + k]
+
+
+@numba.njit(cache=True)
+def uncentre_into(xc: np.ndarray, c: float, x: np.ndarray) -> None:
+    """Fill ``x = S xc`` (:func:`autocal.fit.centring.uncentre`)."""
+    nb = xc.shape[0] // 2
+    for k in range(nb):
+        x[k] = xc[k]
+        x[nb + k] = minus_product(xc[nb + k], c, xc[k])
+
+
+@numba.njit(cache=True)
+def uncentre_cov_into(covc: np.ndarray, c: float, cov: np.ndarray) -> None:
+    """Fill ``cov = S covc S^T`` (:func:`autocal.fit.centring.uncentre_cov`); may be ``covc``."""
+    m = covc.shape[0]
+    nb = m // 2
+    for k in range(m):
+        for j in range(m):
+            cov[k, j] = covc[k, j]
+    for k in range(nb):  # rows, then columns
+        for j in range(m):
+            cov[nb + k, j] = cov[nb + k, j] - c * cov[k, j]
+    for j in range(m):
+        for k in range(nb):
+            cov[j, nb + k] = cov[j, nb + k] - c * cov[j, k]
