@@ -7,7 +7,10 @@ says when that is too small to matter: the effect is then reported "detected, ne
 
 from __future__ import annotations
 
+import logging
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -17,6 +20,8 @@ from autocal.diagnosis.chunks import antenna_chunks
 from autocal.diagnosis.effects import SkyTemplates
 from autocal.diagnosis.extended_fit import ExtendedFit
 from autocal.fit.passes import fit
+
+logger = logging.getLogger(__name__)
 
 #: An effect is negligible when it moves ``G`` and ``Trxr`` by less than this many total
 #: sigma in the median channel ...
@@ -110,16 +115,41 @@ def product_sigmas(
         return sol.sigma_G, sol.sigma_Trxr
     shape3 = (obs.nant, len(obs.pols), obs.nfreq)
     sigma_g, sigma_t = np.empty(shape3), np.empty(shape3)
-    for sl in chunks:
-        part = obs.select(antennas=[int(a) for a in obs.antennas[sl]])
-        part_prior = (
-            None
-            if prior is None
-            else tuple(np.broadcast_to(np.asarray(v, float), shape3)[sl] for v in prior)
+    unsolved = 0
+    with _one_warning_for_unsolved_channels():  # not one per chunk (25 per whole HERA file)
+        for sl in chunks:
+            part = obs.select(antennas=[int(a) for a in obs.antennas[sl]])
+            part_prior = (
+                None
+                if prior is None
+                else tuple(np.broadcast_to(np.asarray(v, float), shape3)[sl] for v in prior)
+            )
+            sol = fit(part, tpl.total, scale_covariance="inflate", trxr_prior=part_prior)
+            sigma_g[sl], sigma_t[sl] = sol.sigma_G, sol.sigma_Trxr
+            unsolved += int(np.sum(sol.flag_reason != 0))
+    if unsolved:
+        logger.info(
+            "the yardstick calibration left %d of %d channels unsolved (flagged or too few "
+            "samples): no product impact is measured there",
+            unsolved,
+            math.prod(shape3),
         )
-        sol = fit(part, tpl.total, scale_covariance="inflate", trxr_prior=part_prior)
-        sigma_g[sl], sigma_t[sl] = sol.sigma_G, sol.sigma_Trxr
     return sigma_g, sigma_t
+
+
+@contextmanager
+def _one_warning_for_unsolved_channels() -> Iterator[None]:
+    """Drop :mod:`autocal.fit.passes`' per-fit warning of unsolved channels for a while."""
+    passes_logger = logging.getLogger("autocal.fit.passes")
+
+    def keep(record: logging.LogRecord) -> bool:
+        return "could not be solved" not in record.getMessage()
+
+    passes_logger.addFilter(keep)
+    try:
+        yield
+    finally:
+        passes_logger.removeFilter(keep)
 
 
 def product_impact(

@@ -74,3 +74,30 @@ def test_product_impact_counts_each_antenna_pols_own_gain_series() -> None:
     with_feeds = product_impact(flat, flat, sigma_g, sigma_t, after_feed_factors=own)
     assert with_feeds["G_time"]["max_abs_relative_change"] > 9e-3
     assert not is_negligible(with_feeds)
+
+
+def test_product_sigmas_in_chunks_warn_once_not_per_chunk(several, monkeypatch, caplog) -> None:
+    """The yardstick calibration of a large observation is fitted antenna chunk by chunk: a
+    channel flagged whole is reported once (info), not as one warning per chunk, and the
+    chunked sigmas equal the one-piece ones."""
+    import logging
+
+    from autocal.diagnosis import impact
+
+    obs, tpl = several
+    whole_g, whole_t = impact.product_sigmas(obs, tpl)
+    monkeypatch.setattr(impact, "PRODUCT_SIGMA_SAMPLES", obs.data[0].size)  # one antenna each
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        sigma_g, sigma_t = impact.product_sigmas(obs, tpl)
+    np.testing.assert_allclose(sigma_g, whole_g, rtol=1e-10, equal_nan=True)
+    np.testing.assert_allclose(sigma_t, whole_t, rtol=1e-10, equal_nan=True)
+    unsolved = [r for r in caplog.records if "could not be solved" in r.getMessage()]
+    once = [r for r in caplog.records if "left 1 of" in r.getMessage()]
+    assert not unsolved and len(once) == 1 and once[0].levelno == logging.INFO
+    # the per-fit warning is back once the chunks are done
+    caplog.clear()
+    monkeypatch.undo()
+    with caplog.at_level(logging.WARNING):
+        impact.product_sigmas(obs, tpl)
+    assert any("could not be solved" in r.getMessage() for r in caplog.records)
