@@ -100,6 +100,10 @@ def test_2458098_shape_against_omnical(data_root, tmp_path) -> None:
     assert compared["mode"] == "relative"
     rows = [p for p in compared["per_antenna_pol"] if p["n_compared"] >= 20]
     assert len(rows) >= 10
-    # 10 integrations over 1.6 minutes barely separate G from n: shapes agree within errors
-    assert np.median([p["shape_pull_rms"] for p in rows]) < 2.0
+    # 10 integrations over 1.6 minutes barely separate G from n: the ratio's scatter about its
+    # mean is that of the statistical errors (a linear drift would move G by 5-15x, so the
+    # total errors, which include it, are far larger and the total pulls say nothing)
+    stat_pull = [p["ratio_rms"] / p["sigma_auto_stat_rel_median"] for p in rows]
+    assert np.median(stat_pull) < 2.0
+    assert all(p["sigma_auto_rel_median"] >= p["sigma_auto_stat_rel_median"] for p in rows)
     assert result.solution.lsts.size == 10
