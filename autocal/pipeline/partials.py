@@ -28,6 +28,11 @@ from autocal.io.uvh5_chunks import ReadStats
 from autocal.pipeline.config import PipelineError
 from autocal.pipeline.rfi import RfiMask
 
+#: Whether the block reader runs ahead of its caller in background threads
+#: (:func:`autocal.io.uvh5_blocks.iter_uvh5_blocks`'s ``prefetch``) in this process; reader
+#: processes set it when they start (:mod:`autocal.pipeline.readers`).
+READ_AHEAD = True
+
 
 @dataclass(frozen=True)
 class PartialSpec:
@@ -219,7 +224,12 @@ def read_chunks(
             obs = obs.select(antennas=selection["antennas"])
         return iter([obs])
     return iter_uvh5_blocks(  # each block is used up before the next is asked for
-        task.file, **selection, block_size=block_size, stats=stats, reuse_buffers=True
+        task.file,
+        **selection,
+        block_size=block_size,
+        stats=stats,
+        reuse_buffers=True,
+        prefetch=READ_AHEAD,
     )
 
 

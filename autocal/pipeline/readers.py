@@ -48,6 +48,10 @@ logger = logging.getLogger(__name__)
 START_METHOD = "forkserver"
 #: Threads of the numeric kernels (fit sums, flagging) in each worker process.
 WORKER_THREADS = 1
+#: Whether each worker's block reader runs ahead in background threads (HDF5 reads,
+#: conversion, SHA-256) while the worker adds the previous block
+#: (:data:`autocal.pipeline.partials.READ_AHEAD`).
+WORKER_READ_AHEAD = True
 #: Largest number of processes of the automatic choice (``readers=None``).
 MAX_AUTO_READERS = 8
 #: Smallest input (bytes on disk) for which the automatic choice starts a pool: smaller
@@ -110,7 +114,7 @@ def reader_count(
     return max(1, min(cpus, len(paths), MAX_AUTO_READERS))
 
 
-def _start_worker(threads: int) -> None:
+def _start_worker(threads: int, read_ahead: bool) -> None:
     """Set a worker's thread counts and import what the first file needs."""
     value = str(int(threads))
     os.environ["AUTOCAL_FIT_THREADS"] = value  # autocal.fit.sums.default_threads
@@ -126,6 +130,9 @@ def _start_worker(threads: int) -> None:
 
     for name in WARM_MODULES:
         importlib.import_module(name)
+    from autocal.pipeline import partials
+
+    partials.READ_AHEAD = bool(read_ahead)
 
 
 def _warm() -> int:
@@ -149,16 +156,25 @@ class ProcessReaders:
         ``multiprocessing`` start method (default :data:`START_METHOD`).
     threads
         Threads of each worker's numeric kernels (default :data:`WORKER_THREADS`).
+    read_ahead
+        Whether each worker's block reader runs ahead in background threads (default
+        :data:`WORKER_READ_AHEAD`).
     """
 
     def __init__(
-        self, processes: int, *, start_method: str | None = None, threads: int | None = None
+        self,
+        processes: int,
+        *,
+        start_method: str | None = None,
+        threads: int | None = None,
+        read_ahead: bool | None = None,
     ) -> None:
         if int(processes) < 1:
             raise PipelineError(f"a pool needs at least 1 reader process, got {processes}")
         self.processes = int(processes)
         self.start_method = start_method or START_METHOD
         self.threads = WORKER_THREADS if threads is None else int(threads)
+        self.read_ahead = WORKER_READ_AHEAD if read_ahead is None else bool(read_ahead)
         started = time.perf_counter()
         context = multiprocessing.get_context(self.start_method)
         if self.start_method == "forkserver":
@@ -167,7 +183,7 @@ class ProcessReaders:
             self.processes,
             mp_context=context,
             initializer=_start_worker,
-            initargs=(self.threads,),
+            initargs=(self.threads, self.read_ahead),
         )
         self._peaks: dict[int, int] = {}
         # started now, so the workers import while the caller scans and computes Tsky
@@ -180,6 +196,7 @@ class ProcessReaders:
             "processes": self.processes,
             "start_method": self.start_method,
             "threads_per_process": self.threads,
+            "read_ahead": self.read_ahead,
         }
 
     def map_ordered(
@@ -282,16 +299,24 @@ class ProcessReaders:
 
 @contextmanager
 def process_readers(
-    processes: int, *, start_method: str | None = None, threads: int | None = None
+    processes: int,
+    *,
+    start_method: str | None = None,
+    threads: int | None = None,
+    read_ahead: bool | None = None,
 ) -> Iterator[ProcessReaders]:
     """Start a pool of reader processes for one run; stop it on exit.
+
+    The parameters are :class:`ProcessReaders`'s.
 
     Yields
     ------
     ProcessReaders
         The executor. On an error (or an interrupt) its workers are stopped at once.
     """
-    pool = ProcessReaders(processes, start_method=start_method, threads=threads)
+    pool = ProcessReaders(
+        processes, start_method=start_method, threads=threads, read_ahead=read_ahead
+    )
     logger.info(
         "reading the files in %d processes (%s, %d thread(s) each)",
         pool.processes,
