@@ -18,8 +18,10 @@ in the calling process (as before the pool existed).
 The workers are started with :data:`START_METHOD` (a fresh interpreter, never ``fork``:
 the calling process may run threads, e.g. a service worker's heartbeat, and numba's
 OpenMP layer is not fork-safe) and warmed up (imports, compiled kernels) while the calling
-process scans the inputs and computes Tsky. Each runs the numeric kernels on
-:data:`WORKER_THREADS` thread(s): the processes share the cores. A worker that dies (killed,
+process scans the inputs and computes Tsky (``forkserver``: ~3 s for two processes where
+``spawn`` took ~8 s, both on a loaded machine). Each runs the numeric kernels on
+:data:`WORKER_THREADS` thread(s) and reads without read-ahead threads
+(:data:`WORKER_READ_AHEAD`): the processes share the cores. A worker that dies (killed,
 out of memory) is a :class:`autocal.pipeline.config.PipelineError` naming the file, never
 a hang; a worker's own error (a corrupt file) is raised as it is.
 """
@@ -50,8 +52,11 @@ START_METHOD = "forkserver"
 WORKER_THREADS = 1
 #: Whether each worker's block reader runs ahead in background threads (HDF5 reads,
 #: conversion, SHA-256) while the worker adds the previous block
-#: (:data:`autocal.pipeline.partials.READ_AHEAD`).
-WORKER_READ_AHEAD = True
+#: (:data:`autocal.pipeline.partials.READ_AHEAD`). Off: with one process per core the
+#: processes already keep every core busy, and the extra threads only compete for them
+#: (2 processes, 4 night files: 67 s without against 90 s with, and 93 s with two kernel
+#: threads; ``benchmarks/readers.py --steps variants``, a shared machine at load 7-8).
+WORKER_READ_AHEAD = False
 #: Largest number of processes of the automatic choice (``readers=None``).
 MAX_AUTO_READERS = 8
 #: Smallest input (bytes on disk) for which the automatic choice starts a pool: smaller

@@ -238,7 +238,7 @@ def test_pool_describes_itself_and_maps_in_order() -> None:
             "processes": 2,
             "start_method": "spawn",
             "threads_per_process": 1,
-            "read_ahead": True,
+            "read_ahead": False,
         }
         assert pool.startup_seconds() > 0
         assert list(pool.map_ordered(_die, None, [4, 3, 2, 0], window=1)) == [4, 3, 2, 0]
