@@ -263,9 +263,7 @@ class ProcessReaders:
 
     def _died(self, task: Any, err: BaseException) -> PipelineError:
         """Return the error for a worker process that died while ``task`` was in flight."""
-        codes = sorted(
-            {p.exitcode for p in getattr(self._pool, "_processes", {}).values() or ()} - {None, 0}
-        )
+        codes = sorted({p.exitcode for p in self._processes()} - {None, 0})
         what = getattr(task, "file", None)
         name = getattr(what, "path", what)
         return PipelineError(
@@ -274,6 +272,14 @@ class ProcessReaders:
             + f": {err or 'killed'}; was it out of memory? Run again with fewer reader "
             "processes (--readers 1 reads in one process)"
         )
+
+    def _processes(self) -> list[Any]:
+        """Return the pool's worker processes (``multiprocessing.Process``; none once broken).
+
+        ``ProcessPoolExecutor`` keeps them in a private attribute: read defensively.
+        """
+        processes = getattr(self._pool, "_processes", None) or {}
+        return list(processes.values())
 
     def worker_peak_rss(self) -> dict[str, int]:
         """Peak resident memory of each worker process so far (bytes, by pid)."""
@@ -291,7 +297,7 @@ class ProcessReaders:
     def close(self, *, abort: bool = False) -> None:
         """Stop the workers: after their tasks, or at once (``abort``: after an error)."""
         if abort:
-            processes = list(getattr(self._pool, "_processes", {}).values() or ())
+            processes = self._processes()
             self._pool.shutdown(wait=False, cancel_futures=True)
             for process in processes:  # a file in flight need not be finished
                 if process.is_alive():
