@@ -6,8 +6,11 @@ quarter night, ``--ntimes 2112``: 11 files in ``/tmp/autocal-night-q``):
 - the **serial decode floor**: one fresh process reads every file's visibilities with h5py
   in the block reader's blocks (``read_direct`` into one reused buffer) and makes one numpy
   pass over each block, file after file;
-- ``autocal calibrate`` (default products, the ordinary command) with ``--readers 1`` and
-  ``--readers 2``, with and without ``--no-rfi-flagging``, each a fresh process tree.
+- ``autocal calibrate ... --products hdf5`` (the ordinary command; ``--products`` to
+  change) with ``--readers 1`` and ``--readers 2``, with and without ``--no-rfi-flagging``,
+  each a fresh process tree. The default products are not the default here: the per-time
+  ``solution.calh5`` of a quarter night took the calibrate process past 15 GB (killed by the
+  kernel's OOM killer on the 23.5 GB machine), whatever reads the files.
 
 Every run starts with the night's files evicted from the page cache
 (``posix_fadvise(DONTNEED)``: their first read comes from the disk), the Tsky table already
@@ -307,7 +310,8 @@ def markdown(report: dict) -> str:
         "# A night on two cores without Dask (`benchmarks/readers.py`)",
         "",
         f"{report['nfiles']} files, {report['disk_gb']} GB on disk, {report['machine']}; "
-        f"page cache evicted before every run; Tsky cached; {report['rounds']} round(s), "
+        f"`--products {report['products']}`; page cache evicted before every run; Tsky "
+        f"cached; {report['rounds']} round(s), "
         "median. Load (1 / 5 / 15 min) before each run in the JSON.",
         "",
         "| run | wall s | over floor | CPU s | peak tree RSS GB | peak tree PSS GB |",
@@ -337,6 +341,7 @@ def main() -> None:
         "--steps", default="floor,serial,readers", help="floor, serial, readers, variants"
     )
     parser.add_argument("--results", type=Path, default=RESULTS)
+    parser.add_argument("--products", default="hdf5", help="calibrate's --products (hdf5)")
     args = parser.parse_args()
     steps = set(args.steps.split(","))
     files = night_files(args.data, args.files)
@@ -366,7 +371,8 @@ def main() -> None:
                 evict(files)
                 argv = [sys.executable, "-m", "autocal", "calibrate", *map(str, files)]
                 _children_cpu()
-                run = run_tree([*argv, "--out", str(out), *extra], env)
+                argv += ["--products", args.products, "--out", str(out), *extra]
+                run = run_tree(argv, env)
                 summary = json.loads((out / "summary.json").read_text())
                 run["timings_s"] = summary["timings_s"]
                 run["execution"] = {
@@ -386,6 +392,7 @@ def main() -> None:
         "disk_gb": round(sum(f.stat().st_size for f in files) / 1e9, 2),
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
         "rounds": args.rounds,
+        "products": args.products,
         "load_at_end": [round(x, 2) for x in os.getloadavg()],
         "all": results,
         "identical": identical,
