@@ -8,9 +8,9 @@ quarter night, ``--ntimes 2112``: 11 files in ``/tmp/autocal-night-q``):
   pass over each block, file after file;
 - ``autocal calibrate ... --products hdf5`` (the ordinary command; ``--products`` to
   change) with ``--readers 1`` and ``--readers 2``, with and without ``--no-rfi-flagging``,
-  each a fresh process tree. The default products are not the default here: the per-time
-  ``solution.calh5`` of a quarter night took the calibrate process past 15 GB (killed by the
-  kernel's OOM killer on the 23.5 GB machine), whatever reads the files.
+  each a fresh process tree. The default products are not the default here: with them the
+  quarter night's calibrate process was killed by the kernel's OOM killer at 15.2 GB on the
+  23.5 GB machine (by its size, the per-time ``solution.calh5``), whatever reads the files.
 
 Every run starts with the night's files evicted from the page cache
 (``posix_fadvise(DONTNEED)``: their first read comes from the disk), the Tsky table already
