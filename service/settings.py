@@ -38,6 +38,9 @@ variable                            meaning (default)
 ``AUTOCAL_DASK_SCHEDULER``          calibrations map their per-file sums over Dask: a
                                     scheduler address (tcp://host:8786), "local" for a
                                     LocalCluster, "" (default) to run in the worker
+``AUTOCAL_READERS``                 processes that read a calibration's UVH5 files when
+                                    Dask is not used: 0 (default) one per core for nights
+                                    of at least two files and 256 MiB, 1 in the worker
 ==================================  ==========================================================
 """
 
@@ -80,6 +83,7 @@ class Settings(BaseSettings):
     janitor_interval_s: float = Field(3600.0, gt=0)
     fingerprint_full_bytes: int = Field(64 * 1024**2, ge=0)
     dask_scheduler: str = ""
+    readers: int = Field(0, ge=0)
 
     @field_validator("data_roots", mode="before")
     @classmethod

@@ -480,6 +480,7 @@ class Worker:
             progress=run.progress,
             should_stop=run.should_stop,
             dask_scheduler=self.settings.dask_scheduler or None,
+            readers=self.settings.readers or None,
         )
         summary = read_summary(out)
         return summary, dict(summary["products"])

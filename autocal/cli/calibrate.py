@@ -45,6 +45,14 @@ def add(sub: argparse._SubParsersAction) -> None:
         help="worker processes of --dask local (default: the number of CPUs)",
     )
     p.add_argument(
+        "--readers",
+        type=int,
+        metavar="N",
+        help="processes that read (decode) a night's UVH5 files, without Dask: 1 reads in "
+        "this process; default: one per core for at least two files and 256 MiB (same "
+        "solution)",
+    )
+    p.add_argument(
         "--block-size",
         type=int,
         metavar="N",
@@ -67,6 +75,10 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--dask-workers must be at least 1")
     if args.dask_workers is not None and args.dask is None:
         raise CliError("--dask-workers needs --dask local")
+    if args.readers is not None and args.readers < 1:
+        raise CliError("--readers must be at least 1 (1: read in this process)")
+    if args.readers is not None and args.dask is not None:
+        raise CliError("--readers and --dask exclude each other: Dask workers read the files")
     if args.block_size is not None and args.block_size < 1:
         raise CliError("--block-size must be at least 1 integration")
     settings = calibration_settings(args)
@@ -97,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
             dask_scheduler=args.dask,
             dask_workers=args.dask_workers,
             block_size=args.block_size,
+            readers=args.readers,
         )
     summary = read_summary(args.out)
     for path in remove_stale(args.out, summary["products"]):

@@ -101,6 +101,7 @@ class _ObservationArrays:
     tint: list[np.ndarray] = field(default_factory=list)
     sha: dict[str, str] = field(default_factory=dict)
     used: list[str] = field(default_factory=list)
+    starts: list[int] = field(default_factory=list)
     t: int = 0
 
     def add(self, block: Any) -> None:
@@ -126,7 +127,10 @@ class _ObservationArrays:
         self.jds.append(block.jds)
         self.tint.append(block.integration_time)
         self.sha.update(block.meta.get("sha256", {}))
-        self.used += [f for f in block.meta.get("files", []) if f not in self.used]
+        new = [f for f in block.meta.get("files", []) if f not in self.used]
+        if new or not self.starts:
+            self.starts.append(t)  # a file's first integration (the flagging's stretches)
+        self.used += new
         self.t = t + nt
 
     def observation(self) -> Observation:
@@ -155,6 +159,7 @@ class _ObservationArrays:
                 "source": "uvh5",
                 "files": self.used,
                 "sha256": self.sha,
+                "file_starts": list(self.starts),
                 **{k: first.meta[k] for k in ("x_orientation", "vis_units") if k in first.meta},
             },
         )

@@ -55,6 +55,7 @@ from autocal.pipeline.products import (
     write_products,
 )
 from autocal.pipeline.quality import flag_quality
+from autocal.pipeline.readers import process_readers, reader_count
 from autocal.pipeline.scaleout import dask_client
 from autocal.pipeline.sources import (
     Source,
@@ -101,6 +102,7 @@ def run_calibration(
     dask_workers: int | None = None,
     block_size: int | None = None,
     observation: Observation | None = None,
+    readers: int | None = None,
 ) -> CalibrationResult:
     """Calibrate one observation and write its products (the engine of :func:`calibrate`).
 
@@ -128,6 +130,12 @@ def run_calibration(
     observation
         Calibrate this observation held in memory instead of reading ``config.inputs``
         (which then only name it); the configuration's selection is applied to it.
+    readers
+        Processes that read the UVH5 files (the flagging's reads and the fit's partial
+        sums) without Dask (:mod:`autocal.pipeline.readers`): ``None`` (default) one per
+        core for a night of at least two files and
+        :data:`~autocal.pipeline.readers.MIN_AUTO_BYTES`; ``1`` in this process. The
+        solution is identical. Not used with ``dask_scheduler``.
 
     Returns
     -------
@@ -140,11 +148,24 @@ def run_calibration(
     if out is None and config.reference:
         raise PipelineError("a comparison with reference gains writes products: give out")
     folder = None if out is None else Path(out)
+    if readers is not None and int(readers) < 1:
+        raise PipelineError(f"the number of reader processes must be at least 1, got {readers}")
     if dask_scheduler is None:
-        return _calibrate(config, folder, progress, should_stop, None, block_size, observation)
+        nreaders = 1 if observation is not None else _reader_count(config, readers)
+        if nreaders < 2:
+            return _calibrate(config, folder, progress, should_stop, None, block_size, observation)
+        # started first: the workers start up while this process scans and computes Tsky
+        with process_readers(nreaders) as executor:
+            return _calibrate(config, folder, progress, should_stop, executor, block_size)
     # Connect first: a wrong address fails before any work is done.
     with dask_client(dask_scheduler, dask_workers) as executor:
         return _calibrate(config, folder, progress, should_stop, executor, block_size, observation)
+
+
+def _reader_count(config: CalibrationConfig, readers: int | None) -> int:
+    """Return the reader processes of a run of ``config.inputs`` (1: in this process)."""
+    paths = [Path(p).expanduser().absolute() for p in config.inputs]
+    return reader_count(readers, detect_format(paths, config.input_format), paths)
 
 
 def _calibrate(
@@ -156,7 +177,10 @@ def _calibrate(
     block_size: int | None,
     observation: Observation | None = None,
 ) -> CalibrationResult:
-    """Run the calibration (see :func:`run_calibration`); ``executor``: Dask or None."""
+    """Run the calibration (see :func:`run_calibration`).
+
+    ``executor``: reader processes, Dask or ``None`` (this process).
+    """
     report = _reporter(progress, should_stop)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -179,7 +203,7 @@ def _calibrate(
     timings["tsky_s"] = time.perf_counter() - t1
 
     t_flag = time.perf_counter()
-    mask, flagging = scan_flags(config, source, tsky_all, block_size, report)
+    mask, flagging = scan_flags(config, source, tsky_all, block_size, report, executor)
     timings["flagging_s"] = time.perf_counter() - t_flag
     model = FitModel.for_lsts(
         source.lsts, config.model, 0 if config.model == "constant" else config.order
@@ -401,6 +425,7 @@ def calibrate(
     dask_scheduler: str | None = None,
     dask_workers: int | None = None,
     block_size: int | None = None,
+    readers: int | None = None,
     **options: Any,
 ) -> Solution:
     """Calibrate one observation (``autocal.calibrate``; also the CLI's, service's and nightly's).
@@ -431,6 +456,9 @@ def calibrate(
         Map the files over a Dask cluster (:func:`run_calibration`); the same solution.
     block_size
         Integrations read per block (default: about 8 M values).
+    readers
+        Processes that read a night's UVH5 files (:func:`run_calibration`; default: one
+        per core for nights large enough, ``1``: in this process); the same solution.
     **options
         :class:`CalibrationConfig` fields, e.g. ``antennas=[23]``, ``model="legendre"``,
         ``freq_range_mhz=(110, 190)``.
@@ -464,6 +492,7 @@ def calibrate(
         dask_workers=dask_workers,
         block_size=block_size,
         observation=observation,
+        readers=readers,
     )
     return result.solution
 

@@ -12,14 +12,18 @@ own format's weights) are not flagged here.
 :func:`flag_observation` is the same stage for an observation held in memory (``autocal
 diagnose``, which reads its UVH5 files whole): the same two scans (:func:`scan_blocks`) over
 blocks of its integrations, the mask ORed into its flags. Both give the same flags for the
-same data whatever the blocks.
+same data whatever the blocks and whichever process read the files: each file is scanned on
+its own and the files' scans are added in file order (:mod:`autocal.pipeline.flag_partials`),
+in this process, in reader processes (:mod:`autocal.pipeline.readers`) or on Dask.
 """
 
 from __future__ import annotations
 
 import copy
 import logging
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from itertools import groupby
+from operator import itemgetter
 from typing import Any
 
 import numpy as np
@@ -27,9 +31,9 @@ import numpy as np
 from autocal.core.observation import Observation
 from autocal.fit.solve import FLAG_BAND_EDGE, FLAG_RFI, FLAG_TOO_FEW
 from autocal.io.uvh5_blocks import BLOCK_SAMPLES
-from autocal.io.uvh5_chunks import ReadStats
 from autocal.pipeline.config import CalibrationConfig, read_selection
-from autocal.pipeline.partials import read_chunks
+from autocal.pipeline.flag_partials import FileScan, ScanSpec, level_of, rfi_of, scan_file
+from autocal.pipeline.partials import add_stats
 from autocal.pipeline.rfi import LevelScan, RfiMask, RfiScan, band_sky
 from autocal.pipeline.sources import Source
 
@@ -49,8 +53,13 @@ def scan_flags(
     tsky_all: np.ndarray,
     block_size: int | None,
     report: Callable[[float, str], None],
+    executor: Any = None,
 ) -> tuple[RfiMask | None, dict[str, Any]]:
     """Read the observation (twice) and decide its band-edge and RFI flags.
+
+    Each read is done file by file (:func:`autocal.pipeline.flag_partials.scan_file`) and
+    the files' scans added in file order, so the mask is the same whichever executor read
+    the files.
 
     Parameters
     ----------
@@ -64,6 +73,10 @@ def scan_flags(
         Integrations per read block (the flags do not depend on it).
     report
         The run's progress report.
+    executor
+        Reads the files (``map_ordered``: reader processes,
+        :class:`~autocal.pipeline.readers.ProcessReaders`, or Dask); ``None``: in this
+        process.
 
     Returns
     -------
@@ -80,23 +93,41 @@ def scan_flags(
     report(0.07, "flagging band edges and RFI from the autos")
     selection = read_selection(config)
     tasks = source.tasks(tsky_all)
-    stats = ReadStats()  # the flagging's own reads, reported beside the fit's
+    stats: dict[str, int] = {}  # the flagging's own reads, reported beside the fit's
+    ntask = len(tasks)
 
-    def blocks() -> Blocks:
-        for task in tasks:
-            offset = task.offset
-            for chunk in read_chunks(selection, block_size, task, stats):
-                yield offset, chunk.data, chunk.flags
-                offset += chunk.ntime
-                del chunk
+    def scans(spec: ScanSpec, lo: float, what: str) -> Iterator[FileScan]:
+        parts = (
+            (scan_file(spec, task) for task in tasks)
+            if executor is None or source.kind != "uvh5"
+            else executor.map_ordered(scan_file, spec, tasks)
+        )
+        for i, part in enumerate(parts):
+            add_stats(stats, part.stats)
+            report(lo + 0.015 * (i + 1) / ntask, f"flagging: {what}, file {i + 1}/{ntask}")
+            yield part
 
+    levels = LevelScan()  # first read: the time-mean spectra
+    for part in scans(ScanSpec(selection, block_size), 0.07, "time-mean spectra"):
+        assert part.level is not None
+        levels.add_scan(part.level)
     sky = band_sky(tsky_all, len(source.pols if config.pols is None else config.pols))
-    mask = scan_blocks(blocks, int(source.lsts.size), sky)
-    mask.counts["io"] = stats.as_dict()
+    scan = RfiScan(int(source.lsts.size), levels.level(), sky)
+    spec = ScanSpec(selection, block_size, scan.level)  # second read: the outliers
+    for task, part in zip(tasks, scans(spec, 0.085, "outliers"), strict=True):
+        assert part.rfi is not None
+        scan.add_scan(part.rfi, task.offset)
+    mask = _finish(scan)
+    mask.counts["io"] = stats
     return mask, mask.counts
 
 
-def scan_blocks(blocks: Callable[[], Blocks], ntime: int, sky: np.ndarray | None = None) -> RfiMask:
+def scan_blocks(
+    blocks: Callable[[], Blocks],
+    ntime: int,
+    sky: np.ndarray | None = None,
+    starts: Sequence[int] = (0,),
+) -> RfiMask:
     """Scan an observation's blocks twice and return its band-edge and RFI mask.
 
     Parameters
@@ -109,18 +140,53 @@ def scan_blocks(blocks: Callable[[], Blocks], ntime: int, sky: np.ndarray | None
     sky
         ``(Npol, Ntime)`` the model sky's band level
         (:func:`~autocal.pipeline.rfi.band_sky`): the flags in time follow it.
+    starts
+        The first integration of each of the observation's files: each file is scanned
+        on its own and the scans added in order, as :func:`scan_flags` does (so the mask
+        is the one a calibration of the files finds). Blocks are split where a file starts.
 
     Returns
     -------
     RfiMask
         The mask, its ``counts`` the summary's ``rfi_flagging`` block.
     """
+    bounds = [*sorted({0, *(int(s) for s in starts if 0 < int(s) < ntime)}), int(ntime)]
     levels = LevelScan()
-    for _, data, flags in blocks():  # first read: the time-mean spectra
-        levels.add(data, flags)
+    for _, group in groupby(_in_files(blocks(), bounds), key=itemgetter(0)):
+        levels.add_scan(level_of(block for _, block in group))  # first read: the mean spectra
     scan = RfiScan(ntime, levels.level(), sky)
-    for offset, data, flags in blocks():  # second read: the outliers, given the mean spectra
-        scan.add(data, flags, offset)
+    for k, group in groupby(_in_files(blocks(), bounds), key=itemgetter(0)):
+        part = rfi_of((block for _, block in group), scan.level, bounds[k + 1] - bounds[k])
+        scan.add_scan(part, bounds[k])  # second read: the outliers, given the mean spectra
+    return _finish(scan)
+
+
+def _in_files(
+    blocks: Blocks, bounds: list[int]
+) -> Iterator[tuple[int, tuple[int, np.ndarray, np.ndarray]]]:
+    """Yield ``(file, (offset in the file, data, flags))``, blocks split where a file starts."""
+    k = 0
+    for offset, data, flags in blocks:
+        t, stop = offset, offset + data.shape[2]
+        while t < stop:
+            while t >= bounds[k + 1]:
+                k += 1
+            end = min(stop, bounds[k + 1])
+            window = slice(t - offset, end - offset)
+            whole = window == slice(0, data.shape[2])
+            yield (
+                k,
+                (
+                    t - bounds[k],
+                    data if whole else data[:, :, window],
+                    flags if whole else flags[:, :, window],
+                ),
+            )
+            t = end
+
+
+def _finish(scan: RfiScan) -> RfiMask:
+    """Return the scan's mask and log its counts."""
     mask = scan.finish()
     counts = mask.counts
     logger.info(
@@ -174,13 +240,29 @@ def flag_observation(
             yield t, obs.data[:, :, window], obs.flags[:, :, window]
 
     sky = None if tsky is None else band_sky(tsky, npol)
-    mask = scan_blocks(blocks, ntime, sky)
+    mask = scan_blocks(blocks, ntime, sky, file_starts(obs))
     flags = np.empty_like(obs.flags)
     for offset, data, old in blocks():  # the scan's hits of these very blocks are reused
         flags[:, :, offset : offset + data.shape[2]] = mask.apply(data, old, offset)
     flagged = copy.copy(obs)  # the data are shared; already-validated flags need no check
     object.__setattr__(flagged, "flags", flags)
     return flagged, mask.counts
+
+
+def file_starts(obs: Observation) -> list[int]:
+    """Return the first integration of each file an observation was read from.
+
+    ``obs.meta["file_starts"]`` (:func:`autocal.diagnosis.reading.read_observation`) when it
+    fits the observation's integrations, else ``[0]`` (one stretch).
+    """
+    starts = obs.meta.get("file_starts")
+    if not starts:
+        return [0]
+    values = [int(s) for s in starts]
+    if values[0] != 0 or values != sorted(set(values)) or values[-1] >= obs.ntime:
+        logger.debug("file starts %s do not fit %d integrations: one stretch", values, obs.ntime)
+        return [0]
+    return values
 
 
 def mark_flag_reasons(solved: dict[str, np.ndarray], mask: RfiMask | None) -> None:

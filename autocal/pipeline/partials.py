@@ -14,7 +14,7 @@ from __future__ import annotations
 import copy
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -27,6 +27,11 @@ from autocal.io.uvh5_blocks import iter_uvh5_blocks
 from autocal.io.uvh5_chunks import ReadStats
 from autocal.pipeline.config import PipelineError
 from autocal.pipeline.rfi import RfiMask
+
+#: Whether the block reader runs ahead of its caller in background threads
+#: (:func:`autocal.io.uvh5_blocks.iter_uvh5_blocks`'s ``prefetch``) in this process; reader
+#: processes set it when they start (:mod:`autocal.pipeline.readers`).
+READ_AHEAD = True
 
 
 @dataclass(frozen=True)
@@ -219,7 +224,12 @@ def read_chunks(
             obs = obs.select(antennas=selection["antennas"])
         return iter([obs])
     return iter_uvh5_blocks(  # each block is used up before the next is asked for
-        task.file, **selection, block_size=block_size, stats=stats, reuse_buffers=True
+        task.file,
+        **selection,
+        block_size=block_size,
+        stats=stats,
+        reuse_buffers=True,
+        prefetch=READ_AHEAD,
     )
 
 
@@ -401,6 +411,30 @@ class _FileSums:
             blocks or None,
             extended,
         )
+
+
+def add_stats(total: dict[str, int], stats: dict[str, int]) -> None:
+    """Add a file's read counters into a run's (the largest array: the maximum), in place."""
+    for key, value in stats.items():
+        if key == "largest_array":
+            total[key] = max(total.get(key, 0), value)
+        else:
+            total[key] = total.get(key, 0) + value
+
+
+def compute_partial_with_hits(
+    spec: PartialSpec, item: tuple[FileTask, dict[tuple[int, tuple[int, ...]], np.ndarray]]
+) -> FilePartial:
+    """:func:`compute_partial` of ``(task, hits)``: the flagging's kept hits of that file.
+
+    For executors in other processes: the pass's shared mask travels without its kept
+    hits (:meth:`~autocal.pipeline.rfi.RfiMask.portable`) and each file with its own
+    (:meth:`~autocal.pipeline.rfi.RfiMask.hits_between`), so no block is flagged twice.
+    """
+    task, hits = item
+    if hits and spec.rfi is not None:
+        spec = replace(spec, rfi=replace(spec.rfi, hits=hits))
+    return compute_partial(spec, task)
 
 
 def _block_slices(edges: tuple[int, ...] | None, start: int, stop: int) -> list[tuple[int, slice]]:

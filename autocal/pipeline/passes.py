@@ -5,8 +5,9 @@ that exceeds :data:`autocal.fit.passes.REWEIGHT_THRESHOLD` (simulations with the
 ``dnu dt = 5000``) a second pass weights by the first pass's model, otherwise (HERA data:
 ``dnu dt >~ 2e5``) the data are read once (:func:`autocal.fit.passes.run_passes` decides). The
 files' partials (:func:`autocal.pipeline.partials.compute_partial`) are computed in this
-process or mapped over a Dask cluster (:mod:`autocal.pipeline.scaleout`), and added in file
-order either way, so the two give the same result bit for bit.
+process, in local reader processes (:mod:`autocal.pipeline.readers`) or mapped over a Dask
+cluster (:mod:`autocal.pipeline.scaleout`), and added in file order in every case, so all
+give the same result bit for bit.
 
 The residual waterfall plot needs no second read: during the pass the weighted sums of the
 data and of the model's design columns are kept per time bin for the shown antennas
@@ -30,7 +31,16 @@ from autocal.fit.passes import run_passes
 from autocal.fit.solution import Solution
 from autocal.fit.sums import NormalSums
 from autocal.pipeline.config import CalibrationConfig, PipelineError, Progress, read_selection
-from autocal.pipeline.partials import FilePartial, FileTask, PartialSpec, compute_partial, fold
+from autocal.pipeline.partials import (
+    FilePartial,
+    FileTask,
+    PartialSpec,
+    add_stats,
+    compute_partial,
+    compute_partial_with_hits,
+    fold,
+)
+from autocal.pipeline.readers import ProcessReaders
 from autocal.pipeline.rfi import RfiMask
 from autocal.pipeline.sources import Source
 from autocal.plots import waterfall_antennas
@@ -90,7 +100,11 @@ def sum_passes(
     block_size: int | None,
     rfi: RfiMask | None = None,
 ) -> PassesResult:
-    """Accumulate the normal sums file by file (one or two passes), serially or on Dask.
+    """Accumulate the normal sums file by file (one or two passes), here or on an executor.
+
+    ``executor``: reader processes (:class:`~autocal.pipeline.readers.ProcessReaders`), a
+    Dask executor (:class:`~autocal.pipeline.scaleout.DaskExecutor`) or ``None`` (this
+    process, progress reported block by block).
 
     ``rfi``: band-edge and RFI flags ORed into every block (:mod:`autocal.pipeline.flagging`).
     """
@@ -100,11 +114,15 @@ def sum_passes(
     nbins = -(-ntime // bin_size)
     nshow = waterfall_antennas(len(pols))
     edges = _time_block_edges(config, source, pols, model)
-    client = _dask_client_for(executor, source)
+    client = _executor_for(executor, source)
     execution = _execution(source, tasks, block_size, client)
     stats_total: dict[str, int] = {}
+    items: list[Any] = list(tasks)
     if rfi is not None and client is not None:
-        rfi = rfi.portable()  # workers flag their blocks again rather than receive the hits
+        # each file travels with the flagging's kept hits of its own blocks, the shared mask
+        # without them (the hits of the whole night would be sent with every file)
+        items = [(t, rfi.hits_between(t.offset, t.offset + t.lsts.size)) for t in tasks]
+        rfi = rfi.portable()
 
     def one_pass(
         coeffs: np.ndarray | None, ipass: int, npass: int
@@ -123,7 +141,8 @@ def sum_passes(
         lo = 0.1 + 0.7 * ipass / npass
         hi = 0.1 + 0.7 * (ipass + 1) / npass
         if client is not None:
-            partials = client.map_ordered(compute_partial, spec, tasks)
+            func = compute_partial if rfi is None else compute_partial_with_hits
+            partials = client.map_ordered(func, spec, items)
         else:
             partials = _serial_partials(spec, tasks, ntime, (lo, hi), progress, should_stop)
         folded, waterfall, infos = fold(partials, len(tasks), (nbins,), report, (lo, hi))
@@ -143,7 +162,7 @@ def sum_passes(
         one_pass, passes=config.passes, radiometer=radiometer
     )
     if client is not None:
-        execution["dask"]["worker_peak_rss_bytes"] = client.worker_peak_rss()
+        execution[execution["executor"]]["worker_peak_rss_bytes"] = client.worker_peak_rss()
     assert sums is not None and waterfall is not None and infos
     checksums: dict[str, str] = {}
     for info in infos:
@@ -172,37 +191,41 @@ def _time_block_edges(
     return block_edges(source.lsts.size, bytes_per_block=nbytes)
 
 
-def _dask_client_for(executor: Any, source: Source) -> Any:
-    """Return the Dask executor if the source is read file by file (UVH5), else ``None``."""
-    use_dask = executor is not None and source.kind == "uvh5"
-    if executor is not None and not use_dask:
-        logger.info("%s input is read whole in this process; Dask is not used", source.kind)
-    return executor if use_dask else None
+def _executor_for(executor: Any, source: Source) -> Any:
+    """Return the executor (Dask or reader processes) if the source is read file by file."""
+    use = executor is not None and source.kind == "uvh5"
+    if executor is not None and not use:
+        logger.info("%s input is read whole in this process", source.kind)
+    return executor if use else None
+
+
+def executor_kind(executor: Any) -> str:
+    """Return the summary's name of an executor: ``"dask"``, ``"readers"`` or ``"serial"``."""
+    if executor is None:
+        return "serial"
+    return "readers" if isinstance(executor, ProcessReaders) else "dask"
 
 
 def _execution(
     source: Source, tasks: list[FileTask], block_size: int | None, client: Any
 ) -> dict[str, Any]:
     """Return the run's execution record before the passes (completed after them)."""
+    kind = executor_kind(client)
     execution: dict[str, Any] = {
-        "executor": "dask" if client is not None else "serial",
+        "executor": kind,
         "block_size": block_size or "auto",
         "files": len(tasks),
         "bytes_on_disk": source.disk_bytes(),
     }
     if client is not None:
-        execution["dask"] = client.describe()
+        execution[kind] = client.describe()
     return execution
 
 
 def _add_stats(stats_total: dict[str, int], infos: list[FilePartial]) -> None:
     """Add the files' read counters into the run's (the largest array: the maximum)."""
     for info in infos:
-        for key, value in info.stats.items():
-            if key == "largest_array":
-                stats_total[key] = max(stats_total.get(key, 0), value)
-            else:
-                stats_total[key] = stats_total.get(key, 0) + value
+        add_stats(stats_total, info.stats)
 
 
 def _serial_partials(

@@ -443,6 +443,13 @@ class RfiMask:
         """Return this mask without the kept hits (for Dask workers: they flag again)."""
         return replace(self, hits={})
 
+    def hits_between(self, start: int, stop: int) -> dict[tuple[int, tuple[int, ...]], np.ndarray]:
+        """Return the kept hits of the blocks starting at integrations ``start:stop`` (a file's).
+
+        A worker given them with the :meth:`portable` mask needs not flag those blocks again.
+        """
+        return {key: where for key, where in self.hits.items() if start <= key[0] < stop}
+
     def apply(self, data: np.ndarray, flags: np.ndarray, offset: int) -> np.ndarray:
         """Return a block's flags with band edges and RFI added.
 
@@ -476,15 +483,33 @@ class LevelScan:
         """Add one block ``(Nant, Npol, Ntime, Nfreq)``: its finite, positive, unflagged samples."""
         from autocal.pipeline.rfi_kernel import level_sums  # numba: only when flagging
 
-        if self.total is None or self.count is None:
-            self.total = np.zeros(data.shape[:2] + data.shape[3:])
-            self.count = np.zeros(self.total.shape, np.int64)
+        self._start(data.shape[:2] + data.shape[3:])
+        assert self.total is not None and self.count is not None
         level_sums(
             np.ascontiguousarray(data, dtype=np.float64),
             np.ascontiguousarray(flags, dtype=bool),
             self.total,
             self.count,
         )
+
+    def _start(self, shape: tuple[int, ...]) -> None:
+        """Allocate the zero sums of ``(Nant, Npol, Nfreq)`` spectra (once)."""
+        if self.total is None or self.count is None:
+            self.total = np.zeros(shape)
+            self.count = np.zeros(shape, np.int64)
+
+    def add_scan(self, part: LevelScan) -> None:
+        """Add the sums of a later stretch of integrations (a file) scanned on its own.
+
+        The sums of a night are its files' sums added in file order, wherever each file
+        was scanned (:mod:`autocal.pipeline.flag_partials`): the same level bit for bit.
+        """
+        if part.total is None or part.count is None:
+            return
+        self._start(part.total.shape)
+        assert self.total is not None and self.count is not None
+        self.total += part.total
+        self.count += part.count
 
     def level(self) -> np.ndarray:
         """Return ``(Nant, Npol, Nfreq)`` the mean of the usable samples (NaN: none)."""
@@ -524,14 +549,8 @@ class RfiScan:
 
     def add(self, data: np.ndarray, flags: np.ndarray, offset: int) -> None:
         """Add one block ``(Nant, Npol, Ntime, Nfreq)`` starting at integration ``offset``."""
-        from autocal.pipeline.rfi_kernel import ScanSums  # numba: only when flagging
-
         nant, npol, nt, nfreq = data.shape
-        if self.sums is None:
-            self.sums = ScanSums.zeros((nant, npol, nfreq))
-            self.band_median = np.full((nant, npol, self.ntime), np.nan)
-            self.hits_per_time = np.zeros((nant, npol, self.ntime), np.int64)
-            self.usable_per_time = np.zeros((nant, npol, self.ntime), np.int64)
+        self._start((nant, npol, nfreq))
         assert self.band_median is not None
         assert self.hits_per_time is not None and self.usable_per_time is not None
         self.prior_flagged += int(np.count_nonzero(flags))
@@ -541,6 +560,45 @@ class RfiScan:
         self.band_median[:, :, window] = scan.band
         self.hits_per_time[:, :, window] = scan.hit
         self.usable_per_time[:, :, window] = scan.usable
+
+    def _start(self, shape: tuple[int, int, int]) -> None:
+        """Allocate the zero sums of ``(Nant, Npol, Nfreq)`` spectra (once)."""
+        from autocal.pipeline.rfi_kernel import ScanSums  # numba: only when flagging
+
+        if self.sums is None:
+            nant, npol, _ = shape
+            self.sums = ScanSums.zeros(shape)
+            self.band_median = np.full((nant, npol, self.ntime), np.nan)
+            self.hits_per_time = np.zeros((nant, npol, self.ntime), np.int64)
+            self.usable_per_time = np.zeros((nant, npol, self.ntime), np.int64)
+
+    def add_scan(self, part: RfiScan, offset: int) -> None:
+        """Add the scan of a later stretch of integrations (a file) scanned on its own.
+
+        ``part`` covers integrations ``offset`` to ``offset + part.ntime`` (its own block
+        offsets count from its start). The per-channel sums of a night are its files' sums
+        added in file order, wherever each file was scanned
+        (:mod:`autocal.pipeline.flag_partials`), so the mask is the same bit for bit; the
+        per-integration results are copied into place and the kept hits moved to their
+        offsets in the observation (while they fit :data:`MAX_KEPT_HITS`).
+        """
+        if part.sums is None:
+            return
+        assert part.band_median is not None
+        assert part.hits_per_time is not None and part.usable_per_time is not None
+        self._start(part.sums.hits.shape)
+        assert self.sums is not None and self.band_median is not None
+        assert self.hits_per_time is not None and self.usable_per_time is not None
+        self.sums.add(part.sums)
+        window = slice(offset, offset + part.ntime)
+        self.band_median[:, :, window] = part.band_median
+        self.hits_per_time[:, :, window] = part.hits_per_time
+        self.usable_per_time[:, :, window] = part.usable_per_time
+        self.prior_flagged += part.prior_flagged
+        for (start, shape), where in part.kept.items():
+            if self.nkept + where.size <= MAX_KEPT_HITS:
+                self.kept[(offset + start, shape)] = where
+                self.nkept += where.size
 
     def _keep(self, hits: np.ndarray, offset: int) -> None:
         """Keep a block's hits as flat indices while they fit :data:`MAX_KEPT_HITS`."""

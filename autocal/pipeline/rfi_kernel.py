@@ -59,6 +59,16 @@ class ScanSums:
     clean_total: np.ndarray
     clean_count: np.ndarray
 
+    def add(self, other: ScanSums) -> None:
+        """Add ``other``'s sums into these, in place."""
+        for mine, theirs in (
+            (self.hits, other.hits),
+            (self.usable, other.usable),
+            (self.clean_total, other.clean_total),
+            (self.clean_count, other.clean_count),
+        ):
+            np.add(mine, theirs, out=mine)
+
     @classmethod
     def zeros(cls, shape: tuple[int, int, int]) -> ScanSums:
         """Return empty sums of ``(Nant, Npol, Nfreq)``."""
