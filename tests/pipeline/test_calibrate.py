@@ -384,7 +384,7 @@ def test_a_per_time_calh5_too_large_for_memory_is_refused_before_reading(
 ) -> None:
     """A night of HERA files asks for a per-time calh5 of tens of GB (pyuvdata holds it whole):
     refused before any data are read, with what to do, and nothing written; hdf5 alone runs."""
-    import autocal.pipeline.flagging
+    import autocal.pipeline.flag_partials
     import autocal.pipeline.partials
     import autocal.pipeline.products
 
@@ -397,7 +397,7 @@ def test_a_per_time_calh5_too_large_for_memory_is_refused_before_reading(
     def no_reading(*args, **kwargs):
         raise AssertionError("data were read before the refusal")
 
-    for module in (autocal.pipeline.partials, autocal.pipeline.flagging):
+    for module in (autocal.pipeline.partials, autocal.pipeline.flag_partials):
         monkeypatch.setattr(module, "read_chunks", no_reading)
     config = CalibrationConfig(inputs=[str(p) for p in night], beam="dipole")
     out = tmp_path / "out"
