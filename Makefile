@@ -71,7 +71,7 @@ $(CROISSANT_VENV)/.installed: benchmarks/croissant-requirements.txt
 	$(CROISSANT_PYTHON) -m venv $(CROISSANT_VENV)
 	$(CROISSANT_VENV)/bin/python -m pip install --quiet --upgrade pip
 	$(CROISSANT_VENV)/bin/python -m pip install --quiet -r benchmarks/croissant-requirements.txt
-	$(CROISSANT_VENV)/bin/python -c "import croissant; print('croissant-sim', croissant.__version__)"
+	JAX_ENABLE_X64=1 $(CROISSANT_VENV)/bin/python -c "import croissant; print('croissant-sim', croissant.__version__)"
 	touch $@
 
 bench-croissant-env: $(CROISSANT_VENV)/.installed

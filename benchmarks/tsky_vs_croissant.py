@@ -203,7 +203,8 @@ def croissant_missing(python: Path) -> str | None:
         check=False,
     )
     if check.returncode != 0:
-        return f"{python} cannot import croissant: {check.stderr.strip().splitlines()[-1:]}"
+        last = (check.stderr.strip().splitlines() or ["no message"])[-1]
+        return f"{python} cannot import croissant ({last})"
     return None
 
 
