@@ -60,8 +60,27 @@ bench: install
 bench-night: install
 	$(PY) benchmarks/night.py
 
+# The engine-vs-croissant-sim speed guard (issue 25; benchmarks/README.md). croissant-sim is
+# not a dependency of autocal: it gets its own virtualenv (needs PyPI once, then works
+# offline), with a Python older than 3.13 (CROISSANT_PYTHON, default python3).
+CROISSANT_VENV ?= .venv-croissant
+CROISSANT_PYTHON ?= $(PYTHON)
+.PHONY: bench-croissant-env bench-croissant
+
+$(CROISSANT_VENV)/.installed: benchmarks/croissant-requirements.txt
+	$(CROISSANT_PYTHON) -m venv $(CROISSANT_VENV)
+	$(CROISSANT_VENV)/bin/python -m pip install --quiet --upgrade pip
+	$(CROISSANT_VENV)/bin/python -m pip install --quiet -r benchmarks/croissant-requirements.txt
+	JAX_ENABLE_X64=1 $(CROISSANT_VENV)/bin/python -c "import croissant; print('croissant-sim', croissant.__version__)"
+	touch $@
+
+bench-croissant-env: $(CROISSANT_VENV)/.installed
+
+bench-croissant: install bench-croissant-env
+	$(PY) benchmarks/tsky_vs_croissant.py --croissant-python $(CROISSANT_VENV)/bin/python
+
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache .ruff_cache *.egg-info docs/_build docs/_generated docs/api
+	rm -rf $(VENV) $(CROISSANT_VENV) $(DEMO_OUT) .pytest_cache .ruff_cache *.egg-info docs/_build docs/_generated docs/api
 
 # The job service from the repository's venv (settings: AUTOCAL_* variables, deploy/README.md).
 SERVE_ARGS ?=
