@@ -85,6 +85,11 @@ def run_child(argv: list[str], env: dict[str, str]) -> dict:
 def commands(path: Path, tsky: Path, work: Path) -> dict[str, list[str]]:
     """The measured commands (fresh output paths each time they are asked for)."""
     stamp = f"{time.monotonic_ns()}"
+
+    def calibrate(name: str, *options: str) -> list[str]:
+        out = str(work / f"{name}-{stamp}")
+        return [sys.executable, "-m", "autocal", "calibrate", str(path), "--out", out, *options]
+
     return {
         "user script (pyuvdata + numpy)": [
             sys.executable,
@@ -95,38 +100,11 @@ def commands(path: Path, tsky: Path, work: Path) -> dict[str, list[str]]:
             "--out",
             str(work / f"user-{stamp}.npz"),
         ],
-        "autocal calibrate (calh5, hdf5, png)": [
-            sys.executable,
-            "-m",
-            "autocal",
-            "calibrate",
-            str(path),
-            "--out",
-            str(work / f"autocal-{stamp}"),
-        ],
-        "autocal calibrate --products hdf5": [
-            sys.executable,
-            "-m",
-            "autocal",
-            "calibrate",
-            str(path),
-            "--out",
-            str(work / f"autocal-hdf5-{stamp}"),
-            "--products",
-            "hdf5",
-        ],
-        "autocal calibrate --products hdf5 --no-rfi-flagging": [
-            sys.executable,
-            "-m",
-            "autocal",
-            "calibrate",
-            str(path),
-            "--out",
-            str(work / f"autocal-bare-{stamp}"),
-            "--products",
-            "hdf5",
-            "--no-rfi-flagging",
-        ],
+        "autocal calibrate (calh5, hdf5, png)": calibrate("autocal"),
+        "autocal calibrate --products hdf5": calibrate("autocal-hdf5", "--products", "hdf5"),
+        "autocal calibrate --products hdf5 --no-rfi-flagging": calibrate(
+            "autocal-bare", "--products", "hdf5", "--no-rfi-flagging"
+        ),
     }
 
 
