@@ -12,8 +12,9 @@ solution and the flags are the same bit for bit.
 
 :func:`reader_count` decides how many processes a run uses: ``readers=None`` (auto) takes
 one per core (at most :data:`MAX_AUTO_READERS`) for UVH5 inputs of at least two files and
-:data:`MIN_AUTO_BYTES` on disk, where the pool's start-up is paid back; ``readers=1`` reads
-in the calling process (as before the pool existed).
+:data:`MIN_AUTO_BYTES` on disk, on a machine of at least :data:`MIN_AUTO_CPUS` cores (on two
+cores one process with its threads was faster, measured); ``readers=1`` reads in the
+calling process (as before the pool existed).
 
 The workers are started with :data:`START_METHOD` (a fresh interpreter, never ``fork``:
 the calling process may run threads, e.g. a service worker's heartbeat, and numba's
@@ -63,6 +64,14 @@ MAX_AUTO_READERS = 8
 #: nights are calibrated in the calling process, where the pool's start (about a second
 #: of CPU per process) would cost more than it saves.
 MIN_AUTO_BYTES = 256 * 1024**2
+#: Fewest usable CPUs for which the automatic choice starts a pool. One calibrating process
+#: already keeps ~1.5 cores busy (HDF5 decoding in its read-ahead thread, the sums' kernels
+#: in the other), and on two cores two single-threaded readers were slower: a quarter of
+#: the HERA-size night (11 files, quiet machine, ``benchmarks/readers.py --flagging off``)
+#: took 111 s in one process (160 s of CPU) and 123 s with two readers (187 s of CPU:
+#: pickling, per-process set-up). With four or more cores the readers decode on cores the
+#: single process leaves idle (not measured on this two-core machine).
+MIN_AUTO_CPUS = 4
 #: Modules the workers import before their first file.
 WARM_MODULES = ("autocal.pipeline.partials", "autocal.pipeline.flag_partials")
 
@@ -110,7 +119,7 @@ def reader_count(
     if readers is not None:
         return min(int(readers), len(paths))
     cpus = usable_cpus() if cpus is None else cpus
-    if cpus < 2:
+    if cpus < MIN_AUTO_CPUS:
         return 1
     size = sum(Path(p).stat().st_size for p in paths)
     if size < MIN_AUTO_BYTES:
