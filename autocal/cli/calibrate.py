@@ -49,8 +49,8 @@ def add(sub: argparse._SubParsersAction) -> None:
         type=int,
         metavar="N",
         help="processes that read (decode) a night's UVH5 files, without Dask: 1 reads in "
-        "this process; default: one per core for at least two files and 256 MiB on >= 4 cores (same "
-        "solution)",
+        "this process; default: one per core for at least two files and 256 MiB on >= 4 "
+        "cores (same solution)",
     )
     p.add_argument(
         "--block-size",
