@@ -3,7 +3,8 @@
 Targets (issue "Performance and scale"): a whole file of the HERA-size night (350 antennas
 x 2 pols x 1536 channels x 192 integrations, 206 M samples) diagnosed in <= 8 GB peak RSS
 and <= 10 minutes on the 2-core development machine. One command generates the night's
-first file if it is absent (``benchmarks/night.py generate --ntimes 192``, ~1 min), runs
+first file if it is absent or was made by another Tsky engine (``benchmarks/night.py
+generate --ntimes 192``, ~1 min; ``night.tsky_mismatch``), runs
 ``autocal diagnose FILE --out DIR`` in a fresh subprocess for each antenna selection
 (wall time and the subprocess's peak RSS, ``ru_maxrss`` from ``wait4``, plus a 0.2 s
 sampler of its RSS for the timeline's peak phase) and writes
@@ -38,7 +39,15 @@ DEFAULT_DATA = Path("/tmp/autocal-night-350x1536x192")
 def _first_file(data: Path) -> Path:
     """Return the night's first file, generating the one-file night if it is absent."""
     manifest = data / "night.json"
-    if not manifest.exists():
+    stale = None
+    if manifest.exists():
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+        from night import tsky_mismatch
+
+        stale = tsky_mismatch(data)
+        if stale is not None:
+            print(f"the night in {data} was {stale}", flush=True)
+    if not manifest.exists() or stale is not None:
         print(f"generating one file of the HERA-size night into {data} ...", flush=True)
         subprocess.run(
             [

@@ -91,6 +91,11 @@ class Night:
 
 # generation ----------------------------------------------------------------------------
 
+#: Integrations whose Tsky ``truth.h5`` keeps (:func:`tsky_mismatch`) and the largest
+#: relative difference from a recomputation that still counts as the same Tsky.
+TSKY_CHECK_TIMES = 4
+TSKY_CHECK_RTOL = 1e-9
+
 
 def _bandpass(freqs: np.ndarray) -> np.ndarray:
     """H1C bandpass G(nu) (hera_sim polynomial), 1 at 150 MHz, floored at the band edges."""
@@ -187,6 +192,10 @@ def generate(night: Night, folder: Path, jobs: int) -> dict:
         h5["antennas"] = np.arange(night.ants)
         h5.attrs["pols"] = "ee,nn"
         h5.attrs["night"] = json.dumps(asdict(night))
+        # the Tsky the data were made with, at the first integrations: tells stale data
+        # (an older Tsky engine) from current ones (:func:`tsky_mismatch`)
+        h5["tsky_check"] = tsky[:, :TSKY_CHECK_TIMES]
+        h5.attrs["tsky_epoch"] = float(jds.mean())
     tasks = []
     for i in range(night.nfiles):
         w = slice(i * night.per_file, min((i + 1) * night.per_file, night.ntimes))
@@ -215,15 +224,60 @@ def generate(night: Night, folder: Path, jobs: int) -> dict:
     return manifest
 
 
+def tsky_mismatch(folder: Path) -> str | None:
+    """Say why the night in ``folder`` was not made with the current Tsky engine, or ``None``.
+
+    ``truth.h5`` keeps the Tsky of the first :data:`TSKY_CHECK_TIMES` integrations the
+    data were made with; they are computed again here (a second). A night simulated by
+    an older engine is a model error of its own: the first file of a night made before
+    the sky's band limit (commit 6f99f8e) differs from today's model by 2-6e-5 of the
+    total power, drifting over the file, which a whole-file diagnosis rightly detects
+    (a "gain drift" at 7 sigma on 206 M samples).
+    """
+    import h5py
+
+    from autocal.core.sites import get_site
+    from autocal.tsky.compute import compute_tsky
+
+    with h5py.File(folder / "truth.h5", "r") as h5:
+        if "tsky_check" not in h5:
+            return "made before its Tsky was recorded (truth.h5 has no tsky_check)"
+        stored = h5["tsky_check"][()]
+        epoch = float(h5.attrs["tsky_epoch"])
+        night = Night(**json.loads(h5.attrs["night"]))
+    lsts = night.lsts()[: stored.shape[1]]
+    worst = 0.0
+    for ip, pol in enumerate(("ee", "nn")):
+        now = compute_tsky(
+            "gsm2008",
+            "hera",
+            get_site("hera"),
+            night.freqs(),
+            lsts,
+            nside=64,
+            epoch=epoch,
+            pol=pol,
+            cache=False,
+        ).tsky
+        worst = max(worst, float(np.max(np.abs(now / stored[ip] - 1))))
+    if worst > TSKY_CHECK_RTOL:
+        return f"made with another Tsky (max relative difference {worst:.1e} from today's)"
+    return None
+
+
 def load_or_generate(night: Night, folder: Path, jobs: int, regenerate: bool) -> dict:
-    """Return the folder's manifest, generating the night when absent or different."""
+    """Return the folder's manifest, generating the night when absent, different or stale."""
     path = folder / "night.json"
     if path.exists() and not regenerate:
         manifest = json.loads(path.read_text())
         if manifest["night"] == asdict(night) and all(Path(f).exists() for f in manifest["files"]):
-            print(f"night found in {folder} ({manifest['total_bytes'] / 1e9:.2f} GB)")
-            return manifest
-        print(f"{folder} holds another night: regenerating")
+            stale = tsky_mismatch(folder)
+            if stale is None:
+                print(f"night found in {folder} ({manifest['total_bytes'] / 1e9:.2f} GB)")
+                return manifest
+            print(f"the night in {folder} was {stale}: regenerating")
+        else:
+            print(f"{folder} holds another night: regenerating")
     return generate(night, folder, jobs)
 
 

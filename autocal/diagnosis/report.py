@@ -219,7 +219,9 @@ def _flagging_lines(diag: Diagnosis) -> list[str]:
         lines.append(
             f"outliers flagged in the residuals: {outliers.get('samples_flagged', 0)} samples "
             f"in {outliers.get('rounds', 0)} round(s) "
-            f"({outliers.get('threshold_robust_sigma')} robust sigma)"
+            f"({outliers.get('threshold_sigma')} sigma of clean residuals' tails, "
+            f"{outliers.get('threshold_robust_sigma', float('nan')):.1f} robust sigma of the "
+            "high-passed residuals)"
         )
     return lines
 

@@ -67,7 +67,7 @@ from autocal.diagnosis.extended_fit import ExtendedFit, fit_extended, radiometer
 from autocal.diagnosis.gap import describe_unexplained, gap_metrics
 from autocal.diagnosis.impact import product_impact, product_sigmas
 from autocal.diagnosis.normal_equations import MIN_IDENTIFIABLE, blas_single_thread
-from autocal.diagnosis.outliers import flag_outliers
+from autocal.diagnosis.outliers import OUTLIER_WINDOW, flag_outliers, tail_scale
 from autocal.diagnosis.report import Diagnosis, residual_snapshot
 from autocal.diagnosis.screening import StepScreen
 from autocal.diagnosis.search_state import SearchContext, SearchSettings, SearchState
@@ -177,7 +177,8 @@ def diagnose(
         diag = search_once(obs)
     diag.config["outlier_flagging"] = {
         "enabled": flag_rfi,
-        "threshold_robust_sigma": outlier_threshold,
+        "threshold_sigma": outlier_threshold,
+        "threshold_robust_sigma": outlier_threshold * tail_scale(OUTLIER_WINDOW),
         "rounds": rounds,
         "samples_flagged": int(obs.flags.sum()) - nflag0,
         "fraction_flagged": float(obs.flags.mean()),

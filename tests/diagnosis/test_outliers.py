@@ -6,9 +6,16 @@ import dataclasses
 
 import numpy as np
 from scipy.ndimage import median_filter
+from scipy.stats import norm
 
 from autocal.diagnosis.extended_fit import fit_extended, radiometer_weights
-from autocal.diagnosis.outliers import flag_outliers, running_median
+from autocal.diagnosis.outliers import (
+    OUTLIER_WINDOW,
+    flag_outliers,
+    high_pass,
+    running_median,
+    tail_scale,
+)
 from tests.diagnosis.simulated import hidden
 
 
@@ -45,3 +52,45 @@ def test_outlier_flags_are_recomputed_not_accumulated(setup):
     assert recomputed[0, 0, 10, 20]
     assert not recomputed[0, 0, 30, 40]
     assert not np.any(recomputed & ~accumulated)
+
+
+def test_tail_scale_gives_the_gaussian_false_alarm_rate() -> None:
+    """White Gaussian noise through the high-pass exceeds k sigma (robust sigma x
+    tail_scale) at about the Gaussian rate 2 Phi(-k); the robust sigma alone (the old
+    threshold) flags clean samples tens of times too often."""
+    rng = np.random.default_rng(11)
+    dev = np.abs(high_pass(rng.standard_normal((12, 192, 1024)), OUTLIER_WINDOW))
+    robust = 1.4826 * np.median(dev)
+    scale = tail_scale(OUTLIER_WINDOW)
+    assert 1.2 < scale < 1.6
+    for k in (3.5, 4.0, 4.5):
+        expected = 2 * norm.sf(k) * dev.size
+        assert 0.7 * expected < np.sum(dev > k * robust * scale) < 2.0 * expected
+        assert np.sum(dev > k * robust) > 10 * expected
+
+
+def test_clean_residuals_are_not_flagged(setup) -> None:
+    """A clean observation (its own model times white radiometer noise drawn here, 8
+    antennas) gets outlier flags at the Gaussian rate of the threshold: at 4 sigma ~1e-4 of
+    its samples (the old robust-sigma threshold flagged 3e-3 at "4 robust sigma")."""
+    obs, tpl = setup
+    rng = np.random.default_rng(3)
+    nant = 8
+    model = 0.02 * (tpl.total[None] + 150.0)
+    bt = obs.channel_width[None, None, None, :] * obs.integration_time[None, None, :, None]
+    shape = (nant, 1, obs.ntime, obs.nfreq)
+    data = model * (1 + rng.standard_normal(shape) / np.sqrt(bt))
+
+    clean = dataclasses.replace(
+        obs,
+        data=data,
+        flags=np.zeros(shape, bool),
+        nsamples=np.ones(shape),
+        antennas=np.arange(nant),
+        antenna_names=(),
+    )
+    w = radiometer_weights(clean, clean.data)
+    fit = fit_extended(clean, tpl, [], weights=w)
+    flags = flag_outliers(clean, fit, threshold=4.0)
+    expected = 2 * norm.sf(4.0) * flags.size
+    assert flags.sum() < 3 * expected + 3
