@@ -23,11 +23,19 @@ def centre_into(a: np.ndarray, out: np.ndarray) -> float:
 
     ``c = a[0, nb] / a[nb, nb]`` (0 where not finite: no change of frame).
     """
-    m = a.shape[0]
-    nb = m // 2
+    nb = a.shape[0] // 2
     c = a[0, nb] / a[nb, nb] if a[nb, nb] != 0.0 else 0.0  # (numba raises on / 0)
     if not np.isfinite(c):
         c = 0.0
+    centre_with_into(a, c, out)
+    return c
+
+
+@numba.njit(cache=True)
+def centre_with_into(a: np.ndarray, c: float, out: np.ndarray) -> None:
+    """Fill ``out = S^T a S`` for a given ``c`` (:func:`autocal.fit.centring.centre`)."""
+    m = a.shape[0]
+    nb = m // 2
     for r in range(m):
         for k in range(nb):
             out[r, k] = minus_product(a[r, k], c, a[r, nb + k])
@@ -39,7 +47,6 @@ def centre_into(a: np.ndarray, out: np.ndarray) -> float:
     for k in range(m):
         for j in range(k):
             out[k, j] = out[j, k]
-    return c
 
 
 @numba.njit(cache=True)

@@ -5,12 +5,14 @@
 algebra) in one loop per channel, chunks of channels on threads
 (:func:`autocal.fit.threads.in_threads`): the refit's normal matrix of
 each left-out block is inverted in place (Gauss-Jordan: the matrices are positive definite)
-in the sky-centred frame of :mod:`autocal.fit.centring` (the inverse is ``S (S^T K S)^-1
-S^T``: on a short span ``K`` itself is too ill-conditioned to invert to more than a few
-digits) and the products are sums over ``M`` terms. numpy's batched ``inv``, ``det`` and ``@`` on
-a million 2 x 2 systems (one 350-antenna HERA file) spend ~10 s in per-matrix overhead;
-this takes a fraction of a second. numba is imported with this module, which
-:mod:`autocal.fit.total_uncertainty` imports only when it computes a total uncertainty.
+and the products are sums over ``M`` terms, all in the sky-centred frame of
+:mod:`autocal.fit.centring` with one ``c`` per channel (on a short span the normal matrices
+are too ill-conditioned to invert to more than a few digits, and the covariance of ``(G,
+n)`` to invert at all; that of ``(G, n + c G)`` is well conditioned). numpy's batched
+``inv``, ``det`` and ``@`` on a million 2 x 2 systems (one 350-antenna HERA file) spend ~10
+s in per-matrix overhead; this takes a fraction of a second. numba is imported with this
+module, which :mod:`autocal.fit.total_uncertainty` imports only when it computes a total
+uncertainty.
 """
 
 from __future__ import annotations
@@ -18,14 +20,20 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from autocal.fit.centring_kernel import centre_into, uncentre_cov_into
+from autocal.fit.centring_kernel import centre_with_into
 from autocal.fit.threads import in_threads
 
 
 def expected_jackknife(
-    a: np.ndarray, parts: list[np.ndarray], p: np.ndarray | None, proj: np.ndarray
+    a: np.ndarray, parts: list[np.ndarray], p: np.ndarray | None, proj: np.ndarray, c: np.ndarray
 ) -> np.ndarray:
     """Return the jackknife covariance of the projected parameters the statistics predict.
+
+    Every matrix is taken to the sky-centred frame of the one ``c`` per channel (for the
+    refits too, whatever block they leave out), so the result is the covariance of
+    ``(G, n + c G)``: on a short span that of ``(G, n)`` has a condition number ~1e15 and
+    its inverse (:func:`autocal.fit.total_uncertainty._jackknife_factor`) would keep no
+    digit.
 
     Parameters
     ----------
@@ -37,11 +45,15 @@ def expected_jackknife(
         ``(..., M, M)`` the prior's rows (noiseless), or ``None``.
     proj
         ``(2, M)`` the projection onto the time-averaged ``(G, n)``.
+    c
+        ``(...)`` the frame's sky mean per channel
+        (:func:`autocal.fit.centring.sky_mean` of ``a``).
 
     Returns
     -------
     numpy.ndarray
-        ``(..., 2, 2)``; NaN where a refit's matrix is singular or not finite.
+        ``(..., 2, 2)`` the covariance of ``(G, n + c G)``; NaN where a refit's matrix is
+        singular or not finite.
     """
     lead = a.shape[:-2]
     m = a.shape[-1]
@@ -54,8 +66,9 @@ def expected_jackknife(
     )
     out = np.empty((flat.shape[0], 2, 2))
     proj = np.ascontiguousarray(proj, dtype=np.float64)
+    sky = np.ascontiguousarray(np.broadcast_to(c, lead), dtype=np.float64).reshape(-1)
     nchunk = -(-flat.shape[0] // _CHUNK)
-    in_threads(lambda c0, c1: _kernel(flat, blocks, prior, proj, out, c0, c1), nchunk)
+    in_threads(lambda c0, c1: _kernel(flat, blocks, prior, proj, sky, out, c0, c1), nchunk)
     return out.reshape(*lead, 2, 2)
 
 
@@ -102,7 +115,7 @@ _CHUNK = 4096
 
 
 @numba.njit(cache=True, nogil=True)
-def _kernel(a, blocks, prior, proj, out, c0, c1):  # type: ignore[no-untyped-def]
+def _kernel(a, blocks, prior, proj, sky, out, c0, c1):  # type: ignore[no-untyped-def]
     """Fill ``out[n]`` for the channels of chunks ``c0`` to ``c1 - 1``.
 
     See :func:`expected_jackknife`.
@@ -116,6 +129,8 @@ def _kernel(a, blocks, prior, proj, out, c0, c1):  # type: ignore[no-untyped-def
         same = np.empty((2, 2))  # sum_b Y_b A_b Y_b^T
         rest = np.empty((m, m))
         k = np.empty((m, m))
+        ac = np.empty((m, m))  # a, sky-centred
+        bc = np.empty((m, m))  # a block's matrix, sky-centred
         y = np.empty((2, m))
         ya = np.empty((2, m))
         yr = np.empty((2, m))
@@ -126,18 +141,20 @@ def _kernel(a, blocks, prior, proj, out, c0, c1):  # type: ignore[no-untyped-def
             own[:] = 0.0
             same[:] = 0.0
             ok = True
+            cn = sky[n]
+            centre_with_into(a[n], cn, ac)
             for b in range(nblk):
                 for i in range(m):
                     for j in range(m):
                         rest[i, j] = a[n, i, j] - blocks[b, n, i, j] + pn[i, j]
-                sky = centre_into(rest, k)  # inverted in the sky-centred frame
+                centre_with_into(rest, cn, k)  # inverted in the sky-centred frame
                 if not invert_in_place(k, True):
                     ok = False
                     break
-                uncentre_cov_into(k, sky, k)
+                centre_with_into(blocks[b, n], cn, bc)
                 _matmul(proj, k, y)  # Y_b
-                _matmul(y, blocks[b, n], ya)  # Y_b A_b
-                _matmul(y, a[n], yr)
+                _matmul(y, bc, ya)  # Y_b A_b
+                _matmul(y, ac, yr)
                 for i in range(2):
                     for q in range(m):
                         yr[i, q] -= ya[i, q]  # Y_b (A - A_b)
@@ -151,7 +168,7 @@ def _kernel(a, blocks, prior, proj, out, c0, c1):  # type: ignore[no-untyped-def
             if not ok:
                 out[n] = np.nan
                 continue
-            _matmul(ysum, a[n], yr)  # Ysum A
+            _matmul(ysum, ac, yr)  # Ysum A
             for i in range(2):
                 for j in range(2):
                     every = same[i, j]

@@ -69,7 +69,12 @@ Numerics
     the total ``sigma_G`` to 6e-10 (7e-7 at worst). The float64 sums themselves are only
     as exact as their accumulation: moving each of them by ~1 ulp (as another summation
     order may) moves the extended solution by 4e-6 (median; 1e-2 at worst) whatever the
-    solver, and now the total ``sigma_G`` by 2e-6 (5e-3 at worst; before: x600).
+    solver, and now the total ``sigma_G`` by 2e-6 (5e-3 at worst; before: x600). The
+    jackknife factor's 2 x 2 covariances are formed in the basis ``(G, n + c G)`` of that
+    frame (the trace ``tr(E^-1 V_jk)`` is the same in any basis): in ``(G, n)`` their
+    condition number reaches ~1e15 on a short span, and a Legendre-1 fit over ten minutes
+    had ``f_jk`` move by 46 % (median, up to x12) when the data were scaled by
+    ``1 + 4e-15``; now by < 2e-5 (``tests/fit/test_total_uncertainty.py``).
 
 Assumptions: the blocks are long compared with the correlation time of the residuals (else
 the jackknife under-estimates); an unmodelled drift is smooth enough over the span for one
@@ -96,7 +101,7 @@ from autocal.fit.blocks import (
     extended_model,
     subtract_sums,
 )
-from autocal.fit.centring import centre, quadratic_form, sky_mean, uncentre_cov
+from autocal.fit.centring import centre, minus_product, quadratic_form, sky_mean
 from autocal.fit.model import FitModel, mean_vectors
 from autocal.fit.separation import (
     WEAK_SENSITIVITY,
@@ -342,6 +347,14 @@ def _jackknife_factor(
     reps = np.empty((nblk, *lead, 2))
     for b, part in enumerate(blocks.blocks):
         reps[b] = refits.project(refits.solve(subtract_sums(fitted, part)))[0]
+    # the refits as (G, n + c G), the sky-centred frame's time-averaged parameters (the
+    # product exact): the trace below is the same in any basis, but on a short span the
+    # covariance of (G, n) is too ill-conditioned to invert (condition ~1e15 for a
+    # Legendre-1 fit of a 10-minute HERA file, where f_jk changed by 43 % between two
+    # solvers exact to rounding)
+    c = sky_mean(fitted.ata)
+    with np.errstate(invalid="ignore"):
+        reps[..., 1] = minus_product(reps[..., 1], -c, reps[..., 0])
     ok = np.all(np.isfinite(reps), axis=-1)  # (B, ...)
     nok = ok.sum(axis=0)
     mean = np.where(ok[..., None], reps, 0.0).sum(axis=0) / np.maximum(nok, 1)[..., None]
@@ -351,7 +364,7 @@ def _jackknife_factor(
     # against the jackknife covariance the statistical model itself predicts (the
     # delete-a-block estimator over-weights the ends of a time model: a Legendre fit's
     # refits extrapolate), times the chi2/dof scaling the statistical covariance has
-    expected = expected_jackknife(blocks, fitted, refits.prior, refits.vg, refits.vn)
+    expected = expected_jackknife(blocks, fitted, refits.prior, refits.vg, refits.vn, c=c)
     scaling = _covariance_scaling(solved, refits.scale_covariance)
     einv = _inv2(np.where(np.isfinite(expected), expected, np.eye(2)))
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -526,25 +539,45 @@ def _covariance_scaling(
 
 
 def expected_jackknife(
-    blocks: BlockSums, fitted: NormalSums, prior: Any, vg: np.ndarray, vn: np.ndarray
+    blocks: BlockSums,
+    fitted: NormalSums,
+    prior: Any,
+    vg: np.ndarray,
+    vn: np.ndarray,
+    *,
+    c: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Return the jackknife covariance of ``(G, n)`` the statistical model predicts.
+    """Return the jackknife covariance of ``(G, n + c G)`` the statistical model predicts.
 
     The algebra is :func:`expected_jackknife_numpy`'s; computed channel by channel by the
     compiled :func:`autocal.fit.jackknife_kernel.expected_jackknife` (~20 x faster on a
-    HERA file's million 2 x 2 systems).
+    HERA file's million 2 x 2 systems). ``c``: the sky mean of the frame
+    (default :func:`autocal.fit.centring.sky_mean` of ``fitted``).
     """
     from autocal.fit.jackknife_kernel import expected_jackknife as kernel  # numba
 
     p = None if prior is None else prior(fitted, vg, vn).ata - fitted.ata
     parts = [part.ata for part in blocks.blocks]
-    return kernel(fitted.ata, parts, p, np.stack([vg, vn]))
+    c = sky_mean(fitted.ata) if c is None else c
+    return kernel(fitted.ata, parts, p, np.stack([vg, vn]), c)
 
 
 def expected_jackknife_numpy(
-    blocks: BlockSums, fitted: NormalSums, prior: Any, vg: np.ndarray, vn: np.ndarray
+    blocks: BlockSums,
+    fitted: NormalSums,
+    prior: Any,
+    vg: np.ndarray,
+    vn: np.ndarray,
+    *,
+    c: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Return the jackknife covariance of ``(G, n)`` the statistical model predicts.
+    """Return the jackknife covariance of ``(G, n + c G)`` the statistical model predicts.
+
+    Everything is computed in the sky-centred frame of one ``c`` per channel
+    (:mod:`autocal.fit.centring`; default the sky mean of ``fitted``), whose time-averaged
+    offset is ``n + c G``: the covariance of ``(G, n)`` itself is, on a short span, too
+    ill-conditioned to be inverted afterwards (``R^-1 E R^-T`` gives it, ``R = [[1, 0],
+    [c, 1]]``).
 
     With inverse-variance weights a block's right-hand side has covariance ``A_b`` (its
     normal matrix) and blocks are independent; the refit without block ``b`` is
@@ -557,10 +590,11 @@ def expected_jackknife_numpy(
     the reference of the compiled :func:`expected_jackknife`.
     """
     nblk = blocks.nblocks
-    a = fitted.ata
+    c = sky_mean(fitted.ata) if c is None else np.asarray(c, np.float64)
+    a = centre(fitted.ata, c)
     p = 0.0
     if prior is not None:
-        p = prior(fitted, vg, vn).ata - a
+        p = prior(fitted, vg, vn).ata - fitted.ata
     proj = np.stack([vg, vn])  # (2, M)
     m = a.shape[-1]
     eye = np.eye(m)
@@ -571,17 +605,16 @@ def expected_jackknife_numpy(
     cross = np.zeros((*lead, 2, m))  # sum_b Y_b A_b
     with np.errstate(all="ignore"):
         for part in blocks.blocks:
-            rest = a - part.ata + p
-            sky = sky_mean(rest)  # inverted in the sky-centred frame (autocal.fit.centring)
-            rest = centre(rest, sky)
+            rest = centre(fitted.ata - part.ata + p, c)
+            ab = centre(part.ata, c)
             ok = np.all(np.isfinite(rest), axis=(-2, -1)) & (np.linalg.det(rest) != 0)
             inv = np.linalg.inv(np.where(ok[..., None, None], rest, eye))
-            k = np.where(ok[..., None, None], uncentre_cov(inv, sky), np.nan)
+            k = np.where(ok[..., None, None], inv, np.nan)
             y = proj @ k  # (..., 2, M)
             yt = np.swapaxes(y, -1, -2)
-            yab = y @ part.ata
+            yab = y @ ab
             ysum += y
-            own += (y @ (a - part.ata)) @ yt
+            own += (y @ (a - ab)) @ yt
             same += yab @ yt
             cross += yab
         ysum_t = np.swapaxes(ysum, -1, -2)
