@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Iterator
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import median_filter
-from scipy.stats import norm
+from scipy.stats import norm, poisson
 
 from autocal.core.observation import Observation
 from autocal.diagnosis.chunks import antenna_chunks, weights_dtype
@@ -122,6 +123,30 @@ def tail_scale(window: int) -> float:
     return float(width / robust)
 
 
+#: Clean residuals exceed a threshold of the filtered values at up to this many times the
+#: Gaussian rate (1.2x at 4 sigma, 2x at 5-5.5 sigma on white noise;
+#: ``tests/diagnosis/test_outliers.py``) ...
+TAIL_EXCESS = 3.0
+#: ... and a round's new outliers count as noise up to this Poisson quantile of that
+#: expectation (:func:`noise_outlier_limit`), if none deviates by more than
+#: :data:`NOISE_MAX_SIGMA` (white noise exceeds 8 sigma at 1.2e-15 per sample).
+NOISE_QUANTILE = 0.999
+NOISE_MAX_SIGMA = 8.0
+
+
+def noise_outlier_limit(samples: int, threshold: float) -> int:
+    """Most outliers ``samples`` clean residuals give at ``threshold`` sigma (one round).
+
+    The :data:`NOISE_QUANTILE` Poisson quantile of :data:`TAIL_EXCESS` times the Gaussian
+    expectation ``2 Phi(-threshold) samples``; at 6 sigma: 6 for a 350-antenna HERA file
+    (206 M samples, 0.4 expected at the Gaussian rate), 1 for 1 M, 0 below ~1.7e5. A round that
+    flags no more than this found nothing the fits need to be repeated without
+    (:func:`autocal.diagnosis.stepwise.diagnose`).
+    """
+    expected = TAIL_EXCESS * 2.0 * norm.sf(threshold) * max(int(samples), 0)
+    return int(poisson.ppf(NOISE_QUANTILE, expected)) if expected > 0 else 0
+
+
 def model_residual_pieces(
     fit: ExtendedFit, flags: np.ndarray
 ) -> Iterator[tuple[slice, np.ndarray]]:
@@ -146,6 +171,22 @@ def model_residual_pieces(
         yield sl, np.where(usable & np.isfinite(res), res, np.nan)
 
 
+@dataclass(frozen=True)
+class OutlierRound:
+    """One round of :func:`find_outliers`.
+
+    Attributes
+    ----------
+    flags
+        ``(Nant, Npol, Ntime, Nfreq)`` flags (the observation's own included).
+    peak_sigma
+        The largest deviation of a sample beyond the threshold, in sigma (0 if none).
+    """
+
+    flags: np.ndarray
+    peak_sigma: float
+
+
 def flag_outliers(
     obs: Observation,
     fit: ExtendedFit,
@@ -155,6 +196,26 @@ def flag_outliers(
     max_fraction: float = 0.5,
     base_flags: np.ndarray | None = None,
 ) -> np.ndarray:
+    """Return :func:`find_outliers`'s flags (same parameters)."""
+    return find_outliers(
+        obs,
+        fit,
+        threshold=threshold,
+        window=window,
+        max_fraction=max_fraction,
+        base_flags=base_flags,
+    ).flags
+
+
+def find_outliers(
+    obs: Observation,
+    fit: ExtendedFit,
+    *,
+    threshold: float = 6.0,
+    window: int = OUTLIER_WINDOW,
+    max_fraction: float = 0.5,
+    base_flags: np.ndarray | None = None,
+) -> OutlierRound:
     """Flag narrow-band or impulsive outliers (RFI) in the residuals of a fit.
 
     The normalised residuals are high-passed by subtracting their running median over
@@ -192,8 +253,8 @@ def flag_outliers(
 
     Returns
     -------
-    numpy.ndarray
-        ``(Nant, Npol, Ntime, Nfreq)`` flags (the observation's own included).
+    OutlierRound
+        The flags (the observation's own included) and the largest deviation flagged.
     """
     base = obs.flags if base_flags is None else np.asarray(base_flags, bool)
     pieces = residual_pieces(fit) if base_flags is None else model_residual_pieces(fit, base)
@@ -207,7 +268,7 @@ def flag_outliers(
         hp = high_pass(np.where(ok, res, 0.0), window)
         dev[sl] = np.where(ok, hp, np.nan)
     if not usable.any():
-        return base.copy()
+        return OutlierRound(base.copy(), 0.0)
     centre = np.nanmedian(dev)
     np.subtract(dev, centre, out=dev)
     np.abs(dev, out=dev)  # in place: |deviation from the centre|
@@ -215,14 +276,17 @@ def flag_outliers(
     # Gaussian rate (tail_scale)
     sigma = 1.4826 * np.nanmedian(dev) * tail_scale(window)
     if not np.isfinite(sigma) or sigma <= 0:
-        return base.copy()
+        return OutlierRound(base.copy(), 0.0)
     flags = base.copy()
+    peak = 0.0
     for sl in antenna_chunks(obs.shape):
         ok = usable[sl]
         new = ok & (dev[sl] > threshold * sigma)
+        if new.any():
+            peak = max(peak, float(dev[sl][new].max()) / sigma)
         count = np.maximum(ok.sum(axis=2, keepdims=True), 1)
         new |= (new.sum(axis=2, keepdims=True) / count > max_fraction) & ok
         count = np.maximum(ok.sum(axis=3, keepdims=True), 1)
         new |= (new.sum(axis=3, keepdims=True) / count > max_fraction) & ok
         flags[sl] |= new
-    return flags
+    return OutlierRound(flags, peak)

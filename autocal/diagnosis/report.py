@@ -223,6 +223,13 @@ def _flagging_lines(diag: Diagnosis) -> list[str]:
             f"{outliers.get('threshold_robust_sigma', float('nan')):.1f} robust sigma of the "
             "high-passed residuals)"
         )
+        noise = outliers.get("noise_like")
+        if noise:
+            lines.append(
+                f"  then {noise['samples']} more (largest {noise['peak_sigma']:.1f} sigma), no "
+                f"more than clean noise gives at that threshold (up to {noise['limit']}): left "
+                "unflagged, not searched again"
+            )
     return lines
 
 

@@ -10,12 +10,15 @@ from scipy.stats import norm
 
 from autocal.diagnosis.extended_fit import fit_extended, radiometer_weights
 from autocal.diagnosis.outliers import (
+    NOISE_MAX_SIGMA,
     OUTLIER_WINDOW,
     flag_outliers,
     high_pass,
+    noise_outlier_limit,
     running_median,
     tail_scale,
 )
+from autocal.diagnosis.stepwise import diagnose
 from tests.diagnosis.simulated import hidden
 
 
@@ -94,3 +97,25 @@ def test_clean_residuals_are_not_flagged(setup) -> None:
     flags = flag_outliers(clean, fit, threshold=4.0)
     expected = 2 * norm.sf(4.0) * flags.size
     assert flags.sum() < 3 * expected + 3
+
+
+def test_a_round_of_noise_like_outliers_does_not_search_again(setup) -> None:
+    """At 4 sigma a clean observation's residuals give a few outliers, no more than the
+    noise allows (noise_outlier_limit): reported, left unflagged, no second search. One
+    strong spike (~100 radiometer sigma) is RFI: flagged, and the search runs again."""
+    obs, tpl = setup
+    clean = hidden(obs, tpl.total, seed=8)
+    usable = int(clean.flags.size - clean.flags.sum())
+    limit = noise_outlier_limit(usable, 4.0)
+    assert limit >= 1
+    assert noise_outlier_limit(usable, 6.0) == 0  # too few samples to excuse any at 6 sigma
+    assert noise_outlier_limit(100 * usable, 4.0) > limit
+    quiet = diagnose(clean, tpl, outlier_threshold=4.0).config["outlier_flagging"]
+    assert quiet["rounds"] == 0 and quiet["samples_flagged"] == 0
+    if quiet["noise_like"] is not None:  # the rounds found only what noise gives
+        assert 1 <= quiet["noise_like"]["samples"] <= limit
+        assert quiet["noise_like"]["peak_sigma"] <= NOISE_MAX_SIGMA
+    spiked = dataclasses.replace(clean, data=clean.data.copy())
+    spiked.data[0, 0, 10, 20] *= 1.1
+    loud = diagnose(spiked, tpl, outlier_threshold=4.0).config["outlier_flagging"]
+    assert loud["rounds"] >= 1 and loud["samples_flagged"] >= 1
