@@ -37,7 +37,7 @@ DEFAULT_DATA = Path("/tmp/autocal-night-350x1536x192")
 
 
 def _first_file(data: Path) -> Path:
-    """Return the night's first file, generating the one-file night if it is absent."""
+    """Return the night's first file, generating the one-file night if absent or stale."""
     manifest = data / "night.json"
     stale = None
     if manifest.exists():
@@ -58,6 +58,7 @@ def _first_file(data: Path) -> Path:
                 "192",
                 "--data",
                 str(data),
+                "--regenerate",
             ],
             check=True,
             cwd=ROOT,

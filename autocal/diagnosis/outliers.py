@@ -97,12 +97,16 @@ def tail_scale(window: int) -> float:
     Subtracting running medians narrows the core of the distribution (a sample's own value
     pulls the median it is compared with) but hardly its tails (an extreme sample keeps
     nearly all of its deviation): on white Gaussian noise the robust sigma
-    (1.4826 x MAD) of the high-passed values is 0.76 of their tails' width, so "6 robust
+    (1.4826 x MAD) of the high-passed values is 0.71 of their tails' width, so "6 robust
     sigma" flagged 3e-5 of clean samples, 15 000 times the Gaussian 6-sigma rate (~6000
     samples of a clean 350-antenna HERA file, and two extra rounds of the search). The tails
-    are those of a Gaussian (an extreme value minus medians of its neighbours), whose
-    width is read here at the two-sided tail probability :data:`NULL_TAIL_PROBABILITY` of
-    :data:`NULL_SHAPE` samples of white noise (fixed seed; computed once per window).
+    are close to those of a Gaussian (an extreme value minus medians of its neighbours),
+    whose width is read here at the two-sided tail probability
+    :data:`NULL_TAIL_PROBABILITY` of :data:`NULL_SHAPE` samples of white noise (fixed seed;
+    computed once per window). They are somewhat heavier farther out: white noise exceeds
+    ``k`` sigma at 1.1-1.5 x the Gaussian rate for ``k`` = 3.5-4.5
+    (``tests/diagnosis/test_outliers.py``), ~3x at 6 sigma and ~10x at 8 sigma (a
+    conditional Monte Carlo of an extreme sample; see :data:`TAIL_EXCESS`).
 
     Parameters
     ----------
@@ -116,6 +120,8 @@ def tail_scale(window: int) -> float:
         sigma of the high-passed residuals, flagging clean samples at the Gaussian rate
         ``2 Phi(-k)``.
     """
+    if window < 3:
+        raise ValueError(f"the running medians need a window of at least 3 samples, not {window}")
     noise = np.random.default_rng(20261128).standard_normal(NULL_SHAPE)
     dev = np.abs(high_pass(noise, window))
     robust = 1.4826 * np.median(dev)
@@ -124,12 +130,13 @@ def tail_scale(window: int) -> float:
 
 
 #: Clean residuals exceed a threshold of the filtered values at up to this many times the
-#: Gaussian rate (1.2x at 4 sigma, 2x at 5-5.5 sigma on white noise;
-#: ``tests/diagnosis/test_outliers.py``) ...
+#: Gaussian rate at the default 6 sigma (~1.1x at 4 sigma, ~1.6x at 5, ~3x at 6: the tails
+#: are somewhat heavier than the Gaussian of :func:`tail_scale`'s width) ...
 TAIL_EXCESS = 3.0
 #: ... and a round's new outliers count as noise up to this Poisson quantile of that
 #: expectation (:func:`noise_outlier_limit`), if none deviates by more than
-#: :data:`NOISE_MAX_SIGMA` (white noise exceeds 8 sigma at 1.2e-15 per sample).
+#: :data:`NOISE_MAX_SIGMA` (white noise exceeds 8 sigma of the filtered residuals at
+#: ~1e-14 per sample).
 NOISE_QUANTILE = 0.999
 NOISE_MAX_SIGMA = 8.0
 
@@ -143,8 +150,9 @@ def noise_outlier_limit(samples: int, threshold: float) -> int:
     flags no more than this found nothing the fits need to be repeated without
     (:func:`autocal.diagnosis.stepwise.diagnose`).
     """
-    expected = TAIL_EXCESS * 2.0 * norm.sf(threshold) * max(int(samples), 0)
-    return int(poisson.ppf(NOISE_QUANTILE, expected)) if expected > 0 else 0
+    samples = max(int(samples), 0)
+    expected = min(TAIL_EXCESS * 2.0 * norm.sf(threshold), 1.0) * samples
+    return min(int(poisson.ppf(NOISE_QUANTILE, expected)), samples) if expected > 0 else 0
 
 
 def model_residual_pieces(
@@ -256,6 +264,11 @@ def find_outliers(
     OutlierRound
         The flags (the observation's own included) and the largest deviation flagged.
     """
+    if not threshold > 0:
+        raise ValueError(
+            f"the outlier threshold must be a positive number of sigma, not {threshold}"
+        )
+    scale = tail_scale(window)  # before the large arrays below are allocated
     base = obs.flags if base_flags is None else np.asarray(base_flags, bool)
     pieces = residual_pieces(fit) if base_flags is None else model_residual_pieces(fit, base)
     dev = np.empty(obs.shape, weights_dtype(obs.shape))
@@ -274,7 +287,7 @@ def find_outliers(
     np.abs(dev, out=dev)  # in place: |deviation from the centre|
     # the tails' width on clean data: ``threshold`` sigma flag clean samples at the
     # Gaussian rate (tail_scale)
-    sigma = 1.4826 * np.nanmedian(dev) * tail_scale(window)
+    sigma = 1.4826 * np.nanmedian(dev) * scale
     if not np.isfinite(sigma) or sigma <= 0:
         return OutlierRound(base.copy(), 0.0)
     flags = base.copy()
@@ -283,7 +296,7 @@ def find_outliers(
         ok = usable[sl]
         new = ok & (dev[sl] > threshold * sigma)
         if new.any():
-            peak = max(peak, float(dev[sl][new].max()) / sigma)
+            peak = max(peak, float(dev[sl][new].max() / sigma))
         count = np.maximum(ok.sum(axis=2, keepdims=True), 1)
         new |= (new.sum(axis=2, keepdims=True) / count > max_fraction) & ok
         count = np.maximum(ok.sum(axis=3, keepdims=True), 1)

@@ -128,10 +128,15 @@ def diagnose(
         :func:`autocal.diagnosis.bandpass.auto_smooth_order`).
     flag_rfi
         Flag narrow-band and impulsive outliers
-        (:func:`autocal.diagnosis.outliers.flag_outliers`) in the residuals of the starting
-        model before anything is fitted (recorded in ``config["outlier_flagging"]``).
+        (:func:`autocal.diagnosis.outliers.find_outliers`) in the residuals of each search's
+        final model and search again without them, at most :data:`OUTLIER_ROUNDS` times; a
+        round that finds no more than clean noise gives
+        (:func:`~autocal.diagnosis.outliers.noise_outlier_limit`, none beyond
+        :data:`~autocal.diagnosis.outliers.NOISE_MAX_SIGMA`) ends the rounds without
+        flagging them (all recorded in ``config["outlier_flagging"]``).
     outlier_threshold
-        Robust sigmas beyond which a sample is an outlier.
+        Sigmas of clean residuals' tails (after the outlier filter's high-pass) beyond which
+        a sample is an outlier.
     progress
         Called with ``(fraction, message)`` before every model fit (fraction in [0, 1],
         non-decreasing). It may raise to abandon the search (the service's cancellation);
@@ -201,7 +206,9 @@ def diagnose(
     diag.config["outlier_flagging"] = {
         "enabled": flag_rfi,
         "threshold_sigma": outlier_threshold,
-        "threshold_robust_sigma": outlier_threshold * tail_scale(OUTLIER_WINDOW),
+        "threshold_robust_sigma": (
+            outlier_threshold * tail_scale(OUTLIER_WINDOW) if flag_rfi else None
+        ),
         "rounds": rounds,
         "samples_flagged": int(obs.flags.sum()) - nflag0,
         "fraction_flagged": float(obs.flags.mean()),

@@ -44,7 +44,9 @@ def expected_jackknife(
     p
         ``(..., M, M)`` the prior's rows (noiseless), or ``None``.
     proj
-        ``(2, M)`` the projection onto the time-averaged ``(G, n)``.
+        ``(2, M)`` the projection onto the time-averaged ``(G, n)`` (``vg``, ``vn`` of
+        :func:`autocal.fit.model.mean_vectors`: in the centred frame it gives ``(G, n + c
+        G)``).
     c
         ``(...)`` the frame's sky mean per channel
         (:func:`autocal.fit.centring.sky_mean` of ``a``).

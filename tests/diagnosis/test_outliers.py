@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 from scipy.ndimage import median_filter
 from scipy.stats import norm
 
@@ -18,6 +19,7 @@ from autocal.diagnosis.outliers import (
     running_median,
     tail_scale,
 )
+from autocal.diagnosis.report import summary_text
 from autocal.diagnosis.stepwise import diagnose
 from tests.diagnosis.simulated import hidden
 
@@ -100,22 +102,35 @@ def test_clean_residuals_are_not_flagged(setup) -> None:
 
 
 def test_a_round_of_noise_like_outliers_does_not_search_again(setup) -> None:
-    """At 4 sigma a clean observation's residuals give a few outliers, no more than the
+    """At 3.5 sigma a clean observation's residuals give a few outliers, no more than the
     noise allows (noise_outlier_limit): reported, left unflagged, no second search. One
-    strong spike (~100 radiometer sigma) is RFI: flagged, and the search runs again."""
+    strong spike (~100 radiometer sigma, a single sample: within the count the noise
+    allows, but beyond NOISE_MAX_SIGMA) is RFI: flagged, and the search runs again."""
     obs, tpl = setup
     clean = hidden(obs, tpl.total, seed=8)
     usable = int(clean.flags.size - clean.flags.sum())
-    limit = noise_outlier_limit(usable, 4.0)
+    limit = noise_outlier_limit(usable, 3.5)
     assert limit >= 1
     assert noise_outlier_limit(usable, 6.0) == 0  # too few samples to excuse any at 6 sigma
-    assert noise_outlier_limit(100 * usable, 4.0) > limit
-    quiet = diagnose(clean, tpl, outlier_threshold=4.0).config["outlier_flagging"]
-    assert quiet["rounds"] == 0 and quiet["samples_flagged"] == 0
-    if quiet["noise_like"] is not None:  # the rounds found only what noise gives
-        assert 1 <= quiet["noise_like"]["samples"] <= limit
-        assert quiet["noise_like"]["peak_sigma"] <= NOISE_MAX_SIGMA
+    assert noise_outlier_limit(100 * usable, 3.5) > limit
+    assert noise_outlier_limit(10, 0.1) <= 10  # never more than the samples
+    quiet = diagnose(clean, tpl, outlier_threshold=3.5)
+    flagging = quiet.config["outlier_flagging"]
+    assert flagging["rounds"] == 0 and flagging["samples_flagged"] == 0
+    assert flagging["noise_like"] is not None  # the round found only what noise gives
+    assert 1 <= flagging["noise_like"]["samples"] <= limit
+    assert flagging["noise_like"]["peak_sigma"] <= NOISE_MAX_SIGMA
+    assert "left unflagged, not searched again" in summary_text(quiet)
     spiked = dataclasses.replace(clean, data=clean.data.copy())
     spiked.data[0, 0, 10, 20] *= 1.1
-    loud = diagnose(spiked, tpl, outlier_threshold=4.0).config["outlier_flagging"]
+    loud = diagnose(spiked, tpl, outlier_threshold=3.5).config["outlier_flagging"]
     assert loud["rounds"] >= 1 and loud["samples_flagged"] >= 1
+
+
+def test_bad_outlier_settings_are_refused(setup) -> None:
+    obs, tpl = setup
+    fit = fit_extended(obs, tpl, [], weights=radiometer_weights(obs, obs.data))
+    with pytest.raises(ValueError, match="positive number of sigma"):
+        flag_outliers(obs, fit, threshold=0.0)
+    with pytest.raises(ValueError, match="at least 3"):
+        flag_outliers(obs, fit, window=1)

@@ -124,10 +124,11 @@ def test_a_channel_without_a_fitted_solution_adds_nothing_to_the_drift_statistic
 
 
 def test_a_short_span_jackknife_factor_keeps_its_digits() -> None:
-    """A Legendre-1 fit over ten minutes: scaling the data by 1 +- ~1e-14 (which leaves
-    ``f_jk`` unchanged in exact arithmetic) moves it by < 1e-3. Its covariances of ``(G,
-    n)`` have a condition number ~1e15 there; inverted in that basis, ``f_jk`` moved by 46 %
-    (median) and up to x12; the basis ``(G, n + c G)`` of the sky-centred frame keeps it."""
+    """A Legendre-1 fit over ten minutes: scaling the data by 1 + 3.6e-15 or 1 - 7.1e-15
+    (which leaves ``f_jk`` unchanged in exact arithmetic) moves it by < 1e-4. Its
+    covariances of ``(G, n)`` have a condition number ~1e15 there; inverted in that basis,
+    ``f_jk`` moved by 46 % (median) and up to x12; the basis ``(G, n + c G)`` of the
+    sky-centred frame keeps it."""
     nt = 192
     lsts = 3.2 + np.linspace(0.0, 10.0 / 60.0, nt)
     x = (lsts - 3.2) / (10.0 / 60.0)
@@ -140,4 +141,4 @@ def test_a_short_span_jackknife_factor_keeps_its_digits() -> None:
         factors.append(np.asarray(sol.total.jackknife_factor))
     assert np.isfinite(factors[0]).sum() >= 5
     for other in factors[1:]:
-        np.testing.assert_allclose(other, factors[0], rtol=1e-3)
+        np.testing.assert_allclose(other, factors[0], rtol=1e-4)
