@@ -21,8 +21,7 @@ never needs a night in memory:
 2. **RFI in time**, per antenna-pol: each spectrum's level relative to the time-mean
    spectrum (the median of its block medians: one number per integration, kept for the
    whole observation) is median-filtered along time (:data:`KT` integrations each side)
-   and integrations outlying by more than :data:`NSIG` widths of the antenna-pol's whole
-   series are flagged whole (:func:`robust_zscores` with ``series_width``).
+   and outlying integrations are flagged whole.
 
 Then, once the whole observation has been seen (:class:`RfiScan`):
 
@@ -84,19 +83,12 @@ MAX_KEPT_HITS = 2**24
 REASONS = ("band_edge", "rfi_frequency", "rfi_time")
 
 
-def robust_zscores(
-    values: np.ndarray, half_width: int, *, series_width: bool = False
-) -> np.ndarray:
+def robust_zscores(values: np.ndarray, half_width: int) -> np.ndarray:
     """Return the outlier significance of each sample along the last axis.
 
     hera_qm's ``detrend_medfilt`` in one dimension: the residual from the median of the
     ``half_width`` neighbours each side (the sample itself excluded), divided by
     ``sqrt(median(residual^2) / 0.456)`` over the same neighbours. Edges are reflected.
-    With ``series_width`` the width is that of the whole series instead (one per row):
-    a width from 2 ``half_width`` residuals is itself noisy, which gives the significance
-    Student-like tails: white noise passes 5 sigma at 3.9e-4 per sample with 16 neighbours
-    (1400x the Gaussian rate), at 2e-6 with the series' width
-    (``tests/pipeline/test_rfi.py``).
 
     Parameters
     ----------
@@ -104,8 +96,6 @@ def robust_zscores(
         ``(..., N)`` finite values.
     half_width
         Neighbours each side (reduced to fit ``N``).
-    series_width
-        One width per series (the last axis) instead of one per neighbourhood.
 
     Returns
     -------
@@ -122,12 +112,7 @@ def robust_zscores(
     footprint[..., k] = False
     smooth = median_filter(values, footprint=footprint, mode="reflect")
     resid = values - smooth
-    if series_width:
-        width = np.sqrt(np.median(resid**2, axis=-1, keepdims=True) / MEDIAN_CHI2_1)
-    else:
-        width = np.sqrt(
-            median_filter(resid**2, footprint=footprint, mode="reflect") / MEDIAN_CHI2_1
-        )
+    width = np.sqrt(median_filter(resid**2, footprint=footprint, mode="reflect") / MEDIAN_CHI2_1)
     with np.errstate(divide="ignore", invalid="ignore"):
         z = resid / width
     return np.where(width > 0, z, np.where(resid == 0, 0.0, np.inf))
@@ -659,9 +644,7 @@ class RfiScan:
             with np.errstate(invalid="ignore", divide="ignore"):
                 med = np.where(trend > 0, med / trend, med)
         filled = _filled(med, ok)
-        # one width per antenna-pol's series: the band level's relative noise is the same
-        # at every integration (radiometer noise, the sky's trend divided out)
-        z = robust_zscores(filled, KT, series_width=True) if self.ntime >= 3 else np.zeros_like(med)
+        z = robust_zscores(filled, KT) if self.ntime >= 3 else np.zeros_like(med)
         return watershed(np.where(ok, z, 0.0), NSIG, NSIG_ADJACENT) & ok
 
     def _counts(

@@ -10,13 +10,9 @@ import warnings
 
 import numpy as np
 import pytest
-from scipy.stats import norm
 
 from autocal.pipeline.calibrate import read
 from autocal.pipeline.rfi import (
-    KT,
-    NSIG,
-    NSIG_ADJACENT,
     LevelScan,
     RfiMask,
     RfiScan,
@@ -59,18 +55,6 @@ def test_robust_zscores_have_unit_width_on_white_noise() -> None:
     z = robust_zscores(rng.standard_normal((200, 512)), 8)
     assert 0.9 < np.std(z[np.abs(z) < 10]) < 1.25
     assert np.mean(np.abs(z) > 5) < 1e-3
-
-
-def test_a_series_width_flags_white_noise_at_about_the_gaussian_rate() -> None:
-    """In time the width is the series' own: a width from 16 neighbours is noisy enough to
-    pass white noise beyond 5 sigma ~1000x more often than a Gaussian does."""
-    rng = np.random.default_rng(2)
-    x = rng.standard_normal((20000, 192))  # 20000 antenna-pols' band levels, 192 integrations
-    expected = norm.sf(NSIG) * x.size  # ~1.1
-    series = watershed(robust_zscores(x, KT, series_width=True), NSIG, NSIG_ADJACENT)
-    local = watershed(robust_zscores(x, KT), NSIG, NSIG_ADJACENT)
-    assert series.sum() < 20 * expected + 10
-    assert local.sum() > 300 * expected
 
 
 def test_watershed_grows_only_runs_touching_a_strong_sample() -> None:
@@ -256,7 +240,4 @@ def test_injected_rfi_on_real_hera_autos_is_found(data_root) -> None:
     burst[:, :, [5, 17, 30]] *= 1.10
     times = _mask(burst, flags).integrations
     for a, p in np.ndindex(*times.shape[:2]):
-        found = set(np.flatnonzero(times[a, p]).tolist())
-        assert {5, 17, 30} <= found
-        # anything more is the watershed growing a burst into a neighbour above 2 sigma
-        assert all(min(abs(t - b) for b in (5, 17, 30)) == 1 for t in found - {5, 17, 30})
+        assert np.flatnonzero(times[a, p]).tolist() == [5, 17, 30]
