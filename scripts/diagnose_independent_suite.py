@@ -70,6 +70,8 @@ def _step_text(step: dict[str, Any]) -> str:
     basis = f"/{step['time_basis']}" if step.get("time_basis") else ""
     dropped = " [dropped]" if step.get("dropped_in_backward_pass") else ""
     dropped += " [negligible]" if step.get("negligible") else ""
+    if step.get("absorbed_by_unexplained") is not None:
+        dropped += " [part of the unexplained remainder]"
     return (
         f"{step['name']}{basis} dBIC={_fmt(step['statistic'], '.1f')} "
         f"p={_fmt(step['p_value'], '.2g')} c={_fmt(step['overdispersion'], '.3f')} "
@@ -149,6 +151,11 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         for r in rows
         if r["negligible"]
     ]
+    absorbed = [
+        {"case": r["case"]["name"], "hidden": r["hidden"], "absorbed": r.get("absorbed", [])}
+        for r in rows
+        if r.get("absorbed")
+    ]
     return {
         "cases": n,
         "exact": exact,
@@ -160,6 +167,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "cases_with_extras": sum(bool(r["extras"]) for r in rows),
         "unexplained": [r["case"]["name"] for r in rows if r.get("unexplained")],
         "negligible": negligible,
+        "absorbed": absorbed,
         "per_effect": {k: dict(v) for k, v in sorted(per_effect.items())},
         "groups": {k: dict(v) for k, v in sorted(groups.items())},
         "clean_controls": len(clean),
@@ -208,6 +216,9 @@ def markdown(result: dict[str, Any]) -> str:
         f"- 'unexplained' reported: {', '.join(s['unexplained']) or 'none'}",
         "- 'detected, negligible': "
         + (", ".join(f"{x['case']}: {x['negligible']}" for x in s["negligible"]) or "none"),
+        "- fitted but part of the unexplained remainder (negligible, < 10 % of its excess "
+        "chi2; not counted as detected): "
+        + (", ".join(f"{x['case']}: {x['absorbed']}" for x in s.get("absorbed", [])) or "none"),
         "",
         "| group | cases | correct | exact | exact (visible) |",
         "|---|---|---|---|---|",
@@ -281,6 +292,8 @@ def markdown(result: dict[str, Any]) -> str:
         named = ", ".join(r["named"]) or "-"
         if r["negligible"]:
             named += f" (negligible: {', '.join(r['negligible'])})"
+        if r.get("absorbed"):
+            named += f" (part of the remainder: {', '.join(r['absorbed'])})"
         t = r["timings_s"]
         verdict = "yes" if r["exact"] else ("correct" if r["correct"] else "**no**")
         lines.append(

@@ -713,6 +713,7 @@ def _step_row(step: dict[str, Any]) -> dict[str, Any]:
         "gap_before": _gap(step.get("gap_before")),
         "gap_after": _gap(step.get("gap_after")),
         "negligible": step.get("negligible"),
+        "absorbed_by_unexplained": step.get("absorbed_by_unexplained"),
         "product_impact": _impact(step.get("product_impact")),
         "final_negligible": step.get("final_negligible"),
         "final_product_impact": _impact(step.get("final_product_impact")),
@@ -806,6 +807,7 @@ def run_case(
         "strength": strength,
         "named": named,
         "negligible": negligible,
+        "absorbed": list(doc.get("absorbed", [])),
         **score_names(case.hidden, named, negligible, visible),
         "unexplained": None
         if not unexplained

@@ -165,6 +165,10 @@ def _delay_peak(values: np.ndarray, obs: Observation) -> dict[str, float]:
 #: The final model's chi-square may exceed its degrees of freedom by this many standard
 #: deviations (``sqrt(2 dof)``) before the remainder is reported as unexplained.
 UNEXPLAINED_SIGMAS = 5.0
+#: An effect negligible for the products that explains less than this share of the
+#: unexplained remainder's excess chi^2 (``chi2 - dof`` of the final model) is reported as
+#: part of that remainder, not as detected (:attr:`autocal.diagnosis.report.Diagnosis.absorbed`).
+ABSORBED_SHARE = 0.1
 
 
 def describe_unexplained(

@@ -60,6 +60,14 @@ class Diagnosis:
         impact on ``G`` and ``Trxr`` is negligible
         (:func:`~autocal.diagnosis.impact.is_negligible`): reported as "detected,
         negligible", not named among :attr:`effects`; their steps say ``negligible: true``.
+    absorbed
+        Effects that passed the test but are negligible for the products and explain less
+        than :data:`~autocal.diagnosis.gap.ABSORBED_SHARE` of what the final model leaves
+        unexplained (its excess chi^2): structure of that remainder a template happens to
+        follow, not evidence of the effect (a clean day through an independently evaluated
+        HERA beam, chi^2/dof 1.22, had a gain drift, a noise drift and a timing offset
+        "detected" at 2 % of the remainder's excess each). Kept in the fit; listed under
+        ``unexplained["absorbed"]`` with their shares; neither named nor "detected".
     not_tested
         ``{entry: why}``: catalogue entries the search did not test at all on these data
         (e.g. the per-antenna entries above
@@ -87,6 +95,7 @@ class Diagnosis:
     product_change: dict[str, Any] = field(default_factory=dict)
     unexplained: dict[str, Any] | None = None
     negligible: list[str] = field(default_factory=list)
+    absorbed: list[str] = field(default_factory=list)
     not_tested: dict[str, str] = field(default_factory=dict)
     rfi_flagging: dict[str, Any] | None = None
 
@@ -95,6 +104,7 @@ class Diagnosis:
         return {
             "effects": self.effects,
             "negligible": self.negligible,
+            "absorbed": self.absorbed,
             "not_tested": self.not_tested,
             "rfi_flagging": self.rfi_flagging,
             "unexplained": self.unexplained,
@@ -144,6 +154,8 @@ def summary_text(diag: Diagnosis) -> str:
             f"{k} = {v['value']:.5g} +- {v['sigma']:.2g}" for k, v in st["parameters"].items()
         )
         marks = " [negligible]" if st.get("negligible") else ""
+        if "absorbed_by_unexplained" in st:
+            marks = " [negligible; part of the unexplained remainder]"
         if st.get("superseded_by"):
             marks += f" [superseded by {st['superseded_by']}]"
         if st.get("dropped_in_backward_pass"):
@@ -160,6 +172,13 @@ def summary_text(diag: Diagnosis) -> str:
         lines.append(
             "detected, negligible for the calibration products (kept in the fit, not named): "
             + ", ".join(diag.negligible)
+        )
+    if diag.absorbed and diag.unexplained:
+        shares = {a["name"]: a["share"] for a in diag.unexplained.get("absorbed", [])}
+        lines.append(
+            "fitted, but part of the unexplained remainder rather than evidence of the effect "
+            "(each explains little of its excess chi2; negligible for the products): "
+            + ", ".join(f"{n} ({100 * shares.get(n, float('nan')):.1f} %)" for n in diag.absorbed)
         )
     for name, why in diag.not_tested.items():
         lines.append(f"not tested: {name} ({why})")

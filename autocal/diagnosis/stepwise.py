@@ -64,7 +64,7 @@ from autocal.diagnosis.consistency import BandCheck, band_consistency, consisten
 from autocal.diagnosis.effects import Effect, SkyTemplates
 from autocal.diagnosis.errors import DiagnoseError
 from autocal.diagnosis.extended_fit import ExtendedFit, fit_extended, radiometer_weights
-from autocal.diagnosis.gap import describe_unexplained, gap_metrics
+from autocal.diagnosis.gap import ABSORBED_SHARE, describe_unexplained, gap_metrics
 from autocal.diagnosis.impact import product_impact, product_sigmas
 from autocal.diagnosis.normal_equations import MIN_IDENTIFIABLE, blas_single_thread
 from autocal.diagnosis.outliers import (
@@ -599,6 +599,7 @@ def _finish(ctx: SearchContext, state: SearchState) -> None:
     diag.final_gap = gap_metrics(current, state.obs, ctx.tpl, state.bandpass)
     diag.final_fit = current
     diag.unexplained = describe_unexplained(current, state.obs, diag.final_gap)
+    _absorb_into_remainder(diag)
     diag.product_change = product_impact(
         ctx.base_fit,
         current,
@@ -625,3 +626,31 @@ def _finish(ctx: SearchContext, state: SearchState) -> None:
             if "order" in st["parameters"]:
                 final["order"] = st["parameters"]["order"]
         diag.final_parameters[st["name"]] = final
+
+
+def _absorb_into_remainder(diag: Diagnosis) -> None:
+    """Move the negligible effects that follow the unexplained remainder out of "detected".
+
+    With a remainder no catalogue entry explains, a template correlated with it passes the
+    test without the effect being there; one negligible for the products whose Delta chi^2
+    is below :data:`~autocal.diagnosis.gap.ABSORBED_SHARE` of the remainder's excess chi^2
+    goes to :attr:`~autocal.diagnosis.report.Diagnosis.absorbed` (with its share under
+    ``unexplained["absorbed"]``).
+    """
+    if diag.unexplained is None or not diag.negligible:
+        return
+    excess = float(diag.final_gap["chi2"]) - float(diag.final_gap["dof"])
+    if not excess > 0:
+        return
+    absorbed = []
+    for st in diag.steps:
+        name = st["name"]
+        if name in diag.negligible and name not in diag.absorbed:
+            share = float(st["delta"]) / excess
+            if share < ABSORBED_SHARE:
+                diag.negligible.remove(name)
+                diag.absorbed.append(name)
+                st["absorbed_by_unexplained"] = share
+                absorbed.append({"name": name, "delta_chi2": float(st["delta"]), "share": share})
+    if absorbed:
+        diag.unexplained["absorbed"] = absorbed

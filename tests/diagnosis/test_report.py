@@ -164,3 +164,49 @@ def test_entries_not_tested_are_reported_with_the_reason(setup) -> None:
     assert try_feed_gains(SimpleNamespace(), state, entry) is None
     assert "66 antenna-pols" in diag.to_dict()["not_tested"]["antenna_gain_drift"]
     assert "not tested: antenna_gain_drift (66 antenna-pols" in summary_text(diag)
+
+
+def test_weak_negligible_effects_of_an_unexplained_remainder_are_not_detections() -> None:
+    """With an unexplained remainder, an effect negligible for the products that explains
+    less than ABSORBED_SHARE of its excess chi2 is reported as part of the remainder, not as
+    detected; one explaining more stays "detected, negligible"; without a remainder nothing
+    moves."""
+    from autocal.diagnosis.gap import ABSORBED_SHARE
+    from autocal.diagnosis.report import Diagnosis, summary_text
+    from autocal.diagnosis.stepwise import _absorb_into_remainder
+
+    def make(unexplained: bool) -> Diagnosis:
+        gap = {"chi2": 4000.0, "dof": 1000.0, "reduced_chi2": 4.0, "rms_normalised_residual": 2.0}
+        steps = [
+            {
+                "name": name,
+                "parameters": {},
+                "statistic": 20.0,
+                "delta": delta,
+                "negligible": True,
+                "gap_before": gap,
+                "gap_after": gap,
+            }
+            for name, delta in (
+                ("gain_drift", 0.5 * ABSORBED_SHARE * 3000.0),
+                ("noise_drift", 600.0),
+            )
+        ]
+        return Diagnosis(
+            steps=steps,
+            negligible=["gain_drift", "noise_drift"],
+            initial_gap=gap,
+            final_gap=gap,
+            unexplained={"message": "unexplained: chi2/dof 4 remains"} if unexplained else None,
+        )
+
+    diag = make(unexplained=True)
+    _absorb_into_remainder(diag)
+    assert diag.absorbed == ["gain_drift"] and diag.negligible == ["noise_drift"]
+    assert diag.unexplained["absorbed"][0]["share"] == 0.5 * ABSORBED_SHARE
+    assert diag.to_dict()["absorbed"] == ["gain_drift"]
+    text = summary_text(diag)
+    assert "part of the unexplained remainder" in text and "gain_drift (5.0 %)" in text
+    plain = make(unexplained=False)
+    _absorb_into_remainder(plain)
+    assert plain.absorbed == [] and plain.negligible == ["gain_drift", "noise_drift"]
