@@ -538,6 +538,12 @@ class DiagnosisResults(BaseModel):
         description="effects detected but negligible for G and Trxr (kept in the fit, not "
         "named among the effects); their steps carry details.negligible = true",
     )
+    absorbed: list[str] = Field(
+        default_factory=list,
+        description="effects fitted but reported as part of the unexplained remainder "
+        "(negligible for G and Trxr, each explaining < 10 % of the remainder's excess chi2; "
+        "shares under unexplained.absorbed): not evidence of the effect",
+    )
     unexplained: dict[str, Any] | None = Field(
         None,
         description="null when the final model fits within the noise; else the remaining "
