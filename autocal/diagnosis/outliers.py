@@ -117,8 +117,8 @@ def tail_scale(window: int) -> float:
     -------
     float
         Tail width / robust sigma: a threshold of ``k`` sigma is ``k * tail_scale`` robust
-        sigma of the high-passed residuals, flagging clean samples at the Gaussian rate
-        ``2 Phi(-k)``.
+        sigma of the high-passed residuals, flagging clean samples at about the Gaussian
+        rate ``2 Phi(-k)`` (see above).
     """
     if window < 3:
         raise ValueError(f"the running medians need a window of at least 3 samples, not {window}")
