@@ -34,6 +34,9 @@ HEARTBEAT_S = 0.5
 STALE_AFTER_S = 3.0
 #: A job slow enough to be caught running (Tsky at nside 256 without cache: seconds).
 SLOW = {"nside": 256}
+#: How long a worker may take to reach its next checkpoint (a cancellation, a SIGTERM) while
+#: running a SLOW job on a loaded CI machine.
+PATIENCE_S = 180
 
 
 @pytest.fixture(scope="module")
@@ -248,7 +251,7 @@ def test_cancellation_and_graceful_sigterm(service, tiny_uvh5) -> None:
     proc = svc.worker()
     svc.wait(lambda: svc.state(victim["id"]) == "running", 60, "the job to start")
     svc.store.request_cancel(victim["id"])
-    job = svc.wait_state(victim["id"], {"cancelled", "succeeded", "failed"}, 60)
+    job = svc.wait_state(victim["id"], {"cancelled", "succeeded", "failed"}, PATIENCE_S)
     assert job["state"] == "cancelled", (job, svc.logs())
     assert job["completions"] == 0 and job["error"] == "cancelled on request"
 
@@ -257,7 +260,11 @@ def test_cancellation_and_graceful_sigterm(service, tiny_uvh5) -> None:
     interrupted, _ = svc.store.submit(calibrate_config(tiny_uvh5, **SLOW))
     svc.wait(lambda: svc.state(interrupted["id"]) == "running", 60, "the second job to start")
     proc.send_signal(signal.SIGTERM)
-    assert proc.wait(60) == 0, svc.logs()
+    # the next checkpoint can be a minute away on two loaded cores: the job's Tsky at
+    # nside 256 (band-limited from nside 1024; 17 s alone on a quiet core) has none inside
+    # (a liveness bound, not a speed target; a wait of 60 s timed out once in a clean-clone
+    # CI run)
+    assert proc.wait(PATIENCE_S) == 0, svc.logs()
     job = svc.store.get(interrupted["id"])
     assert job["state"] == "queued" and job["worker"] is None, (job, svc.logs())
     assert job["releases"] == 1 and job["completions"] == 0, (job, svc.logs())
@@ -278,7 +285,7 @@ def test_three_graceful_restarts_never_fail_a_healthy_job(service, tiny_uvh5) ->
             f"attempt {k} to run",
         )
         proc.send_signal(signum)
-        assert proc.wait(60) == 0, svc.logs()
+        assert proc.wait(PATIENCE_S) == 0, svc.logs()
         rec = svc.store.get(job["id"])  # handed back at once, not after the stale timeout
         assert rec["state"] == "queued" and rec["worker"] is None, (rec, svc.logs())
         assert rec["releases"] == k and rec["completions"] == 0
