@@ -1,6 +1,6 @@
 """Flagging narrow-band and impulsive outliers (RFI) in the residuals of a fit.
 
-:func:`flag_outliers` high-passes a fit's normalised residuals in time and in frequency by
+:func:`find_outliers` high-passes a fit's normalised residuals in time and in frequency by
 running medians (:func:`running_median`) and flags what deviates by many sigma of their
 clean-data tails (:func:`tail_scale`); the search
 (:func:`autocal.diagnosis.stepwise.diagnose`) flags on its final model's residuals and
@@ -72,7 +72,7 @@ def running_median(x: np.ndarray, window: int, axis: int) -> np.ndarray:
     return p[4]
 
 
-#: Integrations and channels of the running medians of :func:`flag_outliers`.
+#: Integrations and channels of the running medians of :func:`find_outliers`.
 OUTLIER_WINDOW = 9
 #: White Gaussian samples (time x frequency) from which :func:`tail_scale` reads the null
 #: distribution of the high-passed residuals, and the two-sided tail probability at which
@@ -105,8 +105,9 @@ def tail_scale(window: int) -> float:
     :data:`NULL_TAIL_PROBABILITY` of :data:`NULL_SHAPE` samples of white noise (fixed seed;
     computed once per window). They are somewhat heavier farther out: white noise exceeds
     ``k`` sigma at 1.1-1.5 x the Gaussian rate for ``k`` = 3.5-4.5
-    (``tests/diagnosis/test_outliers.py``), ~3x at 6 sigma and ~10x at 8 sigma (a
-    conditional Monte Carlo of an extreme sample; see :data:`TAIL_EXCESS`).
+    (``tests/diagnosis/test_outliers.py``) and at 2.0x for ``k`` = 5 (80 of 71 M white
+    samples, 41 expected), and the excess keeps growing with ``k`` (an extreme sample minus
+    its neighbours' medians: estimated ~3x at 6 sigma; see :data:`TAIL_EXCESS`).
 
     Parameters
     ----------
@@ -130,8 +131,9 @@ def tail_scale(window: int) -> float:
 
 
 #: Clean residuals exceed a threshold of the filtered values at up to this many times the
-#: Gaussian rate at the default 6 sigma (~1.1x at 4 sigma, ~1.6x at 5, ~3x at 6: the tails
-#: are somewhat heavier than the Gaussian of :func:`tail_scale`'s width) ...
+#: Gaussian rate at the default 6 sigma (~1.1x at 4 sigma and 2x at 5, measured; ~3x at 6,
+#: estimated: the tails are somewhat heavier than the Gaussian of :func:`tail_scale`'s
+#: width) ...
 TAIL_EXCESS = 3.0
 #: ... and a round's new outliers count as noise up to this Poisson quantile of that
 #: expectation (:func:`noise_outlier_limit`), if none deviates by more than
@@ -162,7 +164,7 @@ def model_residual_pieces(
 
     ``(R - model) sqrt(dnu dt N) / model``: the radiometer normalisation of the fit's own
     model, so that samples the fit did not use (flagged by an earlier round of
-    :func:`flag_outliers`) get residuals too. NaN where ``flags`` is set, the data are not
+    :func:`find_outliers`) get residuals too. NaN where ``flags`` is set, the data are not
     finite or the channel has no ``(G, n)`` solution.
     """
     src = fit.source
@@ -193,26 +195,6 @@ class OutlierRound:
 
     flags: np.ndarray
     peak_sigma: float
-
-
-def flag_outliers(
-    obs: Observation,
-    fit: ExtendedFit,
-    *,
-    threshold: float = 6.0,
-    window: int = OUTLIER_WINDOW,
-    max_fraction: float = 0.5,
-    base_flags: np.ndarray | None = None,
-) -> np.ndarray:
-    """Return :func:`find_outliers`'s flags (same parameters)."""
-    return find_outliers(
-        obs,
-        fit,
-        threshold=threshold,
-        window=window,
-        max_fraction=max_fraction,
-        base_flags=base_flags,
-    ).flags
 
 
 def find_outliers(

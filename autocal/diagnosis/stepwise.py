@@ -171,7 +171,7 @@ def diagnose(
     # outliers are judged on the residuals of the *final* model, so that structure an
     # effect explains is never mistaken for RFI; then the search is repeated without them.
     # The flags accumulate over the rounds. Recomputed from the data's own flags on each
-    # round's model instead (flag_outliers(base_flags=...)), JD 2458116 ended with 1.5 %
+    # round's model instead (find_outliers(base_flags=...)), JD 2458116 ended with 1.5 %
     # flagged instead of 2.1 %, chi2/dof 6629 at the start of the last search and an absurd
     # noise drift accepted: a round's bad model can unflag RFI
     while flag_rfi and rounds < OUTLIER_ROUNDS and diag.final_fit is not None:

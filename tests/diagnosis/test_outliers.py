@@ -13,7 +13,7 @@ from autocal.diagnosis.extended_fit import fit_extended, radiometer_weights
 from autocal.diagnosis.outliers import (
     NOISE_MAX_SIGMA,
     OUTLIER_WINDOW,
-    flag_outliers,
+    find_outliers,
     high_pass,
     noise_outlier_limit,
     running_median,
@@ -51,9 +51,9 @@ def test_outlier_flags_are_recomputed_not_accumulated(setup):
     flagged_before = dataclasses.replace(spiked, flags=earlier)
     w = radiometer_weights(flagged_before, fit)
     refit = fit_extended(flagged_before, tpl, [], weights=w)
-    accumulated = flag_outliers(flagged_before, refit)
+    accumulated = find_outliers(flagged_before, refit).flags
     assert accumulated[0, 0, 30, 40] and accumulated[0, 0, 10, 20]
-    recomputed = flag_outliers(flagged_before, refit, base_flags=own)
+    recomputed = find_outliers(flagged_before, refit, base_flags=own).flags
     assert recomputed[0, 0, 10, 20]
     assert not recomputed[0, 0, 30, 40]
     assert not np.any(recomputed & ~accumulated)
@@ -96,7 +96,7 @@ def test_clean_residuals_are_not_flagged(setup) -> None:
     )
     w = radiometer_weights(clean, clean.data)
     fit = fit_extended(clean, tpl, [], weights=w)
-    flags = flag_outliers(clean, fit, threshold=4.0)
+    flags = find_outliers(clean, fit, threshold=4.0).flags
     expected = 2 * norm.sf(4.0) * flags.size
     assert flags.sum() < 3 * expected + 3
 
@@ -131,6 +131,6 @@ def test_bad_outlier_settings_are_refused(setup) -> None:
     obs, tpl = setup
     fit = fit_extended(obs, tpl, [], weights=radiometer_weights(obs, obs.data))
     with pytest.raises(ValueError, match="positive number of sigma"):
-        flag_outliers(obs, fit, threshold=0.0)
+        find_outliers(obs, fit, threshold=0.0)
     with pytest.raises(ValueError, match="at least 3"):
-        flag_outliers(obs, fit, window=1)
+        find_outliers(obs, fit, window=1)
