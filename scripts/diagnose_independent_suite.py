@@ -156,6 +156,15 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         for r in rows
         if r.get("absorbed")
     ]
+    indistinguishable = [
+        {
+            "case": r["case"]["name"],
+            "hidden": r["hidden"],
+            "candidates": list(r["indistinguishable"]["candidates"]),
+        }
+        for r in rows
+        if r.get("indistinguishable")
+    ]
     return {
         "cases": n,
         "exact": exact,
@@ -168,6 +177,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "unexplained": [r["case"]["name"] for r in rows if r.get("unexplained")],
         "negligible": negligible,
         "absorbed": absorbed,
+        "indistinguishable": indistinguishable,
         "per_effect": {k: dict(v) for k, v in sorted(per_effect.items())},
         "groups": {k: dict(v) for k, v in sorted(groups.items())},
         "clean_controls": len(clean),
@@ -219,6 +229,12 @@ def markdown(result: dict[str, Any]) -> str:
         "- fitted but part of the unexplained remainder (negligible, < 10 % of its excess "
         "chi2; not counted as detected): "
         + (", ".join(f"{x['case']}: {x['absorbed']}" for x in s.get("absorbed", [])) or "none"),
+        "- indistinguishable (the search stopped: entries of the receiver and of the forward "
+        "model explain a residual within the decisive margin; none named): "
+        + (
+            ", ".join(f"{x['case']}: {x['candidates']}" for x in s.get("indistinguishable", []))
+            or "none"
+        ),
         "",
         "| group | cases | correct | exact | exact (visible) |",
         "|---|---|---|---|---|",
@@ -294,6 +310,8 @@ def markdown(result: dict[str, Any]) -> str:
             named += f" (negligible: {', '.join(r['negligible'])})"
         if r.get("absorbed"):
             named += f" (part of the remainder: {', '.join(r['absorbed'])})"
+        if r.get("indistinguishable"):
+            named += f" (indistinguishable: {', '.join(r['indistinguishable']['candidates'])})"
         t = r["timings_s"]
         verdict = "yes" if r["exact"] else ("correct" if r["correct"] else "**no**")
         lines.append(

@@ -544,6 +544,13 @@ class DiagnosisResults(BaseModel):
         "(negligible for G and Trxr, each explaining < 10 % of the remainder's excess chi2; "
         "shares under unexplained.absorbed): not evidence of the effect",
     )
+    indistinguishable: dict[str, Any] | None = Field(
+        None,
+        description="null, or the step at which the search stopped because an entry of the "
+        "receiver and one of the forward model explain a residual within "
+        "config.decisive_margin of each other (Delta BIC): candidates {name: Delta BIC}, "
+        "each one's product_impact and a message; none of them is named",
+    )
     unexplained: dict[str, Any] | None = Field(
         None,
         description="null when the final model fits within the noise; else the remaining "

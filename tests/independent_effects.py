@@ -808,6 +808,9 @@ def run_case(
         "named": named,
         "negligible": negligible,
         "absorbed": list(doc.get("absorbed", [])),
+        "indistinguishable": None
+        if not doc.get("indistinguishable")
+        else {k: doc["indistinguishable"][k] for k in ("step", "candidates", "message")},
         **score_names(case.hidden, named, negligible, visible),
         "unexplained": None
         if not unexplained

@@ -21,6 +21,7 @@ from autocal.diagnosis.effects import Effect, SkyTemplates
 from autocal.diagnosis.errors import DiagnoseError
 from autocal.diagnosis.extended_fit import ExtendedFit, fit_extended
 from autocal.diagnosis.normal_equations import MIN_IDENTIFIABLE
+from autocal.diagnosis.search_state import SearchContext, SearchState
 from autocal.diagnosis.trials import ModelTrial, Trial
 
 logger = logging.getLogger(__name__)
@@ -213,6 +214,19 @@ def band_consistency(
         elif partner is not None:
             out = dataclasses.replace(out, message=f"{out.message} (fitted with {partner.name})")
     return out
+
+
+def check_trial(ctx: SearchContext, state: SearchState, trial: ModelTrial) -> BandCheck | None:
+    """Return :func:`band_consistency` of a step's trial on the search's current model."""
+    return band_consistency(
+        state.obs,
+        ctx.tpl,
+        state.active,
+        trial.effect,
+        trial.free_fit,
+        state.weights,
+        ctx.prior_kw,
+    )
 
 
 def _compare_halves(

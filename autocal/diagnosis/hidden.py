@@ -400,6 +400,9 @@ def run_case(
         "steps": [
             {k: st[k] for k in ("name", "parameters", "statistic", "p_value")} for st in diag.steps
         ],
+        "indistinguishable": None
+        if diag.indistinguishable is None
+        else {k: diag.indistinguishable[k] for k in ("step", "candidates", "message")},
     }
 
 

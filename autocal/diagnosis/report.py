@@ -68,6 +68,17 @@ class Diagnosis:
         HERA beam, chi^2/dof 1.22, had a gain drift, a noise drift and a timing offset
         "detected" at 2 % of the remainder's excess each). Kept in the fit; listed under
         ``unexplained["absorbed"]`` with their shares; neither named nor "detected".
+    indistinguishable
+        ``None``, or the step at which the search stopped because an entry of the other
+        domain (receiver against forward model, :func:`~autocal.diagnosis.rivals.domain`)
+        that passes the same tests explains the residual about as well as the best
+        (``Delta BIC`` within :data:`~autocal.diagnosis.rivals.DECISIVE_MARGIN`): the
+        candidates
+        with their statistics, what each would change in the products, and a message
+        (:func:`~autocal.diagnosis.rivals.indistinguishable_record`). None of them is
+        named (half an hour through an independently evaluated HERA beam left a linear
+        trend that a noise drift, a clock offset and a missing CMB explained within
+        Delta BIC 3.6 of each other).
     not_tested
         ``{entry: why}``: catalogue entries the search did not test at all on these data
         (e.g. the per-antenna entries above
@@ -96,6 +107,7 @@ class Diagnosis:
     unexplained: dict[str, Any] | None = None
     negligible: list[str] = field(default_factory=list)
     absorbed: list[str] = field(default_factory=list)
+    indistinguishable: dict[str, Any] | None = None
     not_tested: dict[str, str] = field(default_factory=dict)
     rfi_flagging: dict[str, Any] | None = None
 
@@ -105,6 +117,7 @@ class Diagnosis:
             "effects": self.effects,
             "negligible": self.negligible,
             "absorbed": self.absorbed,
+            "indistinguishable": self.indistinguishable,
             "not_tested": self.not_tested,
             "rfi_flagging": self.rfi_flagging,
             "unexplained": self.unexplained,
@@ -145,9 +158,9 @@ def summary_text(diag: Diagnosis) -> str:
         *_flagging_lines(diag),
         "",
     ]
-    if not diag.steps and not diag.unexplained:
+    if not diag.steps and not diag.unexplained and not diag.indistinguishable:
         lines.append("no significant effect found: the model is consistent with the data")
-    elif not diag.steps:
+    elif not diag.steps and not diag.indistinguishable:
         lines.append("no catalogue entry explains the gap (see 'unexplained' below)")
     for i, st in enumerate(diag.steps, 1):
         pars = ", ".join(
@@ -166,6 +179,12 @@ def summary_text(diag: Diagnosis) -> str:
             f"Delta chi2 = {st['delta']:.1f}; chi2/dof {st['gap_before']['reduced_chi2']:.4f} "
             f"-> {st['gap_after']['reduced_chi2']:.4f}"
         )
+        if st.get("close_alternatives"):
+            lines.append(
+                "  nearly as good (Delta BIC within "
+                f"{diag.config.get('decisive_margin')} of it; the same domain): "
+                + ", ".join(f"{n} ({v:.1f})" for n, v in st["close_alternatives"].items())
+            )
         if st.get("product_impact"):
             lines.append("  " + _impact_text(st["product_impact"]))
     if diag.negligible:
@@ -180,6 +199,8 @@ def summary_text(diag: Diagnosis) -> str:
             "(each explains little of its excess chi2; negligible for the products): "
             + ", ".join(f"{n} ({100 * shares.get(n, float('nan')):.1f} %)" for n in diag.absorbed)
         )
+    if diag.indistinguishable:
+        lines.append(diag.indistinguishable["message"])
     for name, why in diag.not_tested.items():
         lines.append(f"not tested: {name} ({why})")
     rej = diag.config.get("last_rejected")

@@ -26,7 +26,12 @@ are plausible. Fits start from the current model's values, and a model stuck in 
 minimum is refitted from a candidate's better one. An effect that barely moves the
 products (:func:`autocal.diagnosis.impact.is_negligible`) is kept in the model and reported
 "detected, negligible"; what no entry explains is described
-(:func:`autocal.diagnosis.gap.describe_unexplained`), not named. ``antenna_gain_jitter``
+(:func:`autocal.diagnosis.gap.describe_unexplained`), not named; and when another entry
+passing the same tests explains the residual about as well as the best (within
+:data:`autocal.diagnosis.rivals.DECISIVE_MARGIN`) and blames the other domain (receiver
+against forward model), the search stops there and reports the step as
+indistinguishable, naming neither (a rival of the same domain is listed with the best as
+a close alternative). ``antenna_gain_jitter``
 (every antenna-pol its own series) is fitted feed by feed against the common
 ``gain_jitter``, and ``antenna_gain_drift`` likewise (:mod:`autocal.diagnosis.feeds`).
 
@@ -60,7 +65,7 @@ from autocal.diagnosis.bandpass import auto_smooth_order, fit_cable_reflection
 from autocal.diagnosis.candidate_fits import MAX_RESTARTS, escape_local_minimum, try_candidates
 from autocal.diagnosis.catalogue import catalogue
 from autocal.diagnosis.chunks import antenna_chunks, is_large
-from autocal.diagnosis.consistency import BandCheck, band_consistency, consistent_with_partner
+from autocal.diagnosis.consistency import BandCheck, check_trial, consistent_with_partner
 from autocal.diagnosis.effects import Effect, SkyTemplates
 from autocal.diagnosis.errors import DiagnoseError
 from autocal.diagnosis.extended_fit import ExtendedFit, fit_extended, radiometer_weights
@@ -75,6 +80,12 @@ from autocal.diagnosis.outliers import (
     tail_scale,
 )
 from autocal.diagnosis.report import Diagnosis, residual_snapshot
+from autocal.diagnosis.rivals import (
+    DECISIVE_MARGIN,
+    domain,
+    find_rivals,
+    indistinguishable_record,
+)
 from autocal.diagnosis.screening import StepScreen
 from autocal.diagnosis.search_state import SearchContext, SearchSettings, SearchState
 from autocal.diagnosis.trials import ALPHA, BIC_THRESHOLD, ModelTrial, Trial
@@ -283,6 +294,7 @@ def _search_config(
         "cable_reflection: chi2 of fitted G(nu) vs smooth bandpass, N = Nfreq)",
         "bic_threshold": settings.bic_threshold,
         "alpha": settings.alpha,
+        "decisive_margin": DECISIVE_MARGIN,
         "trxr_prior_K": None if trxr_prior is None else _describe_values(trxr_prior),
         "trxr_prior_sigma_K": None if trxr_prior is None else _describe_values(trxr_prior_sigma),
         "smooth_bandpass_order": settings.smooth_order,
@@ -386,8 +398,15 @@ def _search_step(ctx: SearchContext, state: SearchState, step: int) -> bool:
             "candidates": report,
         }
         return False
+    rivals = find_rivals(ctx, state, best, trials)
+    if any(domain(r.effect) != domain(best.effect) for r in rivals):
+        assert isinstance(best, ModelTrial)  # find_rivals returns none otherwise
+        diag.indistinguishable = indistinguishable_record(ctx, state, step, best, rivals)
+        return False
     accepted = accept(ctx, state, best, step)
     _record_step(diag, best, pval, accepted, check, report)
+    if rivals:
+        diag.steps[-1]["close_alternatives"] = {r.effect.name: float(r.statistic) for r in rivals}
     if accepted.extra.get("negligible"):
         diag.negligible.append(name)
         logger.info("step %d: %s detected, negligible for the products", step + 1, name)
@@ -519,15 +538,7 @@ def _best_consistent(
         best = trial
         if not isinstance(trial, ModelTrial):
             break  # a bandpass or per-antenna trial: no band split
-        check = band_consistency(
-            state.obs,
-            ctx.tpl,
-            state.active,
-            trial.effect,
-            trial.free_fit,
-            state.weights,
-            ctx.prior_kw,
-        )
+        check = check_trial(ctx, state, trial)
         if check is not None and not check.consistent:
             check = consistent_with_partner(
                 state.obs,

@@ -1,0 +1,152 @@
+"""Which entries the data cannot tell from the step's best (:mod:`autocal.diagnosis.rivals`).
+
+The rule on synthetic trials (the band-consistency check replaced by a stand-in); its effect
+on data autocal did not make is in ``test_diagnose_independent.py`` (a clean half hour
+through the HERA beam) and on autocal's own suite in ``test_hidden.py``.
+"""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+from typing import Any
+
+import pytest
+
+from autocal.diagnosis import rivals
+from autocal.diagnosis.catalogue import catalogue
+from autocal.diagnosis.report import Diagnosis, summary_text
+from autocal.diagnosis.trials import BandpassTrial, ModelTrial
+
+ENTRIES = {e.name: e for e in catalogue(include_timing=True, ntime=100, nfeeds=2)}
+NDATA = 10_000
+
+
+def trial(name: str, statistic: float, k: int = 1) -> ModelTrial:
+    """A trial whose Delta chi2 gives ``statistic`` as Delta BIC (c = 1)."""
+    delta = statistic + k * math.log(NDATA)
+    return ModelTrial(
+        effect=ENTRIES[name],
+        delta_chi2=delta,
+        k=k,
+        overdispersion=1.0,
+        statistic=statistic,
+        fit=SimpleNamespace(),
+        free_fit=SimpleNamespace(),
+        adopted=ENTRIES[name],
+    )
+
+
+@pytest.fixture
+def search(monkeypatch: pytest.MonkeyPatch) -> tuple[Any, Any, set[str]]:
+    """A context and state; band_consistency says 'inconsistent' for names in the set."""
+    inconsistent: set[str] = set()
+
+    def check(ctx: Any, state: Any, trial: Any) -> Any:
+        if trial.effect.name in inconsistent:
+            return SimpleNamespace(consistent=False)
+        return None  # no verdict
+
+    monkeypatch.setattr(rivals, "check_trial", check)
+    ctx = SimpleNamespace(
+        settings=SimpleNamespace(bic_threshold=10.0, alpha=1e-4), tpl=None, prior_kw={}
+    )
+    state = SimpleNamespace(obs=None, active=[], weights=None)
+    return ctx, state, inconsistent
+
+
+def test_rivals_are_the_passing_entries_within_the_margin(search: Any) -> None:
+    """Within DECISIVE_MARGIN and passing: rivals; further behind, or not significant: not."""
+    ctx, state, _ = search
+    m = rivals.DECISIVE_MARGIN
+    best = trial("noise_drift", 142.0)
+    trials = [
+        best,
+        trial("timing_offset", 142.0 - 0.5 * m),
+        trial("sky_scale", 142.0 - 0.99 * m),
+        trial("gain_drift", 142.0 - 1.01 * m),
+        trial("ground_temperature", 20.0),
+    ]
+    got = rivals.find_rivals(ctx, state, best, trials)
+    assert [t.effect.name for t in got] == ["timing_offset", "sky_scale"]
+    # a best barely above the threshold: a rival below it does not pass the test
+    weak = trial("noise_drift", 12.0)
+    assert rivals.find_rivals(ctx, state, weak, [weak, trial("timing_offset", 9.0)]) == []
+
+
+def test_nested_inconsistent_and_earlier_trials_are_not_rivals(search: Any) -> None:
+    """missing_cmb is sky_offset at T_offset = -2.725 K: not a rival; nor one whose band
+    halves disagree, nor a trial ranked above the best (it failed the band check)."""
+    ctx, state, inconsistent = search
+    inconsistent.add("sky_scale")
+    failed = trial("beam_width", 300.0)
+    best = trial("missing_cmb", 100.0, k=0)
+    trials = [failed, best, trial("sky_offset", 99.0), trial("sky_scale", 98.0)]
+    assert rivals.find_rivals(ctx, state, best, trials) == []
+    inconsistent.clear()
+    got = rivals.find_rivals(ctx, state, best, trials)
+    assert [t.effect.name for t in got] == ["sky_scale"]
+
+
+def test_a_bandpass_winner_has_no_rivals(search: Any) -> None:
+    """A reflection is ranked on the bandpass (N = Nfreq): not compared with time entries."""
+    ctx, state, _ = search
+    best = BandpassTrial(
+        effect=ENTRIES["cable_reflection"],
+        delta_chi2=100.0,
+        k=3,
+        overdispersion=1.0,
+        statistic=80.0,
+        ripple=SimpleNamespace(),
+    )
+    assert rivals.find_rivals(ctx, state, best, [best, trial("gain_drift", 79.0)]) == []
+
+
+def test_domains_split_receiver_from_forward_model() -> None:
+    """Gains, noise and the bandpass are the receiver's; sky, ground, beam, timing not."""
+    receiver = {n for n, e in ENTRIES.items() if rivals.domain(e) == "receiver"}
+    assert receiver == {
+        "gain_jitter",
+        "gain_drift",
+        "noise_drift",
+        "antenna_gain_jitter",
+        "antenna_gain_drift",
+        "cable_reflection",
+    }
+    assert rivals.domain(ENTRIES["timing_offset"]) == "forward model"
+    assert rivals.domain(ENTRIES["beam_width"]) == "forward model"
+
+
+def test_summary_states_indistinguishable_steps_and_close_alternatives() -> None:
+    """The summary says which entries tie and that none is named; a named step lists its
+    close alternatives of the same domain."""
+    gap = {"reduced_chi2": 1.0, "rms_normalised_residual": 1.0}
+    diag = Diagnosis(
+        initial_gap=gap,
+        final_gap=gap,
+        config={"decisive_margin": rivals.DECISIVE_MARGIN},
+        indistinguishable={"message": "step 1: indistinguishable: ... none is named"},
+    )
+    text = summary_text(diag)
+    assert "none is named" in text and "consistent with the data" not in text
+    assert diag.to_dict()["indistinguishable"]["message"].startswith("step 1")
+    diag = Diagnosis(
+        initial_gap=gap,
+        final_gap=gap,
+        config={"decisive_margin": rivals.DECISIVE_MARGIN},
+        effects=["missing_cmb"],
+        steps=[
+            {
+                "name": "missing_cmb",
+                "parameters": {},
+                "statistic": 20026.9,
+                "delta": 20026.9,
+                "gap_before": gap,
+                "gap_after": gap,
+                "close_alternatives": {"sky_scale": 20023.6},
+            }
+        ],
+    )
+    assert "nearly as good (Delta BIC within 6.0 of it; the same domain): sky_scale" in (
+        summary_text(diag)
+    )
