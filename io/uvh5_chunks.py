@@ -46,6 +46,10 @@ class ReadStats:
         Bytes of the largest single array read from a data set (bounded by the block).
     checksum_bytes
         Bytes read to compute the files' SHA-256 (provenance).
+    blocks_from_memory
+        Blocks served from memory instead of the files (not counted in ``blocks``): a
+        calibration keeps a small observation's decoded blocks between its reads
+        (:mod:`autocal.pipeline.decoded`).
     """
 
     files: int = 0
@@ -57,6 +61,7 @@ class ReadStats:
     bytes_reused: int = 0
     largest_array: int = 0
     checksum_bytes: int = 0
+    blocks_from_memory: int = 0
 
     def add(self, other: ReadStats) -> None:
         """Add another reader's counters to these (``largest_array``: the maximum)."""

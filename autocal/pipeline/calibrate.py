@@ -24,6 +24,7 @@ import logging
 import os
 import time
 from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -46,6 +47,7 @@ from autocal.io.miriad import read_miriad
 from autocal.io.uvh5 import read_uvh5
 from autocal.io.uvh5_integrity import input_integrity
 from autocal.pipeline.config import CalibrationConfig, PipelineError, Progress, read_selection
+from autocal.pipeline.decoded import BYTES_PER_SAMPLE, keep_decoded
 from autocal.pipeline.flagging import mark_flag_reasons, scan_flags
 from autocal.pipeline.passes import PassesResult, solution_of, sum_passes
 from autocal.pipeline.products import (
@@ -162,6 +164,21 @@ def run_calibration(
         return _calibrate(config, folder, progress, should_stop, executor, block_size, observation)
 
 
+def _decoded_blocks(
+    config: CalibrationConfig, source: Source, pols: tuple[str, ...], executor: Any
+) -> AbstractContextManager[Any]:
+    """Keep the decoded blocks between this process's reads of a small UVH5 observation.
+
+    (:mod:`autocal.pipeline.decoded`: when the whole selection fits its budget; never
+    with reader processes or Dask, whose reads are elsewhere.)
+    """
+    if executor is not None or source.kind != "uvh5":
+        return nullcontext()
+    nant = len(source.antenna_numbers(config.antennas))
+    samples = nant * len(pols) * source.lsts.size * source.freqs.size
+    return keep_decoded(samples * BYTES_PER_SAMPLE)
+
+
 def _reader_count(config: CalibrationConfig, readers: int | None) -> int:
     """Return the reader processes of a run of ``config.inputs`` (1: in this process)."""
     paths = [Path(p).expanduser().absolute() for p in config.inputs]
@@ -202,27 +219,28 @@ def _calibrate(
     tsky_all, tsky_meta = tsky_per_pol(config.sky, config, source, pols, epoch)
     timings["tsky_s"] = time.perf_counter() - t1
 
-    t_flag = time.perf_counter()
-    mask, flagging = scan_flags(config, source, tsky_all, block_size, report, executor)
-    timings["flagging_s"] = time.perf_counter() - t_flag
-    model = FitModel.for_lsts(
-        source.lsts, config.model, 0 if config.model == "constant" else config.order
-    )
-    t2 = time.perf_counter()
-    run = sum_passes(
-        config,
-        source,
-        pols,
-        tsky_all,
-        model,
-        report,
-        progress,
-        should_stop,
-        executor,
-        block_size,
-        mask,
-    )
-    timings["fit_s"] = time.perf_counter() - t2
+    with _decoded_blocks(config, source, pols, executor):  # the reads after the first
+        t_flag = time.perf_counter()
+        mask, flagging = scan_flags(config, source, tsky_all, block_size, report, executor)
+        timings["flagging_s"] = time.perf_counter() - t_flag
+        model = FitModel.for_lsts(
+            source.lsts, config.model, 0 if config.model == "constant" else config.order
+        )
+        t2 = time.perf_counter()
+        run = sum_passes(
+            config,
+            source,
+            pols,
+            tsky_all,
+            model,
+            report,
+            progress,
+            should_stop,
+            executor,
+            block_size,
+            mask,
+        )
+        timings["fit_s"] = time.perf_counter() - t2
 
     scaling = covariance_scaling(config.weights, config.inflate_errors)
     prior_fn = _prior_term(prior, source, run, pols, scaling)

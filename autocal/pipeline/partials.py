@@ -26,6 +26,7 @@ from autocal.fit.sums import NormalSums, accumulate
 from autocal.io.uvh5_blocks import iter_uvh5_blocks
 from autocal.io.uvh5_chunks import ReadStats
 from autocal.pipeline.config import PipelineError
+from autocal.pipeline.decoded import cached_blocks
 from autocal.pipeline.rfi import RfiMask
 
 #: Whether the block reader runs ahead of its caller in background threads
@@ -207,6 +208,9 @@ def read_chunks(
 ) -> Iterator[Observation]:
     """Return a task's data: its file block by block, or its in-memory observation at once.
 
+    Inside :func:`autocal.pipeline.decoded.keep_decoded`, a file read before with the same
+    selection and block size is replayed from memory.
+
     Parameters
     ----------
     selection
@@ -223,14 +227,20 @@ def read_chunks(
         if selection.get("antennas") is not None:
             obs = obs.select(antennas=selection["antennas"])
         return iter([obs])
-    return iter_uvh5_blocks(  # each block is used up before the next is asked for
-        task.file,
-        **selection,
-        block_size=block_size,
-        stats=stats,
-        reuse_buffers=True,
-        prefetch=READ_AHEAD,
-    )
+    stats = stats if stats is not None else ReadStats()
+
+    def read() -> Iterator[Observation]:
+        return iter_uvh5_blocks(  # each block is used up before the next is asked for
+            task.file,
+            **selection,
+            block_size=block_size,
+            stats=stats,
+            reuse_buffers=True,
+            prefetch=READ_AHEAD,
+        )
+
+    key = (str(getattr(task.file, "path", task.file)), repr(sorted(selection.items())), block_size)
+    return cached_blocks(key, read, stats)
 
 
 @dataclass

@@ -25,6 +25,7 @@ from autocal.io.uvh5_meta import scan_uvh5
 from autocal.io.uvh5_writer import UVH5AutosWriter
 from autocal.pipeline.calibrate import run_calibration
 from autocal.pipeline.config import CalibrationConfig, PipelineError, read_selection
+from autocal.pipeline.decoded import BUDGET_ENV
 from autocal.pipeline.partials import PartialSpec, compute_partial
 from autocal.pipeline.passes import PassesResult
 from autocal.pipeline.products import waterfall_residuals
@@ -157,7 +158,9 @@ def test_data_are_read_once_and_the_waterfall_needs_no_second_read(
     monkeypatch.setattr(
         autocal.pipeline.passes, "MAX_WATERFALL_ROWS", 10
     )  # 36 integrations -> bins
-    # the fit's own passes; flagging before the fit reads the data twice more (off here)
+    # the fit's own passes; flagging before the fit reads the data twice more (off here);
+    # streamed: no decoded blocks kept between reads (autocal.pipeline.decoded)
+    monkeypatch.setenv(BUDGET_ENV, "0")
     config = _config(night, products=["hdf5", "png"], rfi_flagging=False)
     result = run_calibration(config, tmp_path / "out", block_size=4)
     execution = result.summary["execution"]
@@ -180,6 +183,16 @@ def test_data_are_read_once_and_the_waterfall_needs_no_second_read(
     assert twice.summary["execution"]["io"]["bytes_read"] == pytest.approx(
         2 * io["bytes_read"], rel=0.01
     )
+    # unless the observation fits in memory: then the second pass replays the first's blocks
+    monkeypatch.setenv(BUDGET_ENV, "1")
+    kept = run_calibration(
+        _config(night, passes=2, rfi_flagging=False), tmp_path / "kept", block_size=4
+    )
+    kept_io = kept.summary["execution"]["io"]
+    assert kept_io["bytes_read"] == io["bytes_read"] and kept_io["files"] == 3
+    assert kept_io["blocks_from_memory"] == kept_io["blocks"] == io["blocks"]
+    for name in ("coeffs", "cov", "chi2", "count"):
+        np.testing.assert_array_equal(getattr(kept.solution, name), getattr(twice.solution, name))
 
 
 def test_waterfall_rows_are_the_normalised_residuals(night, tmp_path) -> None:
@@ -223,6 +236,7 @@ def test_waterfall_rows_are_the_normalised_residuals(night, tmp_path) -> None:
 
 def test_dask_local_cluster_equals_serial_bit_for_bit(night, tmp_path, monkeypatch) -> None:
     monkeypatch.setattr(autocal.pipeline.scaleout, "LOCAL_PROCESSES", False)  # threads: quick
+    monkeypatch.setenv(BUDGET_ENV, "0")  # the serial run decodes every read, as Dask does
     serial = run_calibration(_config(night), tmp_path / "serial", block_size=5)
     dask = run_calibration(
         _config(night), tmp_path / "dask", block_size=5, dask_scheduler="local", dask_workers=2
@@ -287,7 +301,8 @@ def test_cli_dask_options(night, tmp_path, capsys, monkeypatch) -> None:
     capsys.readouterr()
     assert main([*base, "--block-size", "7"]) == 0
     summary = json.loads((tmp_path / "cli" / "summary.json").read_text())
-    assert summary["execution"]["block_size"] == 7 and summary["execution"]["io"]["blocks"] == 6
+    io = summary["execution"]["io"]  # the fit's blocks replay the flagging's first read
+    assert summary["execution"]["block_size"] == 7 and io["blocks"] + io["blocks_from_memory"] == 6
 
 
 def test_local_workers_start_without_the_nannys_malloc_trim_setting(monkeypatch, caplog) -> None:

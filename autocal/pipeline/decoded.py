@@ -1,0 +1,224 @@
+"""An observation's decoded blocks, kept between its reads when they fit in memory.
+
+A calibration reads its UVH5 files more than once: the flagging's two scans (the time-mean
+spectra, then the outliers given them; :mod:`autocal.pipeline.flagging`) and the fit's
+pass(es) (:mod:`autocal.pipeline.passes`), and HDF5 decoding is the largest single cost of
+each read. When the whole observation, decoded, fits in :func:`budget_bytes`, the first read
+keeps every block in a compact and lossless form and the later reads replay it:
+
+* the auto power as ``float32`` when every value is one (the autos are stored as
+  ``complex64`` in UVH5, so their real part always is), else ``float64``;
+* the flags as they were yielded (the data's own flags and its non-finite samples);
+* ``nsamples`` as one number when uniform in the block (HERA's are), else ``float32`` or
+  ``float64`` likewise.
+
+A replayed block is the block the reader yielded, bit for bit (same values, flags,
+integrations and metadata), so the flags and the solution do not depend on whether the
+cache was used (``tests/pipeline/test_decoded.py``). It holds 5 bytes per sample (1.03 GB
+for a whole HERA file of 350 antennas x 2 pols x 1536 channels x 192 integrations),
+against the 16 of the two float64 arrays the reader yields. Reads in reader processes or on
+Dask never use it; nor does an observation larger than the budget (a night is streamed, file
+by file, as before).
+
+Usage: :func:`keep_decoded` around the reads (``autocal.pipeline.calibrate`` does); the
+block reader of the pipeline (:func:`autocal.pipeline.partials.read_chunks`) calls
+:func:`cached_blocks`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+from collections.abc import Callable, Iterator
+from contextlib import closing, contextmanager
+from contextvars import ContextVar
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from autocal.core.observation import Observation
+from autocal.io.uvh5_chunks import ReadStats
+from autocal.pipeline.config import PipelineError
+
+logger = logging.getLogger(__name__)
+
+#: Environment variable: the most memory (GB) the decoded blocks may take; ``0`` turns the
+#: cache off.
+BUDGET_ENV = "AUTOCAL_DECODED_CACHE_GB"
+#: Default budget (GB): a whole HERA file (1.03 GB) with room for a smaller selection's
+#: overhead.
+DEFAULT_BUDGET_GB = 1.5
+#: Bytes a sample takes in the cache: float32 power and a flag.
+BYTES_PER_SAMPLE = 5
+
+_BIG = ("data", "flags", "nsamples")
+_ACTIVE: ContextVar[DecodedBlocks | None] = ContextVar("autocal_decoded_blocks", default=None)
+
+
+def budget_bytes() -> int:
+    """Return the cache's budget in bytes (:data:`BUDGET_ENV`, default :data:`DEFAULT_BUDGET_GB`).
+
+    Raises
+    ------
+    PipelineError
+        When the variable is not a number >= 0.
+    """
+    raw = os.environ.get(BUDGET_ENV, "").strip()
+    try:
+        gb = DEFAULT_BUDGET_GB if not raw else float(raw)
+    except ValueError:
+        gb = float("nan")
+    if not gb >= 0:
+        raise PipelineError(
+            f"{BUDGET_ENV}={raw!r} is not a size in GB >= 0 (e.g. 1.5; 0 turns the cache off)"
+        )
+    return int(gb * 2**30)
+
+
+def _compact(values: np.ndarray) -> np.ndarray | float:
+    """Return ``values`` as one number, float32 or float64, whichever holds them exactly."""
+    first = values.flat[0]
+    if np.all(values == first) and np.isfinite(first):
+        return float(first)
+    small = values.astype(np.float32)
+    if np.array_equal(small, values, equal_nan=True):
+        return small
+    return values.copy()
+
+
+@dataclass(frozen=True)
+class _Block:
+    """One block, compact: its big arrays and the rest of its fields."""
+
+    data: np.ndarray | float
+    flags: np.ndarray
+    nsamples: np.ndarray | float
+    shape: tuple[int, ...]
+    fields: dict[str, Any]
+
+    @classmethod
+    def of(cls, obs: Observation) -> _Block:
+        rest = {
+            f.name: _owned(getattr(obs, f.name))
+            for f in dataclasses.fields(obs)
+            if f.name not in _BIG
+        }
+        return cls(_compact(obs.data), obs.flags.copy(), _compact(obs.nsamples), obs.shape, rest)
+
+    def observation(self) -> Observation:
+        """Return the block as the reader yielded it."""
+        return Observation(
+            data=_full(self.data, self.shape),
+            flags=self.flags,
+            nsamples=_full(self.nsamples, self.shape),
+            **self.fields,
+        )
+
+    @property
+    def nbytes(self) -> int:
+        return sum(int(getattr(a, "nbytes", 0)) for a in (self.data, self.flags, self.nsamples))
+
+
+def _owned(value: Any) -> Any:
+    """Return a copy of an array (the reader may reuse its buffers), other values as they are."""
+    if isinstance(value, np.ndarray):
+        return value.copy()
+    if isinstance(value, dict):
+        return {k: _owned(v) for k, v in value.items()}
+    return value
+
+
+def _full(value: np.ndarray | float, shape: tuple[int, ...]) -> np.ndarray:
+    if isinstance(value, np.ndarray):
+        return value.astype(np.float64)
+    return np.full(shape, value)
+
+
+@dataclass
+class DecodedBlocks:
+    """The blocks kept so far, per read (file and selection), within a budget of bytes.
+
+    Attributes
+    ----------
+    budget
+        Bytes the blocks may take in all.
+    reads
+        ``{key: blocks}`` of the reads kept whole.
+    used
+        Bytes they take.
+    replayed
+        Blocks served from memory so far.
+    """
+
+    budget: int
+    reads: dict[tuple[Any, ...], list[_Block]] = field(default_factory=dict)
+    used: int = 0
+    replayed: int = 0
+
+    def blocks(
+        self, key: tuple[Any, ...], read: Callable[[], Iterator[Observation]], stats: ReadStats
+    ) -> Iterator[Observation]:
+        """Yield the read's blocks: replayed when kept, else read (and kept if they fit)."""
+        kept = self.reads.get(key)
+        if kept is not None:
+            for block in kept:
+                self.replayed += 1
+                stats.blocks_from_memory += 1
+                yield block.observation()
+            return
+        new: list[_Block] | None = []
+        size = 0
+        with closing(read()) as blocks:  # closed at once if the caller stops early
+            for obs in blocks:
+                if new is not None:
+                    block = _Block.of(obs)
+                    size += block.nbytes
+                    if self.used + size <= self.budget:
+                        new.append(block)
+                    else:  # larger than expected: stream it, keep nothing
+                        logger.info("decoded blocks exceed the budget; later reads decode again")
+                        new = None
+                yield obs
+        if new is not None:  # read to the end: keep it
+            self.reads[key] = new
+            self.used += size
+
+
+@contextmanager
+def keep_decoded(expected_bytes: int) -> Iterator[DecodedBlocks | None]:
+    """Keep the decoded blocks of the reads inside the block when they fit.
+
+    Parameters
+    ----------
+    expected_bytes
+        The observation's size in the cache (:data:`BYTES_PER_SAMPLE` per sample).
+
+    Yields
+    ------
+    DecodedBlocks or None
+        The cache, or ``None`` (not used) when ``expected_bytes`` exceeds
+        :func:`budget_bytes`.
+    """
+    budget = budget_bytes()
+    if expected_bytes > budget or budget == 0:
+        yield None
+        return
+    cache = DecodedBlocks(budget)
+    token = _ACTIVE.set(cache)
+    try:
+        yield cache
+    finally:
+        _ACTIVE.reset(token)
+        logger.debug(
+            "decoded blocks: %.2f GB kept, %d blocks replayed", cache.used / 2**30, cache.replayed
+        )
+
+
+def cached_blocks(
+    key: tuple[Any, ...], read: Callable[[], Iterator[Observation]], stats: ReadStats
+) -> Iterator[Observation]:
+    """Return the read's blocks through the active cache, or ``read()`` without one."""
+    cache = _ACTIVE.get()
+    return read() if cache is None else cache.blocks(key, read, stats)
