@@ -81,3 +81,42 @@ def uncentre_cov_into(covc: np.ndarray, c: float, cov: np.ndarray) -> None:
     for j in range(m):
         for k in range(nb):
             cov[j, nb + k] = cov[j, nb + k] - c * cov[j, k]
+
+
+@numba.njit(cache=True)
+def _quadratic_forms_into(v: np.ndarray, a: np.ndarray, out: np.ndarray) -> None:
+    n, m = v.shape
+    nb = m // 2
+    ac = np.empty((m, m))
+    vc = np.empty(m)
+    for i in range(n):
+        c = a[i, 0, nb] / a[i, nb, nb] if a[i, nb, nb] != 0.0 else 0.0
+        if not np.isfinite(c):
+            c = 0.0
+        centre_with_into(a[i], c, ac)
+        for k in range(nb):
+            vc[k] = v[i, k]
+            vc[nb + k] = minus_product(v[i, nb + k], -c, v[i, k])
+        total = 0.0
+        for r in range(m):
+            row = 0.0
+            for j in range(m):
+                row += ac[r, j] * vc[j]
+            total += vc[r] * row
+        out[i] = total
+
+
+def quadratic_forms(v: np.ndarray, ata: np.ndarray) -> np.ndarray:
+    """Return ``v^T A v`` of ``(..., M)`` vectors and ``(..., M, M)`` matrices, sky-centred.
+
+    :func:`autocal.fit.centring.quadratic_form` one system at a time into scratch arrays
+    (the numpy function forms every centred matrix at once: ~5 copies of ``ata``, 0.68 GB
+    for the drift model of a whole HERA file); the same frame and products, the sums in
+    another order, so equal to rounding.
+    """
+    m = v.shape[-1]
+    flat_v = np.ascontiguousarray(v, dtype=np.float64).reshape(-1, m)
+    flat_a = np.ascontiguousarray(ata, dtype=np.float64).reshape(-1, m, m)
+    out = np.empty(flat_v.shape[0])
+    _quadratic_forms_into(flat_v, flat_a, out)
+    return out.reshape(v.shape[:-1])

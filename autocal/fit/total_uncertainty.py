@@ -102,7 +102,7 @@ from autocal.fit.blocks import (
     extended_model,
     subtract_sums,
 )
-from autocal.fit.centring import centre, minus_product, quadratic_form, sky_mean
+from autocal.fit.centring import centre, minus_product, sky_mean
 from autocal.fit.model import FitModel, mean_vectors
 from autocal.fit.separation import (
     WEAK_SENSITIVITY,
@@ -472,17 +472,19 @@ def _chi2_drop(
 
     ``dx^T A_ext dx`` (``dx``: the extended solution less the fitted one embedded) rather
     than a difference of two chi2 that are each a small difference of large sums. Evaluated
-    in the sky-centred frame (:func:`autocal.fit.centring.quadratic_form`): ``dx`` lies near
+    in the sky-centred frame (:func:`autocal.fit.centring_kernel.quadratic_forms`): ``dx`` lies near
     the null direction of ``A_ext`` on a short span, where the plain quadratic form keeps
     only ~6 digits (errors up to ~1 in statistics of ~1e3 on 10-minute HERA files). NaN
     where either solution is not finite: without the fitted solution (e.g. a non-positive
     gain) the extended one's extra coefficients alone are no chi2 drop.
     """
+    from autocal.fit.centring_kernel import quadratic_forms  # numba, imported when needed
+
     embedded = np.zeros_like(ext_coeffs)
     embedded[..., base_index(model)] = coeffs
     dx = ext_coeffs - embedded
     finite = np.all(np.isfinite(dx), axis=-1)
-    return np.where(finite, quadratic_form(np.where(finite[..., None], dx, 0.0), ext_ata), np.nan)
+    return np.where(finite, quadratic_forms(np.where(finite[..., None], dx, 0.0), ext_ata), np.nan)
 
 
 def positive_gain(theta: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -169,10 +169,12 @@ def _decoded_blocks(
 ) -> AbstractContextManager[Any]:
     """Keep the decoded blocks between this process's reads of a small UVH5 observation.
 
-    (:mod:`autocal.pipeline.decoded`: when the whole selection fits its budget; never
-    with reader processes or Dask, whose reads are elsewhere.)
+    (:mod:`autocal.pipeline.decoded`: when the whole selection fits its budget and a later
+    read is certain, i.e. with the flagging or two passes; never with reader processes or
+    Dask, whose reads are elsewhere.)
     """
-    if executor is not None or source.kind != "uvh5":
+    rereads = config.rfi_flagging or config.passes == 2
+    if executor is not None or source.kind != "uvh5" or not rereads:
         return nullcontext()
     nant = len(source.antenna_numbers(config.antennas))
     samples = nant * len(pols) * source.lsts.size * source.freqs.size

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from autocal.fit.centring import centre, minus_product, quadratic_form, sky_mean
+from autocal.fit.centring_kernel import quadratic_forms
 from autocal.fit.model import FitModel
 from autocal.fit.solve import solve_sums, solve_sums_numpy
 from autocal.fit.sums import NormalSums, accumulate
@@ -135,3 +136,18 @@ def test_the_quadratic_form_of_a_near_null_vector_keeps_its_digits() -> None:
             for j in range(4)
         )
         assert quadratic_form(v, a[ch]) == pytest.approx(float(exact), rel=1e-9)
+        assert quadratic_forms(v[None], a[ch][None])[0] == pytest.approx(float(exact), rel=1e-9)
+
+
+def test_the_compiled_quadratic_forms_equal_numpys() -> None:
+    """One system at a time (compiled) or all at once (numpy): the same to rounding, for
+    random vectors, any leading shape, and systems without a sky mean (c = 0)."""
+    sums = _ten_minutes(np.geomspace(4e-4, 9e-4, 6))
+    a = sums.ata
+    rng = np.random.default_rng(5)
+    v = rng.standard_normal(a.shape[:-1])
+    a = a.copy()
+    a[0, 0, 0, 2, 2] = 0.0  # A[nb, nb] = 0: no change of frame, as numpy's sky_mean gives
+    got = quadratic_forms(v, a)
+    assert got.shape == a.shape[:-2]
+    np.testing.assert_allclose(got, quadratic_form(v, a), rtol=1e-12, atol=0)
