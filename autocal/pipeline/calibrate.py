@@ -221,10 +221,12 @@ def _calibrate(
     tsky_all, tsky_meta = tsky_per_pol(config.sky, config, source, pols, epoch)
     timings["tsky_s"] = time.perf_counter() - t1
 
-    with _decoded_blocks(config, source, pols, executor):  # the reads after the first
+    with _decoded_blocks(config, source, pols, executor) as decoded:  # reads after the first
         t_flag = time.perf_counter()
         mask, flagging = scan_flags(config, source, tsky_all, block_size, report, executor)
         timings["flagging_s"] = time.perf_counter() - t_flag
+        if decoded is not None and config.passes != 2:  # the fit's read is likely the last
+            decoded.final_read()
         model = FitModel.for_lsts(
             source.lsts, config.model, 0 if config.model == "constant" else config.order
         )

@@ -20,8 +20,10 @@ against the 16 of the two float64 arrays the reader yields. Reads in reader proc
 Dask never use it; nor does an observation larger than the budget (a night is streamed, file
 by file, as before).
 
-Usage: :func:`keep_decoded` around the reads (``autocal.pipeline.calibrate`` does); the
-block reader of the pipeline (:func:`autocal.pipeline.partials.read_chunks`) calls
+Usage: :func:`keep_decoded` around the reads (``autocal.pipeline.calibrate`` does, and
+calls :meth:`DecodedBlocks.final_read` before a fit of one pass, whose read then releases
+the blocks as it replays them: the memory goes back while the fit's own grows); the block
+reader of the pipeline (:func:`autocal.pipeline.partials.read_chunks`) calls
 :func:`cached_blocks`.
 """
 
@@ -30,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import closing, contextmanager
 from contextvars import ContextVar
@@ -121,6 +124,12 @@ class _Block:
         return sum(int(getattr(a, "nbytes", 0)) for a in (self.data, self.flags, self.nsamples))
 
 
+def _drain(queue: deque[_Block]) -> Iterator[_Block]:
+    """Yield the blocks, each removed from ``queue`` first (so it is freed once used)."""
+    while queue:
+        yield queue.popleft()
+
+
 def _owned(value: Any) -> Any:
     """Return a copy of an array (the reader may reuse its buffers), other values as they are."""
     if isinstance(value, np.ndarray):
@@ -156,17 +165,31 @@ class DecodedBlocks:
     reads: dict[tuple[Any, ...], list[_Block]] = field(default_factory=dict)
     used: int = 0
     replayed: int = 0
+    last_read: bool = False
 
     def blocks(
         self, key: tuple[Any, ...], read: Callable[[], Iterator[Observation]], stats: ReadStats
     ) -> Iterator[Observation]:
-        """Yield the read's blocks: replayed when kept, else read (and kept if they fit)."""
-        kept = self.reads.get(key)
+        """Yield the read's blocks: replayed when kept, else read (and kept if they fit).
+
+        After :meth:`final_read`, a kept read is replayed once, each block released as it
+        is yielded, and nothing new is kept.
+        """
+        kept = self.reads.pop(key, None) if self.last_read else self.reads.get(key)
         if kept is not None:
-            for block in kept:
+            # on the last read the list is used up as it goes: each block freed once yielded
+            queue = deque(kept) if self.last_read else None
+            if queue is not None:
+                kept.clear()  # the queue holds the only references
+            for block in kept if queue is None else _drain(queue):
+                if queue is not None:
+                    self.used -= block.nbytes
                 self.replayed += 1
                 stats.blocks_from_memory += 1
                 yield block.observation()
+            return
+        if self.last_read:
+            yield from read()
             return
         new: list[_Block] | None = []
         size = 0
@@ -184,6 +207,10 @@ class DecodedBlocks:
         if new is not None:  # read to the end: keep it
             self.reads[key] = new
             self.used += size
+
+    def final_read(self) -> None:
+        """Say that the next read of each file is its last: replay it once, keep nothing."""
+        self.last_read = True
 
 
 @contextmanager

@@ -149,3 +149,28 @@ def test_calibration_is_the_same_with_and_without_the_cache(
                 assert _equal(np.asarray(x), np.asarray(y)), name
                 compared += 1
         assert compared > 5
+
+
+@pytest.mark.data
+def test_the_last_read_releases_the_blocks_as_it_replays_them(data_root: Path) -> None:
+    """After final_read the kept read is replayed once (the same blocks), its memory given
+    back block by block; a read not kept is decoded and not kept."""
+    path = data_root / HERA_116[0]
+    stats = ReadStats()
+
+    def read() -> object:
+        return iter_uvh5_blocks(path, block_size=5, stats=stats)
+
+    cache = decoded.DecodedBlocks(budget=2**30)
+    first = [b.data.copy() for b in cache.blocks(("k",), read, stats)]
+    full = cache.used
+    cache.final_read()
+    used = []
+    for want, block in zip(first, cache.blocks(("k",), read, stats), strict=True):
+        np.testing.assert_array_equal(block.data, want)
+        used.append(cache.used)
+    assert used == sorted(used, reverse=True) and used[0] < full and cache.used == 0
+    assert cache.reads == {} and stats.blocks_from_memory == len(first)
+    decoded_before = stats.blocks
+    assert len(list(cache.blocks(("k",), read, stats))) == len(first)  # decoded again
+    assert stats.blocks == decoded_before + len(first) and cache.reads == {}
