@@ -81,10 +81,13 @@ def budget_bytes() -> int:
 
 
 def _compact(values: np.ndarray) -> np.ndarray | float:
-    """Return ``values`` as one number, float32 or float64, whichever holds them exactly."""
-    first = values.flat[0]
-    if np.all(values == first) and np.isfinite(first):
-        return float(first)
+    """Return ``values`` as one number, float32 or float64, whichever holds them exactly.
+
+    One number only when every value has the same bits (a ``-0.0`` among zeros is kept).
+    """
+    bits = values.view(np.uint64) if values.dtype == np.float64 else None
+    if bits is not None and np.all(bits == bits.flat[0]) and np.isfinite(values.flat[0]):
+        return float(values.flat[0])
     small = values.astype(np.float32)
     if np.array_equal(small, values, equal_nan=True):
         return small

@@ -96,6 +96,24 @@ def test_over_budget_or_stopped_reads_are_not_kept(data_root: Path) -> None:
     assert cache.reads == {}
 
 
+def test_compact_forms_hold_the_values_exactly() -> None:
+    """One number only for identical bits; float32 when exact; else float64."""
+    ones = np.ones((2, 3))
+    assert decoded._compact(ones) == 1.0
+    signed = np.zeros(4)
+    signed[1] = -0.0
+    kept = decoded._compact(signed)
+    assert isinstance(kept, np.ndarray) and np.signbit(kept[1]) and not np.signbit(kept[0])
+    single = np.array([0.1, 0.2], np.float32).astype(np.float64)
+    assert decoded._compact(single).dtype == np.float32
+    double = np.array([0.1, 0.2])
+    assert decoded._compact(double).dtype == np.float64
+    for value in (ones, signed, single, double):
+        back = decoded._full(decoded._compact(value), value.shape)
+        assert back.dtype == np.float64
+        np.testing.assert_array_equal(back.view(np.uint64), value.view(np.uint64))
+
+
 def test_budget_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
     """The budget is read in GB; 0 turns the cache off; nonsense is refused with advice."""
     monkeypatch.delenv(decoded.BUDGET_ENV, raising=False)
