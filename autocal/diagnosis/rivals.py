@@ -83,6 +83,8 @@ def find_rivals(
             break
         if not isinstance(trial, ModelTrial) or trial.effect.name == best.effect.name:
             continue
+        if any(t.effect.name == trial.effect.name for t in out):
+            continue  # another variant (order, basis) of an entry already a rival: its best
         if frozenset({trial.effect.name, best.effect.name}) in NESTED:
             continue
         if not trial.passes(settings.bic_threshold, settings.alpha):

@@ -117,6 +117,8 @@ def quadratic_forms(v: np.ndarray, ata: np.ndarray) -> np.ndarray:
     m = v.shape[-1]
     flat_v = np.ascontiguousarray(v, dtype=np.float64).reshape(-1, m)
     flat_a = np.ascontiguousarray(ata, dtype=np.float64).reshape(-1, m, m)
+    if flat_a.shape != (flat_v.shape[0], m, m):
+        raise ValueError(f"{v.shape} vectors and {ata.shape} matrices do not match")
     out = np.empty(flat_v.shape[0])
     _quadratic_forms_into(flat_v, flat_a, out)
     return out.reshape(v.shape[:-1])

@@ -13,7 +13,8 @@ keeps every block in a compact and lossless form and the later reads replay it:
   ``float64`` likewise.
 
 A replayed block is the block the reader yielded, bit for bit (same values, flags,
-integrations and metadata), so the flags and the solution do not depend on whether the
+integrations and metadata; only the payload bits of a NaN, a sample flagged as non-finite,
+may differ), so the flags and the solution do not depend on whether the
 cache was used (``tests/pipeline/test_decoded.py``). It holds 5 bytes per sample (1.03 GB
 for a whole HERA file of 350 antennas x 2 pols x 1536 channels x 192 integrations),
 against the 16 of the two float64 arrays the reader yields. Reads in reader processes or on
@@ -21,8 +22,10 @@ Dask never use it; nor does an observation larger than the budget (a night is st
 by file, as before).
 
 Usage: :func:`keep_decoded` around the reads (``autocal.pipeline.calibrate`` does, and
-calls :meth:`DecodedBlocks.final_read` before a fit of one pass, whose read then releases
-the blocks as it replays them: the memory goes back while the fit's own grows); the block
+calls :meth:`DecodedBlocks.final_read` after the flagging unless two passes are asked for:
+the fit's first read then releases the blocks as it replays them, so that the memory goes
+back while the fit's own grows; a second pass that ``passes="auto"`` decides on decodes the
+files again); the block
 reader of the pipeline (:func:`autocal.pipeline.partials.read_chunks`) calls
 :func:`cached_blocks`.
 """
@@ -31,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import os
 from collections import deque
 from collections.abc import Callable, Iterator
@@ -73,7 +77,7 @@ def budget_bytes() -> int:
         gb = DEFAULT_BUDGET_GB if not raw else float(raw)
     except ValueError:
         gb = float("nan")
-    if not gb >= 0:
+    if not (math.isfinite(gb) and gb >= 0):
         raise PipelineError(
             f"{BUDGET_ENV}={raw!r} is not a size in GB >= 0 (e.g. 1.5; 0 turns the cache off)"
         )
@@ -162,6 +166,9 @@ class DecodedBlocks:
         Bytes they take.
     replayed
         Blocks served from memory so far.
+    last_read
+        Set by :meth:`final_read`: kept reads are replayed once and released, nothing new
+        is kept.
     """
 
     budget: int
@@ -184,12 +191,15 @@ class DecodedBlocks:
             queue = deque(kept) if self.last_read else None
             if queue is not None:
                 kept.clear()  # the queue holds the only references
-            for block in kept if queue is None else _drain(queue):
-                if queue is not None:
-                    self.used -= block.nbytes
-                self.replayed += 1
-                stats.blocks_from_memory += 1
-                yield block.observation()
+            try:
+                for block in kept if queue is None else _drain(queue):
+                    if queue is not None:
+                        self.used -= block.nbytes
+                    self.replayed += 1
+                    stats.blocks_from_memory += 1
+                    yield block.observation()
+            finally:  # left early on the last read: the rest is freed too
+                self.used -= sum(b.nbytes for b in queue or ())
             return
         if self.last_read:
             yield from read()

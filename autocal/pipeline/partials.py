@@ -239,8 +239,14 @@ def read_chunks(
             prefetch=READ_AHEAD,
         )
 
-    key = (str(getattr(task.file, "path", task.file)), repr(sorted(selection.items())), block_size)
+    key = (str(getattr(task.file, "path", task.file)), _canonical(selection), block_size)
     return cached_blocks(key, read, stats)
+
+
+def _canonical(selection: dict[str, Any]) -> str:
+    """Return the selection as text that two equal selections share (arrays in full)."""
+    items = ((k, None if v is None else np.asarray(v).tolist()) for k, v in selection.items())
+    return repr(sorted(items))
 
 
 @dataclass

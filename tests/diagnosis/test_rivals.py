@@ -150,3 +150,40 @@ def test_summary_states_indistinguishable_steps_and_close_alternatives() -> None
     assert "nearly as good (Delta BIC within 6.0 of it; the same domain): sky_scale" in (
         summary_text(diag)
     )
+
+
+def test_the_search_stops_on_a_rival_of_the_other_domain_only(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A receiver winner with a forward-model rival: the step is indistinguishable, nothing
+    accepted; with a rival of its own domain: accepted, the rival a close alternative."""
+    from autocal.diagnosis import stepwise
+    from autocal.diagnosis.acceptance import AcceptedStep
+
+    gap = {"reduced_chi2": 1.0}
+    accepted: list[str] = []
+
+    def accept(ctx: Any, state: Any, trial: Any, step: int) -> AcceptedStep:
+        accepted.append(trial.effect.name)
+        return AcceptedStep(parameters={}, gap_before=gap, gap_after=gap, extra={})
+
+    def run(best: ModelTrial, rival: ModelTrial) -> Diagnosis:
+        diag = Diagnosis(config={"failed_candidates": {}})
+        state = SimpleNamespace(diag=diag, feed_accepted=set())
+        monkeypatch.setattr(stepwise, "_fit_candidates", lambda c, s, k: [best, rival])
+        monkeypatch.setattr(stepwise, "_best_consistent", lambda c, s, t, k: (best, None))
+        monkeypatch.setattr(stepwise, "find_rivals", lambda c, s, b, t: [rival])
+        monkeypatch.setattr(
+            stepwise, "indistinguishable_record", lambda c, s, k, b, r: {"step": k + 1}
+        )
+        monkeypatch.setattr(stepwise, "accept", accept)
+        ctx = SimpleNamespace(settings=SimpleNamespace(bic_threshold=10.0, alpha=1e-4))
+        stepwise._search_step(ctx, state, 0)
+        return diag
+
+    diag = run(trial("noise_drift", 142.0), trial("timing_offset", 139.0))
+    assert diag.indistinguishable == {"step": 1} and accepted == [] and diag.effects == []
+    diag = run(trial("missing_cmb", 100.0, k=0), trial("sky_scale", 97.0))
+    assert accepted == ["missing_cmb"] and diag.effects == ["missing_cmb"]
+    assert diag.indistinguishable is None
+    assert diag.steps[0]["close_alternatives"] == {"sky_scale": 97.0}

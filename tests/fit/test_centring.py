@@ -148,6 +148,13 @@ def test_the_compiled_quadratic_forms_equal_numpys() -> None:
     v = rng.standard_normal(a.shape[:-1])
     a = a.copy()
     a[0, 0, 0, 2, 2] = 0.0  # A[nb, nb] = 0: no change of frame, as numpy's sky_mean gives
+    a[0, 0, 1, 2, 2] = np.nan  # a non-finite sky mean: no change of frame either
+    a[0, 0, 1, 0, 2] = np.inf
     got = quadratic_forms(v, a)
     assert got.shape == a.shape[:-2]
-    np.testing.assert_allclose(got, quadratic_form(v, a), rtol=1e-12, atol=0)
+    want = quadratic_form(v, a)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=0, equal_nan=True)
+    assert np.isnan(got[0, 0, 1]) == np.isnan(want[0, 0, 1])
+    np.testing.assert_allclose(quadratic_forms(v[0, 0], a[0, 0]), want[0, 0], rtol=1e-12)
+    with pytest.raises(ValueError, match="do not match"):
+        quadratic_forms(v[:, :, :2], a)

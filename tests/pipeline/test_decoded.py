@@ -126,7 +126,7 @@ def test_budget_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
         assert cache is None  # the observation does not fit
     with decoded.keep_decoded(2**20) as cache:
         assert cache is not None and cache.budget == 2**29
-    for bad in ("lots", "-1", "nan"):
+    for bad in ("lots", "-1", "nan", "inf", "1e400"):
         monkeypatch.setenv(decoded.BUDGET_ENV, bad)
         with pytest.raises(PipelineError, match="size in GB"):
             decoded.budget_bytes()
