@@ -169,9 +169,9 @@ def _decoded_blocks(
 ) -> AbstractContextManager[Any]:
     """Keep the decoded blocks between this process's reads of a small UVH5 observation.
 
-    (:mod:`autocal.pipeline.decoded`: when the whole selection fits its budget and a later
-    read is certain, i.e. with the flagging or two passes; never with reader processes or
-    Dask, whose reads are elsewhere.)
+    :mod:`autocal.pipeline.decoded`, when the whole selection fits its budget and a later
+    read is certain (the flagging, or two passes); never with reader processes or Dask,
+    whose reads are elsewhere.
     """
     rereads = config.rfi_flagging or config.passes == 2
     if executor is not None or source.kind != "uvh5" or not rereads:

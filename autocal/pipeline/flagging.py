@@ -1,7 +1,8 @@
 """The flagging stage of a calibration: band edges and RFI found before the fit.
 
 :func:`scan_flags` reads the observation twice, block by block (the time-mean spectra,
-then the outliers given them), and returns the
+then the outliers given them; a small observation is decoded once, the later reads replaying
+its blocks, :mod:`autocal.pipeline.decoded`), and returns the
 :class:`~autocal.pipeline.rfi.RfiMask` that every pass then ORs into each block's flags
 (:meth:`autocal.pipeline.partials._FileSums.add`), so flagged samples never enter the normal
 sums. :func:`mark_flag_reasons` tells, in the solution's ``flag_reason``, the channels that had
