@@ -280,8 +280,9 @@ class Worker:
         """Stop claiming jobs, hand the current job back and abort it at its next checkpoint.
 
         The job is re-queued at once (:meth:`JobStore.release`; the attempt is not
-        counted). From a signal handler, call it in a new thread (``threading.Event.set``
-        takes a lock the interrupted thread may hold; the release queries the store).
+        counted). Never call it from a signal handler: it takes locks and queries the
+        store, which the interrupted thread may hold (:func:`autocal.service.shutdown.
+        stop_on_signals` calls it from a watcher thread).
         """
         self.stop_event.set()
         run = self.current

@@ -4,10 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
-import threading
 import time
-from types import FrameType
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -65,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the command."""
     from autocal.cli.args import CliError
     from autocal.service.settings import get_settings
+    from autocal.service.shutdown import stop_on_signals
     from autocal.service.worker import Worker
 
     if args.poll <= 0:
@@ -74,20 +72,7 @@ def run(args: argparse.Namespace) -> int:
     settings = get_settings()
     worker = Worker(store=_open_store(settings), settings=settings, worker_id=args.worker_id)
 
-    def on_signal(signum: int, _frame: FrameType | None) -> None:
-        if worker.stopping:
-            raise SystemExit(128 + signum)
-        logger.warning(
-            "worker %s: %s received; stopping after the current checkpoint",
-            worker.worker_id,
-            signal.Signals(signum).name,
-        )
-        # Event.set() takes a lock the interrupted main thread may hold: set it from
-        # another thread so the handler never deadlocks.
-        threading.Thread(target=worker.request_stop, name="stop", daemon=True).start()
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
+    stop_on_signals(worker)  # SIGTERM/SIGINT: hand the job back, stop at a checkpoint
     worker.maybe_recover(force=True)
     worker.maybe_sweep(force=True)  # the janitor: leftovers of killed processes
     if args.once:
