@@ -15,8 +15,16 @@ This module imports nothing, so any module may import it.
 
 from __future__ import annotations
 
-__all__ = ["AutocalError"]
+__all__ = ["AutocalError", "RunCancelledError"]
 
 
 class AutocalError(ValueError):
     """An error the user can fix: bad input, options or files; the message says how."""
+
+
+class RunCancelledError(AutocalError):
+    """The run was asked to stop (a cancelled job, a worker shutting down).
+
+    Raised at a checkpoint (:func:`autocal.core.stopping.checkpoint`) once the run's
+    ``should_stop`` returns ``True``; nothing half-written is left behind.
+    """

@@ -20,6 +20,7 @@ import healpy as hp
 import numpy as np
 from astropy.time import Time
 
+from autocal.core.stopping import checkpoint
 from autocal.errors import AutocalError
 
 J2000 = "J2000"
@@ -219,4 +220,8 @@ def resample_galactic_to_equatorial(
     vec_eq = np.array(hp.pix2vec(nside_out, np.arange(hp.nside2npix(nside_out))))
     vec_gal = rotation.T @ vec_eq
     theta, phi = hp.vec2ang(vec_gal.T)
-    return np.array([hp.get_interp_val(m, theta, phi) for m in maps])
+    out = np.empty((maps.shape[0], theta.size))
+    for i, m in enumerate(maps):
+        checkpoint("rotating a sky map")
+        out[i] = hp.get_interp_val(m, theta, phi)
+    return out

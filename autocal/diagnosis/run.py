@@ -47,6 +47,7 @@ from autocal.core.coords import night_epoch
 from autocal.core.files import publish_staged
 from autocal.core.memory import available_memory
 from autocal.core.observation import Observation
+from autocal.core.stopping import stop_when
 from autocal.diagnosis import effects, report
 from autocal.diagnosis.effects import SkyTemplates
 from autocal.diagnosis.errors import DiagnoseError
@@ -54,9 +55,10 @@ from autocal.diagnosis.reading import read_observation
 from autocal.diagnosis.report import Diagnosis
 from autocal.diagnosis.stepwise import diagnose
 from autocal.diagnosis.trials import ALPHA, BIC_THRESHOLD
+from autocal.errors import RunCancelledError
 from autocal.fit.priors import parse_trxr_prior
 from autocal.io.uvh5_integrity import input_integrity
-from autocal.pipeline.config import PipelineError, check_prior_spec, check_ranges
+from autocal.pipeline.config import check_prior_spec, check_ranges
 from autocal.pipeline.flagging import TURNED_OFF, flag_observation
 from autocal.plots import file_stems
 
@@ -286,8 +288,8 @@ def run_diagnosis(
         Called with (fraction done, message) at each stage.
     should_stop
         Polled between stages and before every model fit of the search; returning
-        ``True`` aborts with :class:`autocal.pipeline.calibrate.PipelineError` ``"cancelled"`` (the
-        service's cancellation) and publishes nothing.
+        ``True`` aborts with :class:`autocal.errors.RunCancelledError` (the service's cancellation
+        or shutdown) and publishes nothing.
 
     Returns
     -------
@@ -299,14 +301,24 @@ def run_diagnosis(
     autocal.diagnosis.errors.DiagnoseError
         Missing inputs, folders instead of UVH5 files, polarisations without a beam, or
         data the diagnosis cannot fit.
-    autocal.pipeline.calibrate.PipelineError
+    autocal.errors.RunCancelledError
         When cancelled.
     """
+    with stop_when(should_stop):  # the checkpoints inside the stages (Tsky) see it too
+        return _run_diagnosis(config, Path(out), progress, should_stop)
+
+
+def _run_diagnosis(
+    config: DiagnoseConfig,
+    out: Path,
+    progress: Progress | None,
+    should_stop: Callable[[], bool] | None,
+) -> Path:
 
     def check_stop() -> None:
         if should_stop is not None and should_stop():
             logger.info("diagnosis cancelled")
-            raise PipelineError("cancelled")
+            raise RunCancelledError("cancelled")
 
     def advance(fraction: float, message: str) -> None:
         logger.info("%3.0f%% %s", 100 * fraction, message)

@@ -35,6 +35,8 @@ from autocal import __version__
 from autocal.core.coords import night_epoch
 from autocal.core.observation import Observation
 from autocal.core.reprs import compact_repr
+from autocal.core.stopping import stop_when
+from autocal.errors import RunCancelledError
 from autocal.fit.model import FitModel, mean_vectors
 from autocal.fit.passes import covariance_scaling
 from autocal.fit.priors import TrxrPrior, add_trxr_prior, parse_trxr_prior
@@ -152,16 +154,21 @@ def run_calibration(
     folder = None if out is None else Path(out)
     if readers is not None and int(readers) < 1:
         raise PipelineError(f"the number of reader processes must be at least 1, got {readers}")
-    if dask_scheduler is None:
-        nreaders = 1 if observation is not None else _reader_count(config, readers)
-        if nreaders < 2:
-            return _calibrate(config, folder, progress, should_stop, None, block_size, observation)
-        # started first: the workers start up while this process scans and computes Tsky
-        with process_readers(nreaders) as executor:
-            return _calibrate(config, folder, progress, should_stop, executor, block_size)
-    # Connect first: a wrong address fails before any work is done.
-    with dask_client(dask_scheduler, dask_workers) as executor:
-        return _calibrate(config, folder, progress, should_stop, executor, block_size, observation)
+    with stop_when(should_stop):  # the checkpoints inside the stages (Tsky) see it too
+        if dask_scheduler is None:
+            nreaders = 1 if observation is not None else _reader_count(config, readers)
+            if nreaders < 2:
+                return _calibrate(
+                    config, folder, progress, should_stop, None, block_size, observation
+                )
+            # started first: the workers start up while this process scans and computes Tsky
+            with process_readers(nreaders) as executor:
+                return _calibrate(config, folder, progress, should_stop, executor, block_size)
+        # Connect first: a wrong address fails before any work is done.
+        with dask_client(dask_scheduler, dask_workers) as executor:
+            return _calibrate(
+                config, folder, progress, should_stop, executor, block_size, observation
+            )
 
 
 def _decoded_blocks(
@@ -318,7 +325,7 @@ def _reporter(
         if progress is not None:
             progress(fraction, message)
         if should_stop is not None and should_stop():
-            raise PipelineError("cancelled")
+            raise RunCancelledError("cancelled")
 
     return report
 
@@ -473,7 +480,8 @@ def calibrate(
     progress
         Called with (fraction done, message).
     should_stop
-        Polled at checkpoints; returning ``True`` aborts with :class:`PipelineError`.
+        Polled at checkpoints; returning ``True`` aborts with
+        :class:`autocal.errors.RunCancelledError`.
     dask_scheduler, dask_workers
         Map the files over a Dask cluster (:func:`run_calibration`); the same solution.
     block_size

@@ -25,12 +25,13 @@ from typing import Any
 
 import numpy as np
 
+from autocal.errors import RunCancelledError
 from autocal.fit.blocks import BlockSums, block_edges, extended_model, sums_nbytes
 from autocal.fit.model import FitModel
 from autocal.fit.passes import run_passes
 from autocal.fit.solution import Solution
 from autocal.fit.sums import NormalSums
-from autocal.pipeline.config import CalibrationConfig, PipelineError, Progress, read_selection
+from autocal.pipeline.config import CalibrationConfig, Progress, read_selection
 from autocal.pipeline.partials import (
     FilePartial,
     FileTask,
@@ -246,7 +247,7 @@ def _serial_partials(
         if progress is not None:
             progress(lo + (hi - lo) * done / max(ntime, 1), f"{done}/{ntime} integrations")
         if should_stop is not None and should_stop():
-            raise PipelineError("cancelled")
+            raise RunCancelledError("cancelled")
 
     for task in tasks:
         yield compute_partial(spec, task, tick)

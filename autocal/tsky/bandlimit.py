@@ -28,6 +28,7 @@ from typing import Any
 import healpy as hp
 import numpy as np
 
+from autocal.core.stopping import checkpoint
 from autocal.sky.models import SkyComponents, SkyModel
 
 logger = logging.getLogger(__name__)
@@ -73,6 +74,7 @@ def band_limit_maps(maps: np.ndarray, nside: int, lmax: int | None = None) -> np
     lmax = 2 * nside if lmax is None else int(lmax)
     out = np.empty((maps.shape[0], hp.nside2npix(nside)))
     for i, m in enumerate(maps):
+        checkpoint("band-limiting a sky map")
         if np.ptp(m) <= 1e-12 * np.abs(m).max():  # constant up to rounding
             out[i] = m[0]
             continue

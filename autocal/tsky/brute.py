@@ -16,6 +16,7 @@ from tqdm.auto import tqdm
 
 from autocal.core.coords import hadec_to_altaz, healpix_ra_dec
 from autocal.core.sites import Site
+from autocal.core.stopping import checkpoint
 from autocal.sky.beam_base import Beam
 from autocal.sky.models import SkyComponents
 from autocal.tsky.horizon import HORIZON_WIDTH_DEG, horizon_weight, topocentric_at_lst0
@@ -49,6 +50,7 @@ def tsky_brute(
     for i, lst in enumerate(
         tqdm(lst_radians(lsts), desc="Tsky (brute force)", disable=progress_disabled(progress))
     ):
+        checkpoint("a brute-force Tsky LST")
         alt, az = hadec_to_altaz(lst - ra, dec, lat)
         bvals = beam.power(freqs, az, np.pi / 2 - alt)
         w_above = horizon_weight(alt, horizon_width_deg)

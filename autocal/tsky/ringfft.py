@@ -38,6 +38,7 @@ import scipy.fft as sp_fft
 from tqdm.auto import tqdm
 
 from autocal.core.sites import Site
+from autocal.core.stopping import checkpoint
 from autocal.sky.beam_base import Beam, BeamEvaluator
 from autocal.sky.models import SkyComponents
 from autocal.tsky.horizon import HORIZON_WIDTH_DEG, horizon_weight, topocentric_at_lst0
@@ -216,6 +217,7 @@ def _run_chunks(
     with bar:
         if nworkers == 1:
             for start in starts:
+                checkpoint("a Tsky chunk")
                 clock.merge(job.run(start))
                 bar.update()
         else:
@@ -225,6 +227,7 @@ def _run_chunks(
                     for future in as_completed(futures):
                         clock.merge(future.result())
                         bar.update()
+                        checkpoint("the next Tsky chunks")
                 except BaseException:
                     for future in futures:
                         future.cancel()

@@ -339,16 +339,16 @@ def test_run_diagnosis_publishes_all_or_nothing(
         return real(diag, out_dir, obs, **kw)
 
     monkeypatch.setattr(autocal.diagnosis.report, "write_diagnosis", write_then_cancel)
-    from autocal.pipeline.config import PipelineError
+    from autocal.errors import RunCancelledError
 
-    with pytest.raises(PipelineError, match="cancelled"):
+    with pytest.raises(RunCancelledError, match="cancelled"):
         run_diagnosis(config, out, should_stop=lambda: bool(calls))
     assert calls and sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
     # cancelled in the middle of the search (between two candidate fits)
     monkeypatch.setattr(autocal.diagnosis.report, "write_diagnosis", real)
     messages: list[str] = []
-    with pytest.raises(PipelineError, match="cancelled"):
+    with pytest.raises(RunCancelledError, match="cancelled"):
         run_diagnosis(
             config.model_copy(update={"max_steps": 2}),
             out,
