@@ -131,10 +131,14 @@ def profile_gain(sums: NormalSums, model: FitModel, vg: np.ndarray, trxr: np.nda
     return out
 
 
-def _median(x: np.ndarray) -> float | None:
-    vals = np.asarray(x, np.float64)
-    vals = vals[np.isfinite(vals)]
-    return float(np.median(vals)) if vals.size else None
+def _medians(x: np.ndarray, sel: np.ndarray) -> np.ndarray:
+    """``(Nant, Npol)`` medians over the channels of ``x`` that are in ``sel`` and finite."""
+    with np.errstate(invalid="ignore"):
+        return nanmedian_last(np.where(sel & np.isfinite(x), x, np.nan))
+
+
+def _number(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
 
 
 def separation_summary(solution: Any) -> list[dict[str, Any]]:
@@ -165,33 +169,37 @@ def separation_summary(solution: Any) -> list[dict[str, Any]]:
     with np.errstate(all="ignore"):
         frac_tot = solution.sigma_G / gain
         frac_stat = solution.sigma_G_stat / gain
+    columns = {
+        "G": gain,
+        "Trxr_K": trxr,
+        "sky_contrast": total.sky_contrast,
+        "corr_G_n": total.corr_G_n,
+        "drift_sensitivity": total.drift_sensitivity,
+        "sigma_G_frac": frac_tot,
+        "sigma_G_stat_frac": frac_stat,
+        "jackknife_factor": total.jackknife_factor,
+        "drift_weight": total.drift_weight,
+    }
+    # medians of all antenna-pols at once (one sort per quantity, not one median per
+    # antenna-pol: 15,000 numpy calls for a HERA file)
+    medians = {key: _medians(arr, ok) for key, arr in columns.items()}
+    halves = [_medians(total.G_halves[h], ok) for h in range(2)]
+    profile = [_medians(total.profile_G[:, :, i], ok) for i in range(len(total.profile_trxr))]
+    channels = ok.sum(axis=-1)
     for ia, ant in enumerate(np.asarray(solution.antennas).tolist()):
         for ip, pol in enumerate(solution.pols):
-            sel = ok[ia, ip]
-
-            def med(arr: np.ndarray, ia: int = ia, ip: int = ip, sel: np.ndarray = sel) -> Any:
-                return _median(arr[ia, ip][sel])
-
-            profile = {
-                f"{t:g}": _median(total.profile_G[ia, ip, i][sel])
-                for i, t in enumerate(total.profile_trxr)
-            }
+            value = {key: _number(med[ia, ip]) for key, med in medians.items()}
             entry = {
                 "antenna": int(ant),
                 "pol": pol,
-                "channels": int(sel.sum()),
-                "G": med(gain),
-                "Trxr_K": med(trxr),
-                "sky_contrast": med(total.sky_contrast),
-                "corr_G_n": med(total.corr_G_n),
-                "drift_sensitivity": med(total.drift_sensitivity),
+                "channels": int(channels[ia, ip]),
+                **{key: value[key] for key in list(columns)[:5]},
                 "separation": "weak" if weak[ia, ip] else "adequate",
-                "sigma_G_frac": med(frac_tot),
-                "sigma_G_stat_frac": med(frac_stat),
-                "jackknife_factor": med(total.jackknife_factor),
-                "drift_weight": med(total.drift_weight),
-                "G_halves": [_median(total.G_halves[h, ia, ip][sel]) for h in range(2)],
-                "G_if_trxr_K": profile,
+                **{key: value[key] for key in list(columns)[5:]},
+                "G_halves": [_number(h[ia, ip]) for h in halves],
+                "G_if_trxr_K": {
+                    f"{t:g}": _number(profile[i][ia, ip]) for i, t in enumerate(total.profile_trxr)
+                },
             }
             entry["message"] = _message(entry)
             out.append(entry)

@@ -9,6 +9,7 @@ and their errors (:func:`trxr_sigma`). Its products are written by the later sta
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -231,7 +232,25 @@ class Solution:
         """``(nbasis,)`` mean of each basis function over the fitted integrations."""
         return self.model.basis(self.lsts).mean(axis=1)
 
+    def _memo(self, key: Any, compute: Callable[[], Any]) -> Any:
+        """Return ``compute()``, computed once per solution (its arrays read-only).
+
+        The properties below are evaluated many times by the products and summaries (a
+        HERA file's million channels: ~0.1 s each time); the arrays a solution holds are
+        not changed after it is made.
+        """
+        memo = self.__dict__.setdefault("_memoised", {})
+        if key not in memo:
+            value = compute()
+            for arr in value.values() if isinstance(value, dict) else value:
+                arr.flags.writeable = False
+            memo[key] = value
+        return memo[key]
+
     def _mean_param(self, which: int) -> tuple[np.ndarray, np.ndarray]:
+        return self._memo(("mean", which), lambda: self._compute_mean_param(which))
+
+    def _compute_mean_param(self, which: int) -> tuple[np.ndarray, np.ndarray]:
         nb = self.model.nbasis
         v = np.zeros(self.model.nparam)
         v[which * nb : (which + 1) * nb] = self.time_average
@@ -307,6 +326,10 @@ class Solution:
         return self.cov_mean if self.total is None else self.total.cov
 
     def _sigmas(self, stat: bool = False) -> dict[str, np.ndarray]:
+        stat = stat or self.total is None
+        return self._memo(("sigmas", stat), lambda: self._compute_sigmas(stat))
+
+    def _compute_sigmas(self, stat: bool) -> dict[str, np.ndarray]:
         cov = self.cov_mean if stat or self.total is None else self.total.cov
         var_g, var_n, cgn = cov[..., 0, 0], cov[..., 1, 1], cov[..., 0, 1]
         g, n = self.G, self.n

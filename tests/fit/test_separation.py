@@ -95,3 +95,33 @@ def test_the_total_matches_the_separation_summary_and_refits_without_blocks() ->
     again = total_uncertainty(blocks, solve_sums(blocks.fitted_total(), scale_covariance=False))
     assert again.nblocks == sol.total.nblocks
     assert np.all(np.isfinite(again.cov[0, 0, :, 0, 0]))
+
+
+def test_the_summary_medians_are_numpys_over_the_solved_finite_channels() -> None:
+    # several antennas, flagged channels and a non-finite value: each entry's medians are
+    # np.median over that antenna-pol's solved, finite channels (computed here one by one)
+    rng = np.random.default_rng(4)
+    lsts, tsky = short_sky(60)
+    gains = np.array([0.02, 0.03, 0.05])[:, None, None, None]
+    data = gains * (tsky + 150.0) * (1 + 1e-3 * rng.standard_normal((3, 2, 60, NF)))
+    data[1, 0, :, 3] = 0.0  # a dead channel: flagged, left out of the medians
+    sol = fit(make_obs(data, lsts), np.stack([tsky, tsky]))
+    sol.total.drift_weight[2, 1, 5] = np.inf  # not finite: left out as NaN is
+    summary = separation_summary(sol)
+    assert len(summary) == 6 and not sol.flags[1, 0].all() and sol.flags[1, 0, 3]
+
+    def one_by_one(arr: np.ndarray, ia: int, ip: int) -> float | None:
+        vals = arr[ia, ip][~sol.flags[ia, ip]]
+        vals = vals[np.isfinite(vals)]
+        return float(np.median(vals)) if vals.size else None
+
+    for e in summary:
+        ia, ip = list(sol.antennas).index(e["antenna"]), sol.pols.index(e["pol"])
+        assert e["channels"] == int((~sol.flags[ia, ip]).sum())
+        assert e["G"] == one_by_one(sol.G, ia, ip)
+        assert e["Trxr_K"] == one_by_one(sol.Trxr, ia, ip)
+        assert e["drift_weight"] == one_by_one(sol.total.drift_weight, ia, ip)
+        assert e["jackknife_factor"] == one_by_one(sol.total.jackknife_factor, ia, ip)
+        assert e["G_halves"] == [one_by_one(sol.total.G_halves[h], ia, ip) for h in range(2)]
+        for i, t in enumerate(sol.total.profile_trxr):
+            assert e["G_if_trxr_K"][f"{t:g}"] == one_by_one(sol.total.profile_G[:, :, i], ia, ip)

@@ -26,3 +26,21 @@ def test_trxr_uncertainty_matches_jacobian_propagation() -> None:
     assert np.all(sol.cov[..., 0, 1] < 0)
     naive = sol.Trxr * np.sqrt(sol.sigma_G**2 / g**2 + sol.sigma_n**2 / n**2)
     assert np.all(sol.sigma_Trxr > naive)
+
+
+def test_derived_arrays_are_computed_once_and_read_only() -> None:
+    from dataclasses import replace
+
+    rng = np.random.default_rng(3)
+    tsky = toy_tsky()
+    sol = fit(make_obs(noisy((0.8 * (tsky + 150.0))[None, None], rng)), tsky)
+    assert sol.G is sol.G and sol.sigma_G is sol.sigma_G
+    for arr in (sol.G, sol.n, sol.sigma_G, sol.sigma_G_stat, sol.sigma_Trxr):
+        assert not arr.flags.writeable
+    # a copy without the total recomputes: its sigma_G is the statistical one
+    stat = replace(sol, total=None)
+    np.testing.assert_array_equal(stat.sigma_G, sol.sigma_G_stat)
+    assert not np.array_equal(stat.sigma_G, sol.sigma_G)
+    vg = np.zeros(sol.model.nparam)
+    vg[: sol.model.nbasis] = sol.time_average
+    np.testing.assert_array_equal(sol.G, sol.coeffs @ vg)
