@@ -63,6 +63,12 @@ class Solution:
     time_flags
         Optional ``(Nant, Npol, Ntime)`` integrations flagged whole before the fit (RFI in
         time, :mod:`autocal.pipeline.rfi`); the per-time calh5/calfits flag them.
+
+    Notes
+    -----
+    ``G``, ``n`` and the ``sigma_*`` arrays are computed on first use and kept (read-only:
+    copy one to change it); a solution's own arrays are not to be changed after it is made
+    (:func:`dataclasses.replace` makes a new one).
     """
 
     model: FitModel
