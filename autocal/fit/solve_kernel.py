@@ -8,8 +8,11 @@ on threads (:func:`autocal.fit.threads.in_threads`), with no temporaries: numpy'
 linear algebra spends most of its time in per-matrix overhead on a HERA file's million small
 systems (LAPACK ``inv`` and ``eigvalsh`` for 4 x 4 ones ~4 us each). Eigenvalues are in
 closed form for 2 x 2 systems and by cyclic Jacobi rotations otherwise; the inverse is
-Gauss-Jordan on the scaled, centred, positive-definite matrix. numba is imported with this module,
-which :mod:`autocal.fit.solve` imports when it solves.
+Gauss-Jordan on the scaled, centred, positive-definite matrix. The constant model's
+two-parameter systems go through an unrolled copy of the loop (:func:`_kernel2`: the same
+operations in the same order, bit-identical; 0.21 s -> 0.067 s for 1.07 M channels on two
+threads; the identity is tested in ``tests/fit/test_solve.py``). numba is imported with this
+module, which :mod:`autocal.fit.solve` imports when it solves.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import numpy as np
 from autocal.fit.centring_kernel import (
     centre_into,
     centre_rhs_into,
+    minus_product,
     uncentre_cov_into,
     uncentre_into,
 )
@@ -67,7 +71,8 @@ def solve_channels(
         out["chi2"],
         out["flag_reason"],
     )
-    in_threads(lambda c0, c1: _kernel(*args, c0, c1), -(-n // _CHUNK))
+    kernel = _kernel2 if m == 2 else _kernel  # the constant model: unrolled, 3-4x faster
+    in_threads(lambda c0, c1: kernel(*args, c0, c1), -(-n // _CHUNK))
     return out
 
 
@@ -205,3 +210,121 @@ def _flagged(i, reason, co, cv, ch, rs):  # type: ignore[no-untyped-def]
     cv[i, :, :] = np.nan
     ch[i] = np.nan
     rs[i] = reason
+
+
+@numba.njit(cache=True, nogil=True)
+def _kernel2(
+    ata, aty, yty, count, min_samples, scale_mode, max_condition, positive, co, cv, ch, rs, c0, c1
+):  # type: ignore[no-untyped-def]
+    """:func:`_kernel` for two parameters ``(G, n)``, unrolled.
+
+    The same floating-point operations in the same order as :func:`_kernel` with
+    ``M = 2`` (the centring, the scaling, the closed-form eigenvalues, Gauss-Jordan and the
+    uncentring written out), so the results are bit-identical
+    (``tests/fit/test_solve.py``); without the loops over a run-time size and the scratch
+    arrays, a HERA file's million channels solve 3-4x faster.
+    """
+    n = aty.shape[0]
+    for c in range(c0, c1):
+        for i in range(c * _CHUNK, min((c + 1) * _CHUNK, n)):
+            reason = _TOO_FEW if count[i] < min_samples else 0
+            a00, a01, a10, a11 = ata[i, 0, 0], ata[i, 0, 1], ata[i, 1, 0], ata[i, 1, 1]
+            sky = a01 / a11 if a11 != 0.0 else 0.0  # centre_into
+            if not np.isfinite(sky):
+                sky = 0.0
+            t00 = minus_product(a00, sky, a01)
+            t10 = minus_product(a10, sky, a11)
+            e00 = minus_product(t00, sky, t10)
+            e01 = minus_product(a01, sky, a11)
+            e10 = e01
+            e11 = a11
+            r0 = minus_product(aty[i, 0], sky, aty[i, 1])  # centre_rhs_into
+            r1 = aty[i, 1]
+            ok = reason == 0
+            ok = ok and e00 > 0.0
+            d0 = np.sqrt(e00) if e00 > 0.0 else 1.0
+            ok = ok and e11 > 0.0
+            d1 = np.sqrt(e11) if e11 > 0.0 else 1.0
+            s00 = e00 / (d0 * d0)
+            s01 = e01 / (d0 * d1)
+            s10 = e10 / (d1 * d0)
+            s11 = e11 / (d1 * d1)
+            ok = ok and np.isfinite(s00) and np.isfinite(s01)
+            ok = ok and np.isfinite(s10) and np.isfinite(s11)
+            if reason == 0 and not ok:
+                reason = _SINGULAR
+            if ok:
+                mean = (s00 + s11) / 2  # _eig_extremes, closed form
+                radius = np.hypot((s00 - s11) / 2, s10)
+                lo, hi = abs(mean - radius), abs(mean + radius)
+                lo, hi = min(lo, hi), max(lo, hi)
+                cond = hi / lo if lo > 0.0 else np.inf
+                cond = max(cond, 4.0 * a00 / e00)  # the digits the centring cancelled
+                if not (cond < max_condition):  # NaN or too large
+                    reason = _SINGULAR
+                    ok = False
+            if not ok:
+                _flagged(i, reason, co, cv, ch, rs)
+                continue
+            inv_p = 1.0 / s00  # invert_in_place, column 0
+            s00 = 1.0
+            s00 *= inv_p
+            s01 *= inv_p
+            f = s10
+            s10 = 0.0
+            s10 -= f * s00
+            s11 -= f * s01
+            inv_p = 1.0 / s11  # column 1
+            s11 = 1.0
+            s10 *= inv_p
+            s11 *= inv_p
+            f = s01
+            s01 = 0.0
+            s00 -= f * s10
+            s01 -= f * s11
+            s00 = s00 / (d0 * d0)  # the centred covariance, and x row by row
+            s01 = s01 / (d0 * d1)
+            acc = 0.0
+            acc += s00 * r0
+            acc += s01 * r1
+            x0 = acc
+            s10 = s10 / (d1 * d0)
+            s11 = s11 / (d1 * d1)
+            acc = 0.0
+            acc += s10 * r0
+            acc += s11 * r1
+            x1 = acc
+            fit = 0.0  # x^T (b + r), r = b - A x
+            acc = 0.0
+            acc += e00 * x0
+            acc += e01 * x1
+            fit += x0 * (r0 + (r0 - acc))
+            acc = 0.0
+            acc += e10 * x0
+            acc += e11 * x1
+            fit += x1 * (r1 + (r1 - acc))
+            co[i, 0] = x0  # uncentre_into
+            co[i, 1] = minus_product(x1, sky, x0)
+            c10 = s10 - sky * s00  # uncentre_cov_into: rows, then columns
+            c11 = s11 - sky * s01
+            c01 = s01 - sky * s00
+            c11 = c11 - sky * c10
+            cv[i, 0, 0] = s00
+            cv[i, 0, 1] = c01
+            cv[i, 1, 0] = c10
+            cv[i, 1, 1] = c11
+            chi2 = max(yty[i] - fit, 0.0)
+            if scale_mode != 0:
+                dof = count[i] - 2
+                factor = chi2 / dof if dof > 0 else np.nan
+                if scale_mode == 2:
+                    factor = 1.0 if not np.isfinite(factor) else max(factor, 1.0)
+                cv[i, 0, 0] *= factor
+                cv[i, 0, 1] *= factor
+                cv[i, 1, 0] *= factor
+                cv[i, 1, 1] *= factor
+            if positive and not (co[i, 0] > 0.0):
+                _flagged(i, _NON_POSITIVE, co, cv, ch, rs)
+                continue
+            ch[i] = chi2
+            rs[i] = 0

@@ -122,3 +122,54 @@ def test_the_compiled_solver_gives_the_numpy_solve(kind: str, order: int, scale)
         np.testing.assert_array_equal(np.isnan(got[name]), np.isnan(ref[name]), err_msg=name)
         scale = np.nanmax(np.abs(ref[name]))  # cancellations: near-zero cross terms
         np.testing.assert_allclose(got[name], ref[name], rtol=1e-8, atol=1e-12 * scale)
+
+
+@pytest.mark.parametrize("scale_mode", [0, 1, 2])
+@pytest.mark.parametrize("positive", [False, True])
+def test_the_unrolled_two_parameter_kernel_is_the_general_one_bit_for_bit(
+    scale_mode: int, positive: bool
+) -> None:
+    """The constant model's unrolled kernel: every output equal to the general kernel's,
+    signs of zero and NaNs included, on fits of both signs and on too few samples, zero,
+    NaN, tiny, exactly degenerate and negative-diagonal systems and infinite sums."""
+    from autocal.fit import solve_kernel
+
+    rng = np.random.default_rng(11)
+    n = 6000
+    sky = rng.uniform(100, 1000, (n, 20))
+    ata = np.empty((n, 2, 2))
+    ata[:, 0, 0] = (sky * sky).sum(1)
+    ata[:, 0, 1] = ata[:, 1, 0] = sky.sum(1)
+    ata[:, 1, 1] = 20
+    y = (
+        rng.choice([0.02, -0.02], n)[:, None]
+        * (sky + 150)
+        * (1 + 1e-3 * rng.normal(size=sky.shape))
+    )
+    aty = np.stack([(sky * y).sum(1), y.sum(1)], -1)
+    yty = (y * y).sum(1)
+    count = rng.integers(0, 30, n)
+    ata[:50] = 0.0
+    ata[50:100, 0, 0] = np.nan
+    ata[100:150] *= 1e-300
+    ata[150:200, 0, 1] = ata[150:200, 1, 0] = np.sqrt(ata[150:200, 0, 0] * ata[150:200, 1, 1])
+    aty[200:250] = np.inf
+    yty[250:300] = np.nan
+    ata[300:350, 1, 1] = -5.0
+
+    def run(kernel) -> dict[str, np.ndarray]:
+        out = {
+            "coeffs": np.empty((n, 2)),
+            "cov": np.empty((n, 2, 2)),
+            "chi2": np.empty(n),
+            "flag_reason": np.zeros(n, np.int8),
+        }
+        args = (ata, aty, yty, count, 3, scale_mode, 1e12, positive, *out.values())
+        kernel(*args, 0, -(-n // solve_kernel._CHUNK))
+        return out
+
+    general, unrolled = run(solve_kernel._kernel), run(solve_kernel._kernel2)
+    assert {0, 1, 2} <= set(np.unique(general["flag_reason"]))
+    for name, value in general.items():
+        np.testing.assert_array_equal(unrolled[name], value, err_msg=name)
+        np.testing.assert_array_equal(np.signbit(unrolled[name]), np.signbit(value))
