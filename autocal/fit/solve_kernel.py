@@ -11,7 +11,8 @@ closed form for 2 x 2 systems and by cyclic Jacobi rotations otherwise; the inve
 Gauss-Jordan on the scaled, centred, positive-definite matrix. The constant model's
 two-parameter systems go through an unrolled copy of the loop (:func:`_kernel2`: the same
 operations in the same order, bit-identical; 0.21 s -> 0.067 s for 1.07 M channels on two
-threads; the identity is tested in ``tests/fit/test_solve.py``). numba is imported with this
+threads: ``python benchmarks/solve_kernel.py``; the identity is tested in
+``tests/fit/test_solve.py``). numba is imported with this
 module, which :mod:`autocal.fit.solve` imports when it solves.
 """
 
