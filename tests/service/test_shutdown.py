@@ -51,6 +51,7 @@ def test_the_handler_only_hands_the_signal_to_the_watcher() -> None:
     recorder = _Recorder()
     root = logging.getLogger()
     root.addHandler(recorder)
+    before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
     restore = stop_on_signals(worker)
     main = threading.get_ident()
     try:
@@ -66,7 +67,7 @@ def test_the_handler_only_hands_the_signal_to_the_watcher() -> None:
     finally:
         restore()
         root.removeHandler(recorder)
-    assert signal.getsignal(signal.SIGTERM) is not None
+    assert {s: signal.getsignal(s) for s in before} == before  # the handlers restored
 
 
 SCENARIO = textwrap.dedent(
