@@ -62,10 +62,12 @@ def stop_on_signals(
     received: list[int] = []
 
     def handler(signum: int, _frame: FrameType | None) -> None:
-        # nothing here may take a lock: no logging, no store, no Event.set, no new thread
-        if received:
-            raise SystemExit(128 + signum)
+        # nothing here may take a lock: no logging, no store, no Event.set, no new thread.
+        # Count first: a signal arriving inside this handler runs it again, nested, and
+        # must see this one (or a second signal could be taken for a first).
         received.append(signum)
+        if len(received) > 1:
+            raise SystemExit(128 + signum)
         pending.put_nowait(signum)
 
     def watch() -> None:

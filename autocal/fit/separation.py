@@ -133,6 +133,8 @@ def profile_gain(sums: NormalSums, model: FitModel, vg: np.ndarray, trxr: np.nda
 
 def _medians(x: np.ndarray, sel: np.ndarray) -> np.ndarray:
     """``(Nant, Npol)`` medians over the channels of ``x`` that are in ``sel`` and finite."""
+    if x.shape[-1] == 0:  # no channel at all
+        return np.full(x.shape[:-1], np.nan)
     with np.errstate(invalid="ignore"):
         return nanmedian_last(np.where(sel & np.isfinite(x), x, np.nan))
 

@@ -311,7 +311,10 @@ def _calibrate(
             config, solution, source.lsts, run, out, comparison_inputs, summary_of=summary_of
         )
         summary = {**made["summary"], "products": products}
-    report(1.0, "done")
+    # not report(): the products are published, a stop asked for now has nothing to stop
+    logger.info("100% done")
+    if progress is not None:
+        progress(1.0, "done")
     return CalibrationResult(solution, products, summary, timings)
 
 

@@ -93,3 +93,26 @@ def test_a_calibration_stops_inside_its_tsky_stage(
     # stopped inside the Tsky stage (before this, at its end, after a whole computation)
     assert not any("Tsky harmonics for" in r.getMessage() for r in caplog.records)
     assert messages[-1].startswith("Tsky for")
+
+
+def test_a_stop_asked_after_the_products_are_published_does_not_fail_the_run(
+    monkeypatch: pytest.MonkeyPatch, tmp_path
+) -> None:
+    import autocal
+
+    monkeypatch.setenv("AUTOCAL_CACHE_DIR", "off")
+    obs, _ = simulate(
+        SimulationConfig(beam="dipole", channel_width_khz=4000, duration_h=2, cadence_s=900)
+    )
+    out = tmp_path / "cal"
+    # True once summary.json is published (the last product): nothing is left to stop
+    sol = autocal.calibrate(
+        obs,
+        beam="dipole",
+        nside=32,
+        out=out,
+        products=["hdf5"],
+        should_stop=lambda: (out / "summary.json").exists(),
+    )
+    assert sol.G.shape[-1] == obs.freqs.size
+    assert (out / "summary.json").is_file() and (out / "solution.h5").is_file()
