@@ -47,7 +47,7 @@ from autocal.core.coords import night_epoch
 from autocal.core.files import publish_staged
 from autocal.core.memory import available_memory
 from autocal.core.observation import Observation
-from autocal.core.stopping import stop_when
+from autocal.core.stopping import checkpoint, stop_when
 from autocal.diagnosis import effects, report
 from autocal.diagnosis.effects import SkyTemplates
 from autocal.diagnosis.errors import DiagnoseError
@@ -55,7 +55,6 @@ from autocal.diagnosis.reading import read_observation
 from autocal.diagnosis.report import Diagnosis
 from autocal.diagnosis.stepwise import diagnose
 from autocal.diagnosis.trials import ALPHA, BIC_THRESHOLD
-from autocal.errors import RunCancelledError
 from autocal.fit.priors import parse_trxr_prior
 from autocal.io.uvh5_integrity import input_integrity
 from autocal.pipeline.config import check_prior_spec, check_ranges
@@ -304,27 +303,17 @@ def run_diagnosis(
     autocal.errors.RunCancelledError
         When cancelled.
     """
-    with stop_when(should_stop):  # the checkpoints inside the stages (Tsky) see it too
-        return _run_diagnosis(config, Path(out), progress, should_stop)
+    with stop_when(should_stop):  # every checkpoint of the run, Tsky's too, reads it
+        return _run_diagnosis(config, Path(out), progress)
 
 
-def _run_diagnosis(
-    config: DiagnoseConfig,
-    out: Path,
-    progress: Progress | None,
-    should_stop: Callable[[], bool] | None,
-) -> Path:
-
-    def check_stop() -> None:
-        if should_stop is not None and should_stop():
-            logger.info("diagnosis cancelled")
-            raise RunCancelledError("cancelled")
+def _run_diagnosis(config: DiagnoseConfig, out: Path, progress: Progress | None) -> Path:
 
     def advance(fraction: float, message: str) -> None:
         logger.info("%3.0f%% %s", 100 * fraction, message)
         if progress is not None:
             progress(fraction, message)
-        check_stop()
+        checkpoint(message)
 
     out = Path(out)
     timings: dict[str, float] = {}
@@ -392,7 +381,7 @@ def _run_diagnosis(
     def write(staging: Path) -> None:
         report.write_diagnosis(diag, staging, obs, stems=file_stems(paths))
 
-    products = _publish(out, write, summary, timings, t0, t3, check_stop)
+    products = _publish(out, write, summary, timings, t0, t3)
     logger.info("wrote %d products to %s", len(products), out)
     if progress is not None:  # the products are in place: too late to cancel
         progress(1.0, f"done: {', '.join(diag.effects) or 'no significant effect'}")
@@ -471,7 +460,6 @@ def _publish(
     timings: dict[str, float],
     t0: float,
     t_write: float,
-    check_stop: Callable[[], None],
 ) -> dict[str, str]:
     """Write the products into a staging folder inside ``out``, then move them into ``out``.
 
@@ -495,7 +483,7 @@ def _publish(
         }
         text = json.dumps(_strict_json(summary), indent=2, allow_nan=False)
         (staging / SUMMARY).write_text(text + "\n")
-        check_stop()  # last chance to cancel: nothing is published yet
+        checkpoint("publishing")  # last chance to stop: nothing is published yet
         publish_staged(staging, out, [*files, SUMMARY])  # flushed to disk, summary last
     finally:
         shutil.rmtree(staging, ignore_errors=True)

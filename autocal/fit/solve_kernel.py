@@ -10,7 +10,7 @@ systems (LAPACK ``inv`` and ``eigvalsh`` for 4 x 4 ones ~4 us each). Eigenvalues
 closed form for 2 x 2 systems and by cyclic Jacobi rotations otherwise; the inverse is
 Gauss-Jordan on the scaled, centred, positive-definite matrix. The constant model's
 two-parameter systems go through an unrolled copy of the loop (:func:`_kernel2`: the same
-operations in the same order, bit-identical; 0.21 s -> 0.067 s for 1.07 M channels on two
+operations in the same order, bit-identical; 0.210 s -> 0.068 s for 1.07 M channels on two
 threads: ``python benchmarks/solve_kernel.py``; the identity is tested in
 ``tests/fit/test_solve.py``). numba is imported with this
 module, which :mod:`autocal.fit.solve` imports when it solves.

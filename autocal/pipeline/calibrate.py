@@ -35,8 +35,7 @@ from autocal import __version__
 from autocal.core.coords import night_epoch
 from autocal.core.observation import Observation
 from autocal.core.reprs import compact_repr
-from autocal.core.stopping import stop_when
-from autocal.errors import RunCancelledError
+from autocal.core.stopping import checkpoint, stop_when
 from autocal.fit.model import FitModel, mean_vectors
 from autocal.fit.passes import covariance_scaling
 from autocal.fit.priors import TrxrPrior, add_trxr_prior, parse_trxr_prior
@@ -154,21 +153,17 @@ def run_calibration(
     folder = None if out is None else Path(out)
     if readers is not None and int(readers) < 1:
         raise PipelineError(f"the number of reader processes must be at least 1, got {readers}")
-    with stop_when(should_stop):  # the checkpoints inside the stages (Tsky) see it too
+    with stop_when(should_stop):  # every checkpoint of the run, Tsky's too, reads it
         if dask_scheduler is None:
             nreaders = 1 if observation is not None else _reader_count(config, readers)
             if nreaders < 2:
-                return _calibrate(
-                    config, folder, progress, should_stop, None, block_size, observation
-                )
+                return _calibrate(config, folder, progress, None, block_size, observation)
             # started first: the workers start up while this process scans and computes Tsky
             with process_readers(nreaders) as executor:
-                return _calibrate(config, folder, progress, should_stop, executor, block_size)
+                return _calibrate(config, folder, progress, executor, block_size)
         # Connect first: a wrong address fails before any work is done.
         with dask_client(dask_scheduler, dask_workers) as executor:
-            return _calibrate(
-                config, folder, progress, should_stop, executor, block_size, observation
-            )
+            return _calibrate(config, folder, progress, executor, block_size, observation)
 
 
 def _decoded_blocks(
@@ -198,7 +193,6 @@ def _calibrate(
     config: CalibrationConfig,
     out: Path | None,
     progress: Progress | None,
-    should_stop: Callable[[], bool] | None,
     executor: Any,
     block_size: int | None,
     observation: Observation | None = None,
@@ -207,7 +201,7 @@ def _calibrate(
 
     ``executor``: reader processes, Dask or ``None`` (this process).
     """
-    report = _reporter(progress, should_stop)
+    report = _reporter(progress)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     report(0.0, "scanning inputs")
@@ -246,7 +240,6 @@ def _calibrate(
             model,
             report,
             progress,
-            should_stop,
             executor,
             block_size,
             mask,
@@ -318,17 +311,14 @@ def _calibrate(
     return CalibrationResult(solution, products, summary, timings)
 
 
-def _reporter(
-    progress: Progress | None, should_stop: Callable[[], bool] | None
-) -> Callable[[float, str], None]:
-    """Return the run's progress report: logged, passed on, and a cancellation checkpoint."""
+def _reporter(progress: Progress | None) -> Callable[[float, str], None]:
+    """Return the run's progress report: logged, passed on, and a stopping checkpoint."""
 
     def report(fraction: float, message: str) -> None:
         logger.info("%3.0f%% %s", 100 * fraction, message)
         if progress is not None:
             progress(fraction, message)
-        if should_stop is not None and should_stop():
-            raise RunCancelledError("cancelled")
+        checkpoint(message)
 
     return report
 

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from autocal.errors import RunCancelledError
+from autocal.core.stopping import checkpoint
 from autocal.fit.blocks import BlockSums, block_edges, extended_model, sums_nbytes
 from autocal.fit.model import FitModel
 from autocal.fit.passes import run_passes
@@ -96,7 +96,6 @@ def sum_passes(
     model: FitModel,
     report: Callable[[float, str], None],
     progress: Progress | None,
-    should_stop: Callable[[], bool] | None,
     executor: Any,
     block_size: int | None,
     rfi: RfiMask | None = None,
@@ -145,7 +144,7 @@ def sum_passes(
             func = compute_partial if rfi is None else compute_partial_with_hits
             partials = client.map_ordered(func, spec, items)
         else:
-            partials = _serial_partials(spec, tasks, ntime, (lo, hi), progress, should_stop)
+            partials = _serial_partials(spec, tasks, ntime, (lo, hi), progress)
         folded, waterfall, infos = fold(partials, len(tasks), (nbins,), report, (lo, hi))
         assert isinstance(folded, tuple)
         per_block, extended = folded
@@ -235,9 +234,11 @@ def _serial_partials(
     ntime: int,
     progress_range: tuple[float, float],
     progress: Progress | None,
-    should_stop: Callable[[], bool] | None,
 ) -> Iterator[FilePartial]:
-    """Compute the files' partials in this process, reporting block by block."""
+    """Compute the files' partials in this process, reporting block by block.
+
+    A checkpoint after every block (:func:`autocal.core.stopping.checkpoint`).
+    """
     done = 0
     lo, hi = progress_range
 
@@ -246,8 +247,7 @@ def _serial_partials(
         done += nt
         if progress is not None:
             progress(lo + (hi - lo) * done / max(ntime, 1), f"{done}/{ntime} integrations")
-        if should_stop is not None and should_stop():
-            raise RunCancelledError("cancelled")
+        checkpoint("the next block")
 
     for task in tasks:
         yield compute_partial(spec, task, tick)

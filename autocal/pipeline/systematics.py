@@ -55,7 +55,7 @@ def alternative_solutions(
         tsky = tsky_per_pol(sky, config, source, pols, epoch)[0]
         alt = config.model_copy(update={"sky": sky, "passes": 1})
         run = sum_passes(
-            alt, source, pols, tsky, model, lambda f, m: None, None, None, None, block_size, rfi
+            alt, source, pols, tsky, model, lambda f, m: None, None, None, block_size, rfi
         )
         sums = run.sums
         if prior_fn is not None:
