@@ -66,7 +66,7 @@ from astropy import units as u
 from astropy.time import Time
 from tsky import machine_info  # benchmarks/tsky.py: the same machine description
 
-from autocal.core.coords import resample_galactic_to_equatorial
+from autocal.core.coords import resample_healpix
 from autocal.core.sites import HERA
 from autocal.sky.beam_names import get_beam
 from autocal.sky.models import T_CMB, get_sky
@@ -119,7 +119,8 @@ def galactic_band_limited(freqs: np.ndarray, nside: int) -> np.ndarray:
     """
     fine = fine_nside(nside)
     maps, spectra, _ = get_sky("gsm2008").galactic(freqs, fine)
-    sampled = resample_galactic_to_equatorial(maps, fine, np.eye(3))  # no rotation
+    pixels = np.array(hp.pix2vec(fine, np.arange(hp.nside2npix(fine))))
+    sampled = resample_healpix(maps, fine, pixels)  # no change of frame
     return spectra @ band_limit_maps(sampled, nside) + T_CMB
 
 

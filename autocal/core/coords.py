@@ -3,8 +3,9 @@
 Conventions (used everywhere in autocal):
 
 * Sky maps are HEALPix, RING ordering, in the *apparent equatorial frame of the
-  observation epoch* (astropy ``TETE``: true equator and equinox of date), the frame in
-  which the apparent local sidereal time stored in UVH5 files is defined. HEALPix
+  observation epoch* (astropy ``TETE``: true equator and equinox of date, sources at their
+  apparent places, i.e. with annual aberration), the frame in which the apparent local
+  sidereal time stored in UVH5 files is defined. HEALPix
   ``theta`` is the colatitude (90 deg - Dec) and ``phi`` is the right ascension.
 * Topocentric directions are (azimuth, altitude) with the azimuth measured from north
   through east (astropy's convention). pyuvdata's UVBeam uses azimuth from east through
@@ -115,33 +116,35 @@ def night_epoch(jds: np.ndarray | list[float] | float, lon_deg: float) -> float:
     return float(np.floor(mean + offset) + 0.5 - offset)
 
 
-@lru_cache(maxsize=32)
-def _galactic_to_tete(jd: float) -> np.ndarray:
+@lru_cache(maxsize=1)
+def _icrs_to_galactic() -> np.ndarray:
+    """Return the fixed rotation from ICRS to Galactic unit vectors (astropy's definition)."""
     from astropy import units as u
-    from astropy.coordinates import TETE, Galactic, SkyCoord
+    from astropy.coordinates import ICRS, Galactic, SkyCoord
+
+    axes = SkyCoord(
+        ra=[0.0, 90.0, 0.0] * u.deg, dec=[0.0, 0.0, 90.0] * u.deg, frame=ICRS()
+    ).transform_to(Galactic())
+    return np.array(axes.cartesian.xyz.value)  # column k: the image of ICRS axis k
+
+
+@lru_cache(maxsize=32)
+def _apparent_context(jd: float) -> tuple[np.ndarray, np.void]:
+    """Return the precession-nutation matrix (GCRS -> TETE) and ERFA's geocentric astrometry."""
+    import erfa
 
     epoch = Time(jd, format="jd", scale="utc")
-    # Fit the rotation on a set of directions (TETE includes annual aberration, a
-    # ~20 arcsec deformation, so the best orthogonal matrix is used).
-    rng = np.random.default_rng(0)
-    vec = rng.normal(size=(3, 200))
-    vec /= np.linalg.norm(vec, axis=0)
-    lon = np.arctan2(vec[1], vec[0])
-    lat = np.arcsin(vec[2])
-    gal = SkyCoord(l=lon * u.rad, b=lat * u.rad, frame=Galactic())
-    eq = gal.transform_to(TETE(obstime=epoch))
-    ra, dec = eq.ra.rad, eq.dec.rad
-    out = np.array([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)])
-    # Orthogonal Procrustes: R = argmin ||R vec - out||, R orthogonal.
-    u_, _, vt = np.linalg.svd(out @ vec.T)
-    rot = u_ @ vt
-    if np.linalg.det(rot) < 0:  # pragma: no cover - cannot happen for a proper frame
-        raise RuntimeError("Galactic->equatorial fit gave an improper rotation")
-    return rot
+    rbpn = erfa.pnm06a(epoch.tt.jd1, epoch.tt.jd2)
+    astrom = erfa.apcg13(epoch.tdb.jd1, epoch.tdb.jd2)
+    return np.asarray(rbpn), astrom
 
 
 def galactic_to_equatorial_matrix(epoch: str | float | Time | None = None) -> np.ndarray:
-    """Rotation matrix taking Galactic unit vectors to apparent equatorial ones of ``epoch``.
+    """Rotation taking Galactic unit vectors to the true equator and equinox of ``epoch``.
+
+    This is the frame's rotation only (frame bias, precession, nutation); the apparent
+    place of a source also has annual aberration (up to 20.5 arcsec) and light deflection,
+    which are not rotations: :func:`apparent_to_galactic` includes them.
 
     Parameters
     ----------
@@ -153,7 +156,41 @@ def galactic_to_equatorial_matrix(epoch: str | float | Time | None = None) -> np
     numpy.ndarray
         ``(3, 3)`` matrix ``R`` with ``v_eq = R @ v_gal``.
     """
-    return _galactic_to_tete(float(parse_epoch(epoch).jd)).copy()
+    rbpn, _ = _apparent_context(float(parse_epoch(epoch).jd))
+    return rbpn @ _icrs_to_galactic().T
+
+
+def apparent_to_galactic(vec_eq: np.ndarray, epoch: str | float | Time | None = None) -> np.ndarray:
+    """Galactic directions of the sources seen in apparent equatorial directions at ``epoch``.
+
+    The apparent frame is astropy's ``TETE`` (geocentric, true equator and equinox of
+    date): the inverse of the bias-precession-nutation rotation (ERFA ``pnm06a``) is
+    applied, then the annual aberration and the Sun's light deflection are removed
+    (ERFA ``aticq``, the inverse of what astropy applies from ICRS to GCRS), then ICRS is
+    rotated to Galactic. Diurnal aberration (< 0.32 arcsec) and polar motion are left
+    out, as in the apparent sidereal time of UVH5 files. Agrees with astropy's
+    ``TETE -> Galactic`` transformation to < 1 mas (``tests/core/test_coords.py``) at
+    a fraction of its cost.
+
+    Parameters
+    ----------
+    vec_eq
+        ``(3, N)`` unit vectors in the apparent equatorial frame.
+    epoch
+        Observation epoch (see :func:`parse_epoch`).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(3, N)`` Galactic unit vectors.
+    """
+    import erfa
+
+    rbpn, astrom = _apparent_context(float(parse_epoch(epoch).jd))
+    gcrs = rbpn.T @ np.asarray(vec_eq, dtype=np.float64).reshape(3, -1)
+    ra, dec = erfa.c2s(gcrs.T)
+    ri, di = erfa.aticq(ra, dec, astrom)
+    return _icrs_to_galactic() @ erfa.s2c(ri, di).T
 
 
 def healpix_ra_dec(nside: int) -> tuple[np.ndarray, np.ndarray]:
@@ -189,13 +226,48 @@ def hadec_to_altaz(ha: np.ndarray, dec: np.ndarray, lat: float) -> tuple[np.ndar
     return alt, az
 
 
-def resample_galactic_to_equatorial(
-    maps: np.ndarray, nside_out: int, rotation: np.ndarray
-) -> np.ndarray:
-    """Rotate Galactic HEALPix maps into an equatorial frame at a chosen resolution.
+def resample_healpix(maps: np.ndarray, nside_out: int, source_vec: np.ndarray) -> np.ndarray:
+    """Sample HEALPix maps at given directions of their own frame, one per output pixel.
 
     Maps are first area-averaged to ``nside_out`` if they are finer (so no aliasing),
-    then bilinearly interpolated at the Galactic position of every output pixel centre.
+    then bilinearly interpolated at ``source_vec``.
+
+    Parameters
+    ----------
+    maps
+        ``(Ncomp, Npix_in)`` RING maps.
+    nside_out
+        Output HEALPix resolution.
+    source_vec
+        ``(3, 12 nside_out^2)`` unit vectors, in the maps' frame, of the output pixels.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(Ncomp, 12 nside_out^2)`` RING maps.
+    """
+    maps = np.atleast_2d(np.asarray(maps, dtype=np.float64))
+    nside_in = hp.npix2nside(maps.shape[1])
+    if nside_in > nside_out:
+        maps = np.asarray(hp.ud_grade(maps, nside_out, order_in="RING", order_out="RING"))
+        maps = np.atleast_2d(maps)
+    theta, phi = hp.vec2ang(np.asarray(source_vec).T)
+    out = np.empty((maps.shape[0], theta.size))
+    for i, m in enumerate(maps):
+        checkpoint("rotating a sky map")
+        out[i] = hp.get_interp_val(m, theta, phi)
+    return out
+
+
+def resample_galactic_to_equatorial(
+    maps: np.ndarray, nside_out: int, epoch: str | float | Time | None = None
+) -> np.ndarray:
+    """Galactic HEALPix maps as seen in the apparent equatorial frame of ``epoch``.
+
+    Every output pixel centre (an apparent direction) is traced back to the Galactic
+    direction of its source by :func:`apparent_to_galactic` (precession, nutation, annual
+    aberration and light deflection), where the maps are interpolated
+    (:func:`resample_healpix`).
 
     Parameters
     ----------
@@ -203,25 +275,13 @@ def resample_galactic_to_equatorial(
         ``(Ncomp, Npix_in)`` Galactic RING maps.
     nside_out
         Output HEALPix resolution.
-    rotation
-        ``(3, 3)`` Galactic-to-equatorial rotation (:func:`galactic_to_equatorial_matrix`).
+    epoch
+        Observation epoch (see :func:`parse_epoch`).
 
     Returns
     -------
     numpy.ndarray
-        ``(Ncomp, 12 nside_out^2)`` equatorial RING maps.
+        ``(Ncomp, 12 nside_out^2)`` apparent equatorial RING maps.
     """
-    maps = np.atleast_2d(np.asarray(maps, dtype=np.float64))
-    nside_in = hp.npix2nside(maps.shape[1])
-    if nside_in > nside_out:
-        maps = np.asarray(hp.ud_grade(maps, nside_out, order_in="RING", order_out="RING"))
-        maps = np.atleast_2d(maps)
-        nside_in = nside_out
     vec_eq = np.array(hp.pix2vec(nside_out, np.arange(hp.nside2npix(nside_out))))
-    vec_gal = rotation.T @ vec_eq
-    theta, phi = hp.vec2ang(vec_gal.T)
-    out = np.empty((maps.shape[0], theta.size))
-    for i, m in enumerate(maps):
-        checkpoint("rotating a sky map")
-        out[i] = hp.get_interp_val(m, theta, phi)
-    return out
+    return resample_healpix(maps, nside_out, apparent_to_galactic(vec_eq, epoch))

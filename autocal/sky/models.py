@@ -34,11 +34,7 @@ from typing import Any
 import healpy as hp
 import numpy as np
 
-from autocal.core.coords import (
-    galactic_to_equatorial_matrix,
-    parse_epoch,
-    resample_galactic_to_equatorial,
-)
+from autocal.core.coords import parse_epoch, resample_galactic_to_equatorial
 from autocal.errors import AutocalError
 from autocal.io.datasets import GSM2008_FILE, ensure_pygdsm_file
 
@@ -186,8 +182,7 @@ class SkyModel(ABC):
     def _components(self, freqs: np.ndarray, nside: int, time: Any) -> SkyComponents:
         """Compute :meth:`components` (arguments checked); the arrays are read-only."""
         maps, spectra, labels = self.galactic(freqs, nside)
-        rot = galactic_to_equatorial_matrix(time)
-        eq_maps = resample_galactic_to_equatorial(maps, nside, rot)
+        eq_maps = resample_galactic_to_equatorial(maps, nside, time)
         if not self.maps_include_cmb:
             eq_maps = np.vstack([eq_maps, np.ones((1, eq_maps.shape[1]))])
             spectra = np.hstack([spectra, np.full((freqs.size, 1), T_CMB)])

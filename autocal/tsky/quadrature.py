@@ -35,7 +35,7 @@ import healpy as hp
 import numpy as np
 from tqdm.auto import tqdm
 
-from autocal.core.coords import galactic_to_equatorial_matrix, parse_epoch
+from autocal.core.coords import apparent_to_galactic, parse_epoch
 from autocal.core.sites import Site
 from autocal.sky.beam_base import Beam
 from autocal.sky.models import T_CMB, SkyModel
@@ -205,7 +205,7 @@ def tsky_quadrature(
     cmb = 0.0 if sky.maps_include_cmb else T_CMB
     nside_map = hp.npix2nside(maps.shape[1])
     eq0 = _equatorial_at_lst0(grid, np.radians(site.lat_deg))[:, :nsky]
-    to_gal = galactic_to_equatorial_matrix(parse_epoch(epoch)).T
+    time = parse_epoch(epoch)
     logger.info(
         "Tsky quadrature: %d nodes (%d above the horizon), step %.3g deg, sky nside %d",
         grid.size,
@@ -220,7 +220,7 @@ def tsky_quadrature(
     ):
         c, s = np.cos(lst), np.sin(lst)
         turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        gal = (to_gal @ turn) @ eq0
+        gal = apparent_to_galactic(turn @ eq0, time)
         theta, phi = hp.vec2ang(gal.T)
         pix, wgt = hp.get_interp_weights(nside_map, theta, phi)
         comp = np.zeros((maps.shape[0], nsky))

@@ -56,7 +56,7 @@ from autocal.tsky.synthesis import lst_radians, synthesise
 logger = logging.getLogger(__name__)
 
 #: Bump when the numerical method changes, so cached tables are recomputed.
-ENGINE_VERSION = "ringfft-3"  # 3: compute_tsky band-limits the sky (tsky.bandlimit)
+ENGINE_VERSION = "ringfft-4"  # 3: band-limited sky (tsky.bandlimit); 4: aberration in the sky frame
 
 
 def progress_disabled(progress: bool | None) -> bool | None:
