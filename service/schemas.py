@@ -544,6 +544,12 @@ class DiagnosisResults(BaseModel):
         "(negligible for G and Trxr, each explaining < 10 % of the remainder's excess chi2; "
         "shares under unexplained.absorbed): not evidence of the effect",
     )
+    below_model_accuracy: list[str] = Field(
+        default_factory=list,
+        description="effects fitted but below the forward model's accuracy (negligible for "
+        "G and Trxr, a signal under 1e-4 of the data rms, given in the step's "
+        "details.signal_rms): not attributed",
+    )
     indistinguishable: dict[str, Any] | None = Field(
         None,
         description="null, or the step at which the search stopped because an entry of the "

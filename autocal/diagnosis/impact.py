@@ -47,6 +47,45 @@ NEGLIGIBLE_TRXR_K = 1.0
 NEGLIGIBLE_MAX_CHI2_SHARE = 0.1
 
 
+#: Relative rms of the data below which a fitted effect's signal cannot be told from the
+#: forward model's own error: autocal's Tsky and an independent forward model
+#: (``tests/independent_sim.py``: GSM2008 at nside 32 per pixel, astropy AltAz, its own
+#: beams, a hard horizon) differ by 6.4e-5 of the data rms over a clean day (a 150 K
+#: receiver) once the per-channel ``G`` and ``n`` are fitted, smooth in time and much of it
+#: common to all channels, i.e. gain-like (``tests/diagnosis/test_model_accuracy.py``
+#: measures it). An effect whose Delta chi^2
+#: corresponds to less than this (:func:`signal_rms`) is reported "below the forward model's
+#: accuracy" rather than "detected".
+FORWARD_MODEL_ACCURACY = 1e-4
+#: The entries seen through the data's structure in time and frequency, to which
+#: :data:`FORWARD_MODEL_ACCURACY` applies. The time-constant Tsky entries (``sky_offset``,
+#: ``sky_scale``, ``sky_spectral_index``, ``ground_temperature``, ``missing_cmb``) are seen
+#: through the receiver prior, and ``cable_reflection`` in the bandpass: not these.
+DATA_STRUCTURE_EFFECTS = frozenset(
+    {
+        "gain_drift",
+        "gain_jitter",
+        "noise_drift",
+        "antenna_gain_drift",
+        "antenna_gain_jitter",
+        "beam_width",
+        "timing_offset",
+    }
+)
+
+
+def signal_rms(delta_chi2: float, radiometer_total: float) -> float:
+    """Return the rms, relative to the data, of the signal behind a radiometer Delta chi^2.
+
+    With weights ``dnu dt N / D^2``, a model change ``s`` costs ``sum dnu dt N (s / D)^2``;
+    over usable samples whose ``dnu dt N`` add up to ``radiometer_total`` the rms of ``s /
+    D`` is ``sqrt(Delta chi^2 / radiometer_total)``.
+    """
+    if not radiometer_total > 0:
+        return float("nan")
+    return math.sqrt(max(float(delta_chi2), 0.0) / radiometer_total)
+
+
 def is_negligible(impact: dict[str, Any], chi2_share: float = 0.0) -> bool:
     """Return whether a :func:`product_impact` is too small to matter for the products.
 

@@ -17,7 +17,11 @@ import numpy as np
 
 from autocal.core.observation import Observation
 from autocal.diagnosis.extended_fit import ExtendedFit
-from autocal.diagnosis.impact import NEGLIGIBLE_G_FRACTION, NEGLIGIBLE_TRXR_K
+from autocal.diagnosis.impact import (
+    FORWARD_MODEL_ACCURACY,
+    NEGLIGIBLE_G_FRACTION,
+    NEGLIGIBLE_TRXR_K,
+)
 from autocal.diagnosis.normal_equations import IDENTIFIABLE_RESOLUTION, MIN_IDENTIFIABLE
 from autocal.plots import plot_gain_series, plot_residuals, run_title, waterfall_antennas
 
@@ -68,6 +72,14 @@ class Diagnosis:
         HERA beam, chi^2/dof 1.22, had a gain drift, a noise drift and a timing offset
         "detected" at 2 % of the remainder's excess each). Kept in the fit; listed under
         ``unexplained["absorbed"]`` with their shares; neither named nor "detected".
+    below_model_accuracy
+        Effects seen through the data's structure that passed the test, are negligible for
+        the products and whose signal is below
+        :data:`~autocal.diagnosis.impact.FORWARD_MODEL_ACCURACY` of the data rms (the step's
+        ``signal_rms``): what autocal's own Tsky can be off by, which such a template fits
+        as well as any instrument effect (clean days from an independent simulator had a
+        gain drift "detected" at 3.6e-5-5.7e-5). Kept in the fit; neither named nor
+        "detected".
     indistinguishable
         ``None``, or the step at which the search stopped because an entry of the other
         domain (receiver against forward model, :func:`~autocal.diagnosis.rivals.domain`)
@@ -107,6 +119,7 @@ class Diagnosis:
     unexplained: dict[str, Any] | None = None
     negligible: list[str] = field(default_factory=list)
     absorbed: list[str] = field(default_factory=list)
+    below_model_accuracy: list[str] = field(default_factory=list)
     indistinguishable: dict[str, Any] | None = None
     not_tested: dict[str, str] = field(default_factory=dict)
     rfi_flagging: dict[str, Any] | None = None
@@ -117,6 +130,7 @@ class Diagnosis:
             "effects": self.effects,
             "negligible": self.negligible,
             "absorbed": self.absorbed,
+            "below_model_accuracy": self.below_model_accuracy,
             "indistinguishable": self.indistinguishable,
             "not_tested": self.not_tested,
             "rfi_flagging": self.rfi_flagging,
@@ -169,6 +183,11 @@ def summary_text(diag: Diagnosis) -> str:
         marks = " [negligible]" if st.get("negligible") else ""
         if "absorbed_by_unexplained" in st:
             marks = " [negligible; part of the unexplained remainder]"
+        if st.get("below_model_accuracy"):
+            marks = (
+                f" [negligible; {st['signal_rms']:.1e} of the data rms, below the forward "
+                "model's accuracy]"
+            )
         if st.get("superseded_by"):
             marks += f" [superseded by {st['superseded_by']}]"
         if st.get("dropped_in_backward_pass"):
@@ -198,6 +217,13 @@ def summary_text(diag: Diagnosis) -> str:
             "fitted, but part of the unexplained remainder rather than evidence of the effect "
             "(each explains little of its excess chi2; negligible for the products): "
             + ", ".join(f"{n} ({100 * shares.get(n, float('nan')):.1f} %)" for n in diag.absorbed)
+        )
+    if diag.below_model_accuracy:
+        lines.append(
+            "fitted, but below the forward model's accuracy (a signal under "
+            f"{FORWARD_MODEL_ACCURACY:g} of the data rms, which autocal's own Tsky can be off "
+            "by; negligible for the products, not attributed): "
+            + ", ".join(diag.below_model_accuracy)
         )
     if diag.indistinguishable:
         lines.append(diag.indistinguishable["message"])

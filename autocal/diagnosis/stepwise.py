@@ -70,7 +70,13 @@ from autocal.diagnosis.effects import Effect, SkyTemplates
 from autocal.diagnosis.errors import DiagnoseError
 from autocal.diagnosis.extended_fit import ExtendedFit, fit_extended, radiometer_weights
 from autocal.diagnosis.gap import ABSORBED_SHARE, describe_unexplained, gap_metrics
-from autocal.diagnosis.impact import product_impact, product_sigmas
+from autocal.diagnosis.impact import (
+    DATA_STRUCTURE_EFFECTS,
+    FORWARD_MODEL_ACCURACY,
+    product_impact,
+    product_sigmas,
+    signal_rms,
+)
 from autocal.diagnosis.normal_equations import MIN_IDENTIFIABLE, blas_single_thread
 from autocal.diagnosis.outliers import (
     NOISE_MAX_SIGMA,
@@ -611,6 +617,7 @@ def _finish(ctx: SearchContext, state: SearchState) -> None:
     diag.final_fit = current
     diag.unexplained = describe_unexplained(current, state.obs, diag.final_gap)
     _absorb_into_remainder(diag)
+    _below_model_accuracy(diag, radiometer_total(state.obs))
     diag.product_change = product_impact(
         ctx.base_fit,
         current,
@@ -665,3 +672,37 @@ def _absorb_into_remainder(diag: Diagnosis) -> None:
                 absorbed.append({"name": name, "delta_chi2": float(st["delta"]), "share": share})
     if absorbed:
         diag.unexplained["absorbed"] = absorbed
+
+
+def radiometer_total(obs: Observation) -> float:
+    """Return the sum of ``dnu dt N`` over the usable samples (:func:`signal_rms`)."""
+    total = 0.0
+    width = obs.channel_width[None, None, None, :]
+    tint = obs.integration_time[None, None, :, None]
+    for sl in antenna_chunks(obs.shape):
+        usable = np.isfinite(obs.data[sl]) & ~obs.flags[sl]
+        bt = np.broadcast_to(width * (tint * obs.nsamples[sl]), usable.shape)
+        total += float(bt[usable].sum())
+    return total
+
+
+def _below_model_accuracy(diag: Diagnosis, radiometer: float) -> None:
+    """Move the negligible effects whose signal is below the forward model's accuracy.
+
+    An effect seen through the data's structure (:data:`DATA_STRUCTURE_EFFECTS`) that is
+    negligible for the products and whose Delta chi^2 corresponds to a signal below
+    :data:`FORWARD_MODEL_ACCURACY` of the data (:func:`signal_rms`) fits what autocal's
+    own Tsky gets wrong as well as any instrument could: it goes to
+    :attr:`~autocal.diagnosis.report.Diagnosis.below_model_accuracy` (its size under the
+    step's ``signal_rms``), neither named nor "detected".
+    """
+    for st in diag.steps:
+        name = st["name"]
+        if name not in DATA_STRUCTURE_EFFECTS or name not in diag.negligible:
+            continue
+        size = signal_rms(float(st["delta"]), radiometer)
+        st["signal_rms"] = size
+        if size < FORWARD_MODEL_ACCURACY:
+            diag.negligible.remove(name)
+            diag.below_model_accuracy.append(name)
+            st["below_model_accuracy"] = True

@@ -137,6 +137,7 @@ def _diagnosis_results(settings: Settings, job: dict[str, Any]) -> DiagnosisResu
             unexplained=doc.get("unexplained"),
             negligible=list(doc.get("negligible") or []),
             absorbed=list(doc.get("absorbed") or []),
+            below_model_accuracy=list(doc.get("below_model_accuracy") or []),
             indistinguishable=doc.get("indistinguishable"),
             not_tested=dict(doc.get("not_tested") or {}),
             rfi_flagging=doc.get("rfi_flagging"),

@@ -210,3 +210,44 @@ def test_weak_negligible_effects_of_an_unexplained_remainder_are_not_detections(
     plain = make(unexplained=False)
     _absorb_into_remainder(plain)
     assert plain.absorbed == [] and plain.negligible == ["gain_drift", "noise_drift"]
+
+
+def test_negligible_effects_below_the_model_accuracy_are_not_detections() -> None:
+    """A negligible effect of the data's structure whose signal is under the forward model's
+    accuracy is reported as such; above it, or one seen through the prior, stays "detected,
+    negligible"; a named effect is never moved."""
+    from autocal.diagnosis.impact import FORWARD_MODEL_ACCURACY, signal_rms
+    from autocal.diagnosis.stepwise import _below_model_accuracy
+
+    radiometer = 1e6 * 15456  # dnu dt = 1e6 over a clean day of one feed
+    gap = {"chi2": 15456.0, "dof": 15450.0, "reduced_chi2": 1.0, "rms_normalised_residual": 1.0}
+
+    def delta_for(size: float) -> float:
+        return size**2 * radiometer
+
+    steps = [
+        {"name": name, "parameters": {}, "statistic": 30.0, "delta": delta_for(size)}
+        | {"gap_before": gap, "gap_after": gap}
+        for name, size in (
+            ("gain_drift", 0.4 * FORWARD_MODEL_ACCURACY),
+            ("timing_offset", 3.0 * FORWARD_MODEL_ACCURACY),
+            ("ground_temperature", 0.4 * FORWARD_MODEL_ACCURACY),
+            ("noise_drift", 0.1 * FORWARD_MODEL_ACCURACY),
+        )
+    ]
+    diag = Diagnosis(
+        steps=steps,
+        effects=["noise_drift"],
+        negligible=["gain_drift", "timing_offset", "ground_temperature"],
+        initial_gap=gap,
+        final_gap=gap,
+    )
+    _below_model_accuracy(diag, radiometer)
+    assert diag.below_model_accuracy == ["gain_drift"]
+    assert diag.negligible == ["timing_offset", "ground_temperature"]
+    assert diag.effects == ["noise_drift"]
+    assert steps[0]["signal_rms"] == pytest.approx(0.4 * FORWARD_MODEL_ACCURACY)
+    assert signal_rms(delta_for(2e-4), radiometer) == pytest.approx(2e-4)
+    text = summary_text(diag)
+    assert "below the forward model's accuracy" in text and "4.0e-05 of the data rms" in text
+    assert diag.to_dict()["below_model_accuracy"] == ["gain_drift"]

@@ -174,6 +174,7 @@ def test_diagnose_job_end_to_end(
     assert body["kind"] == "diagnose" and body["job_id"] == job_id
     assert body["effects"][0] == "gain_drift"
     assert body["absorbed"] == [] and "gain_drift" not in body["negligible"]
+    assert body["below_model_accuracy"] == []  # the field is served (a named effect: empty)
     assert body["indistinguishable"] is None and body["config"]["decisive_margin"] > 0
     step = body["steps"][0]
     assert step["step"] == 1 and step["name"] == "gain_drift"
