@@ -72,6 +72,8 @@ def _step_text(step: dict[str, Any]) -> str:
     dropped += " [negligible]" if step.get("negligible") else ""
     if step.get("absorbed_by_unexplained") is not None:
         dropped += " [part of the unexplained remainder]"
+    if step.get("below_model_accuracy"):
+        dropped += f" [below the model's accuracy: {_fmt(step.get('signal_rms'), '.1e')}]"
     return (
         f"{step['name']}{basis} dBIC={_fmt(step['statistic'], '.1f')} "
         f"p={_fmt(step['p_value'], '.2g')} c={_fmt(step['overdispersion'], '.3f')} "
@@ -115,6 +117,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
             groups[key]["cases"] += 1
             groups[key]["exact"] += int(r["exact"])
             groups[key]["exact_visible"] += int(r["exact_visible"])
+            groups[key]["exact_matters"] += int(r.get("exact_matters", r["exact"]))
             groups[key]["correct"] += int(r["correct"])
     clean = [r for r in rows if not r["hidden"]]
     false_names = []
@@ -156,6 +159,11 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         for r in rows
         if r.get("absorbed")
     ]
+    below_accuracy = [
+        {"case": r["case"]["name"], "hidden": r["hidden"], "effects": r["below_model_accuracy"]}
+        for r in rows
+        if r.get("below_model_accuracy")
+    ]
     indistinguishable = [
         {
             "case": r["case"]["name"],
@@ -171,12 +179,22 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "exact_fraction": exact / n if n else float("nan"),
         "exact_visible": sum(r["exact_visible"] for r in rows),
         "exact_or_negligible": sum(r["exact_or_negligible"] for r in rows),
+        "exact_matters": sum(r.get("exact_matters", r["exact"]) for r in rows),
+        "exact_matters_fraction": sum(r.get("exact_matters", r["exact"]) for r in rows) / n
+        if n
+        else float("nan"),
+        "hidden_not_mattering": [
+            {"case": r["case"]["name"], "effects": sorted(set(r["hidden"]) - set(r["matters"]))}
+            for r in rows
+            if "matters" in r and set(r["hidden"]) - set(r["matters"])
+        ],
         "correct": sum(r["correct"] for r in rows),
         "correct_fraction": sum(r["correct"] for r in rows) / n if n else float("nan"),
         "cases_with_extras": sum(bool(r["extras"]) for r in rows),
         "unexplained": [r["case"]["name"] for r in rows if r.get("unexplained")],
         "negligible": negligible,
         "absorbed": absorbed,
+        "below_model_accuracy": below_accuracy,
         "indistinguishable": indistinguishable,
         "per_effect": {k: dict(v) for k, v in sorted(per_effect.items())},
         "groups": {k: dict(v) for k, v in sorted(groups.items())},
@@ -219,6 +237,16 @@ def markdown(result: dict[str, Any]) -> str:
         f"- exact against the visible hidden effects only: {s['exact_visible']} / {s['cases']}",
         f"- exact when a hidden effect reported 'detected, negligible' counts: "
         f"{s['exact_or_negligible']} / {s['cases']}",
+        f"- **exact on the effects that move the products: {s['exact_matters']} / "
+        f"{s['cases']} ({100 * s['exact_matters_fraction']:.0f} %)**: every hidden effect "
+        "that biases `G` or `Trxr` beyond autocal's negligibility rule, judged from the truth "
+        "(the clean model fitted to the noiseless data against the true `G` and `Trxr`, "
+        "radiometer sigma; `product_impact`), named, and nothing named that is not hidden. "
+        "Hidden effects that do not: "
+        + (
+            ", ".join(f"{x['case']}: {x['effects']}" for x in s.get("hidden_not_mattering", []))
+            or "none"
+        ),
         f"- clean controls naming nothing: {s['clean_with_no_name']} / {s['clean_controls']}",
         f"- cases with extra names: {s['cases_with_extras']}; false names (extras): "
         f"{s['false_name_counts'] or 'none'}",
@@ -229,6 +257,12 @@ def markdown(result: dict[str, Any]) -> str:
         "- fitted but part of the unexplained remainder (negligible, < 10 % of its excess "
         "chi2; not counted as detected): "
         + (", ".join(f"{x['case']}: {x['absorbed']}" for x in s.get("absorbed", [])) or "none"),
+        "- fitted but below the forward model's accuracy (negligible, a signal under 1e-4 of the "
+        "data rms; not counted as detected): "
+        + (
+            ", ".join(f"{x['case']}: {x['effects']}" for x in s.get("below_model_accuracy", []))
+            or "none"
+        ),
         "- indistinguishable (the search stopped: entries of the receiver and of the forward "
         "model explain a residual within the decisive margin; none named): "
         + (
@@ -236,12 +270,13 @@ def markdown(result: dict[str, Any]) -> str:
             or "none"
         ),
         "",
-        "| group | cases | correct | exact | exact (visible) |",
-        "|---|---|---|---|---|",
+        "| group | cases | correct | exact | exact (visible) | exact (move the products) |",
+        "|---|---|---|---|---|---|",
     ]
     for key, g in s["groups"].items():
         lines.append(
-            f"| {key} | {g['cases']} | {g['correct']} | {g['exact']} | {g['exact_visible']} |"
+            f"| {key} | {g['cases']} | {g['correct']} | {g['exact']} | {g['exact_visible']} "
+            f"| {g.get('exact_matters', '-')} |"
         )
     lines += [
         "",
@@ -301,6 +336,7 @@ def markdown(result: dict[str, Any]) -> str:
         strength = (
             ", ".join(
                 f"{k} {_fmt(v['dbic'], '.3g')}{'' if v['visible'] else ' (not visible)'}"
+                + _impact_text(v)
                 for k, v in r["strength"].items()
             )
             or "-"
@@ -310,6 +346,8 @@ def markdown(result: dict[str, Any]) -> str:
             named += f" (negligible: {', '.join(r['negligible'])})"
         if r.get("absorbed"):
             named += f" (part of the remainder: {', '.join(r['absorbed'])})"
+        if r.get("below_model_accuracy"):
+            named += f" (below the model's accuracy: {', '.join(r['below_model_accuracy'])})"
         if r.get("indistinguishable"):
             named += f" (indistinguishable: {', '.join(r['indistinguishable']['candidates'])})"
         t = r["timings_s"]
@@ -323,6 +361,18 @@ def markdown(result: dict[str, Any]) -> str:
             f"{t['simulate']:.1f} + {t['diagnosis']:.1f} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def _impact_text(strength: dict[str, Any]) -> str:
+    """`` (negligible for the products: ...)`` for a hidden effect that does not matter."""
+    impact = strength.get("impact")
+    if impact is None or strength.get("matters", True):
+        return ""
+    return (
+        f" (negligible for the products: Trxr {impact['trxr_median_k']:.2g} K = "
+        f"{impact['trxr_median_sigma']:.2g} sigma median, G "
+        f"{impact['g_median_fraction']:.1e} = {impact['g_median_sigma']:.2g} sigma)"
+    )
 
 
 def select(cases: list[ie.Case], only: list[str] | None, count: int | None) -> list[ie.Case]:
@@ -464,7 +514,8 @@ def main(argv: list[str] | None = None) -> int:
         f"correct {summary['correct']}/{summary['cases']} "
         f"({100 * summary['correct_fraction']:.0f} %); "
         f"exact {summary['exact']}/{summary['cases']} ({100 * summary['exact_fraction']:.0f} %), "
-        f"against visible effects {summary['exact_visible']}/{summary['cases']}; "
+        f"against visible effects {summary['exact_visible']}/{summary['cases']}, "
+        f"on the effects that move the products {summary['exact_matters']}/{summary['cases']}; "
         f"clean naming nothing {summary['clean_with_no_name']}/{summary['clean_controls']}; "
         f"false names {summary['false_name_counts'] or 'none'}; misses "
         f"{summary['misses'] or 'none'}; {summary['runtime_s']:.0f} s"

@@ -93,6 +93,22 @@ HIDDEN_NAMES = (
     "antenna_gain_drift",
     "timing_offset",
 )
+#: Hidden effects of the forward model (the sky, beam, ground, CMB and clock), whose only
+#: consequence for the calibration is a bias of the per-channel ``G`` and ``Trxr``; whether
+#: one matters is judged from the truth (:func:`product_impact`). The instrument's effects
+#: (drifts, jitter, a reflection) change the data's time or bandpass structure and always
+#: matter.
+FORWARD_MODEL_EFFECTS = frozenset(
+    {
+        "sky_spectral_index",
+        "ground_temperature",
+        "beam_width",
+        "missing_cmb",
+        "sky_scale",
+        "sky_offset",
+        "timing_offset",
+    }
+)
 #: Ground temperature the diagnosis's model assumes, kelvin.
 MODEL_TGND_K = 300.0
 #: 1-sigma of the per-channel receiver prior, kelvin.
@@ -543,13 +559,15 @@ def effect_parameters(effect: Hidden, ntime: int, nfeeds: int = 1) -> int:
     return 1
 
 
-def _clean_model_chi2(
+def _clean_model_fit(
     data: np.ndarray, clean: np.ndarray, gain0: np.ndarray, trxr: np.ndarray, sigma_k: float
-) -> float:
-    """Chi-square of the clean model ``G Tsky + n`` fitted per channel to noiseless data.
+) -> dict[str, Any]:
+    """Fit the clean model ``G Tsky + n`` per channel to noiseless data.
 
     Radiometer weights ``dnu dt / D^2``, with the receiver prior row ``n - Trxr G = 0`` of
-    1-sigma ``G sigma_k``; ``data`` and ``clean`` are ``(Ntime, Nfreq)``.
+    1-sigma ``G sigma_k``; ``data`` and ``clean`` are ``(Ntime, Nfreq)``. Returns the
+    chi-square and, per channel, ``g``, ``trxr`` (``n / g``) and their 1-sigma of the
+    same weights (the radiometer noise the data would have).
     """
     w = DNU_DT / data**2
     wp = 1.0 / (gain0 * sigma_k) ** 2
@@ -562,7 +580,67 @@ def _clean_model_chi2(
     g = (n22 * b1 - n12 * b2) / det
     n = (n11 * b2 - n12 * b1) / det
     resid = data - g[None] * clean - n[None]
-    return float((w * resid**2).sum() + (wp * (n - trxr * g) ** 2).sum())
+    var_g, var_n, cov = n22 / det, n11 / det, -n12 / det
+    t_fit = n / g
+    var_t = (var_n - 2 * t_fit * cov + t_fit**2 * var_g) / g**2
+    return {
+        "chi2": float((w * resid**2).sum() + (wp * (n - trxr * g) ** 2).sum()),
+        "g": g,
+        "sigma_g": np.sqrt(var_g),
+        "trxr": t_fit,
+        "sigma_trxr": np.sqrt(var_t),
+    }
+
+
+def product_impact(
+    fit: dict[str, Any], gain: np.ndarray, trxr: np.ndarray, chi2_share: float = 0.0
+) -> dict[str, Any]:
+    """How far the clean model's ``G`` and ``Trxr`` land from the truth, by autocal's rule.
+
+    ``fit`` is :func:`_clean_model_fit` of noiseless data with one hidden effect,
+    ``gain`` and ``trxr`` the true per-channel values, ``chi2_share`` the chi-square the
+    effect costs the clean model over the number of data. The effect does not matter to
+    the products when it is negligible by the rule the diagnosis applies to its own
+    findings (:func:`autocal.diagnosis.impact.is_negligible`: under 0.1 sigma in the
+    median channel and 1 sigma in every one for both ``G`` and ``Trxr``, or a median
+    change under 1e-3 of ``G`` and 1 K of ``Trxr`` with none ten times that; never with a
+    chi-square share over 0.1), here judged from the truth with the radiometer sigma alone
+    (smaller than the calibration's total sigma, so stricter).
+    """
+    from autocal.diagnosis import impact as rule
+
+    dg = np.abs(fit["g"] - gain) / gain
+    dt = np.abs(fit["trxr"] - trxr)
+    g_sig, t_sig = dg * gain / fit["sigma_g"], dt / fit["sigma_trxr"]
+    out = {
+        "g_median_sigma": float(np.median(g_sig)),
+        "g_max_sigma": float(np.max(g_sig)),
+        "trxr_median_sigma": float(np.median(t_sig)),
+        "trxr_max_sigma": float(np.max(t_sig)),
+        "g_median_fraction": float(np.median(dg)),
+        "g_max_fraction": float(np.max(dg)),
+        "trxr_median_k": float(np.median(dt)),
+        "trxr_max_k": float(np.max(dt)),
+        "chi2_share": float(chi2_share),
+    }
+    within = (
+        max(out["g_median_sigma"], out["trxr_median_sigma"]) < rule.NEGLIGIBLE_MEDIAN_SIGMA
+        and max(out["g_max_sigma"], out["trxr_max_sigma"]) < rule.NEGLIGIBLE_MAX_SIGMA
+    )
+    small = (
+        out["g_median_fraction"] < rule.NEGLIGIBLE_G_FRACTION
+        and out["trxr_median_k"] < rule.NEGLIGIBLE_TRXR_K
+        and out["g_max_fraction"] < 10 * rule.NEGLIGIBLE_G_FRACTION
+        and out["trxr_max_k"] < 10 * rule.NEGLIGIBLE_TRXR_K
+    )
+    substantial = chi2_share > rule.NEGLIGIBLE_MAX_CHI2_SHARE
+    return out | {"matters": substantial or not (within or small)}
+
+
+def _worst_impact(impacts: list[dict[str, Any]]) -> dict[str, Any]:
+    """The largest of each statistic over feeds; the effect matters if it does in one."""
+    out: dict[str, Any] = {k: max(i[k] for i in impacts) for k in impacts[0] if k != "matters"}
+    return out | {"matters": any(i["matters"] for i in impacts)}
 
 
 def effect_strength(
@@ -592,7 +670,10 @@ def effect_strength(
     -------
     dict
         ``chi2``, ``k``, ``ndata``, ``dbic`` and ``visible`` (``dbic`` above
-        :data:`BIC_THRESHOLD`, or a cable reflection).
+        :data:`BIC_THRESHOLD`, or a cable reflection); ``impact``, how far the clean
+        model's ``G`` and ``Trxr`` land from the truth (:func:`product_impact`, worst
+        feed), and ``matters``: an effect of the instrument, or one of the forward model
+        (:data:`FORWARD_MODEL_EFFECTS`) whose impact is not negligible.
     """
     single = Case(
         case.name,
@@ -615,6 +696,7 @@ def effect_strength(
     s_time = np.linspace(-1.0, 1.0, ntime) if ntime > 1 else np.zeros(1)
     trxr_t = trxr[None, :] * (1.0 + kw.get("noise_drift", 0.0) * s_time[:, None])
     chi2 = 0.0
+    impacts: list[dict[str, Any]] = []
     for pol in case.pols:
         common = {"node_spacing_s": case.node_spacing_s}
         clean = sim.independent_tsky(freqs, jds, pol, case.beam, MODEL_TGND_K, **common)
@@ -632,15 +714,27 @@ def effect_strength(
         feed_gain = kw.get("feed_gain")
         for ia in range(len(case.antennas)):
             own = 1.0 if feed_gain is None else feed_gain[ia, case.pols.index(pol)][:, None]
-            chi2 += _clean_model_chi2(
-                gain * own * (true + trxr_t), clean, gain0, trxr, prior_sigma_k
-            )
+            fed = gain * own
+            fit = _clean_model_fit(fed * (true + trxr_t), clean, gain0, trxr, prior_sigma_k)
+            chi2 += fit["chi2"]
+            share = fit["chi2"] / (ntime * freqs.size)
+            impacts.append(product_impact(fit, fed.mean(axis=0), trxr, share))
     nfeeds = len(case.antennas) * len(case.pols)
     ndata = nfeeds * freqs.size * (ntime + 1)
     k = effect_parameters(effect, ntime, nfeeds)
     dbic = chi2 - k * math.log(ndata)
     visible = effect.name == "cable_reflection" or dbic > BIC_THRESHOLD
-    return {"chi2": chi2, "k": k, "ndata": ndata, "dbic": dbic, "visible": bool(visible)}
+    impact = _worst_impact(impacts)
+    matters = effect.name not in FORWARD_MODEL_EFFECTS or bool(impact["matters"])
+    return {
+        "chi2": chi2,
+        "k": k,
+        "ndata": ndata,
+        "dbic": dbic,
+        "visible": bool(visible),
+        "impact": impact,
+        "matters": matters,
+    }
 
 
 # ---------------------------------------------------------------------------------------
@@ -651,6 +745,7 @@ def score_names(
     named: Sequence[str],
     negligible: Sequence[str] = (),
     visible: Sequence[str] | None = None,
+    matters: Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """Score names exactly: the named set must equal the hidden set.
 
@@ -664,6 +759,9 @@ def score_names(
         Effects it reports as "detected, negligible" (not named).
     visible
         The hidden effects strong enough to be seen (:func:`effect_strength`; default all).
+    matters
+        The hidden effects that move the products by the truth (:func:`effect_strength`'s
+        ``matters``; default all).
 
     Returns
     -------
@@ -671,12 +769,16 @@ def score_names(
         ``exact`` (named == hidden), ``extras`` (named, not hidden), ``misses`` (hidden,
         not named), ``exact_or_negligible`` (named plus the hidden effects reported
         negligible == hidden; no extras), ``exact_visible`` (named == the visible
-        hidden effects) and ``correct``: nothing named that is not hidden, and every
-        visible hidden effect found, named or reported "detected, negligible" (a hidden
-        effect no perfect template could see may be found or not).
+        hidden effects), ``exact_matters`` (every hidden effect that matters named, and
+        nothing named that is not hidden: the issue's rule that an effect too small to
+        matter is not added to the model, judged from the truth) and ``correct``: nothing
+        named that is not hidden, and every visible hidden effect found, named or reported
+        "detected, negligible" (a hidden effect no perfect template could see may be found
+        or not).
     """
     h, n = set(hidden), set(named)
     vis = h if visible is None else set(visible)
+    must = h if matters is None else set(matters)
     found = n | (set(negligible) & h)
     return {
         "exact": h == n,
@@ -684,6 +786,7 @@ def score_names(
         "misses": sorted(h - n),
         "exact_or_negligible": found == h,
         "exact_visible": n == vis,
+        "exact_matters": must <= n <= h,
         "correct": n <= h and vis <= found,
     }
 
@@ -714,6 +817,8 @@ def _step_row(step: dict[str, Any]) -> dict[str, Any]:
         "gap_after": _gap(step.get("gap_after")),
         "negligible": step.get("negligible"),
         "absorbed_by_unexplained": step.get("absorbed_by_unexplained"),
+        "signal_rms": step.get("signal_rms"),
+        "below_model_accuracy": bool(step.get("below_model_accuracy")),
         "product_impact": _impact(step.get("product_impact")),
         "final_negligible": step.get("final_negligible"),
         "final_product_impact": _impact(step.get("final_product_impact")),
@@ -798,20 +903,23 @@ def run_case(
     named = list(doc.get("effects", []))
     negligible = list(doc.get("negligible", []))
     visible = [name for name, st in strength.items() if st["visible"]]
+    matters = [name for name, st in strength.items() if st["matters"]]
     cfg = doc.get("config", {})
     unexplained = doc.get("unexplained")
     return {
         "case": case.to_dict(),
         "hidden": list(case.hidden),
         "visible": visible,
+        "matters": matters,
         "strength": strength,
         "named": named,
         "negligible": negligible,
         "absorbed": list(doc.get("absorbed", [])),
+        "below_model_accuracy": list(doc.get("below_model_accuracy", [])),
         "indistinguishable": None
         if not doc.get("indistinguishable")
         else {k: doc["indistinguishable"][k] for k in ("step", "candidates", "message")},
-        **score_names(case.hidden, named, negligible, visible),
+        **score_names(case.hidden, named, negligible, visible, matters),
         "unexplained": None
         if not unexplained
         else {

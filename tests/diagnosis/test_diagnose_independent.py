@@ -113,6 +113,37 @@ def test_score_names_is_exact() -> None:
     assert not ie.score_names(["sky_scale"], [])["correct"]
     s = ie.score_names([], [], negligible=["gain_drift"])  # reported negligible: no extra
     assert s["exact"] and s["correct"] and not s["extras"]
+    # exact on what moves the products: an effect that does not may be left unnamed, one
+    # that does must be named, and a name that is not hidden is still wrong
+    s = ie.score_names(["ground_temperature"], [], matters=[])
+    assert not s["exact"] and s["exact_matters"]
+    assert ie.score_names(["ground_temperature"], ["ground_temperature"], matters=[])[
+        "exact_matters"
+    ]
+    assert not ie.score_names(["sky_scale"], [], matters=["sky_scale"])["exact_matters"]
+    assert not ie.score_names([], ["gain_drift"], matters=[])["exact_matters"]
+
+
+def test_product_impact_applies_the_negligibility_rule() -> None:
+    """Judged from the truth: a bias beyond the rule matters, a small or sub-model one not."""
+    gain, trxr = np.full(50, 2.0), np.full(50, 100.0)
+    fit = {"g": gain.copy(), "sigma_g": np.full(50, 1e-4), "trxr": trxr.copy()}
+    fit["sigma_trxr"] = np.full(50, 0.1)
+    assert not ie.product_impact(fit, gain, trxr)["matters"]
+    off = dict(fit, trxr=trxr + 2.0)  # 20 sigma and 2 K: matters
+    impact = ie.product_impact(off, gain, trxr)
+    assert impact["matters"] and impact["trxr_median_k"] == pytest.approx(2.0)
+    # 5 sigma but 0.5 K and 2e-4 of G: below what the sky model supports
+    assert not ie.product_impact(dict(fit, trxr=trxr + 0.5, g=gain * 1.0002), gain, trxr)["matters"]
+    # 0.8 K but 8 sigma: beyond the sigma rule, within the sky model's support
+    assert not ie.product_impact(dict(fit, trxr=trxr + 0.8), gain, trxr)["matters"]
+    assert ie.product_impact(dict(fit, trxr=trxr + 1.2), gain, trxr)["matters"]
+    # one channel 12 K off is more than ten times what the sky model supports
+    worst = trxr.copy()
+    worst[7] += 12.0
+    assert ie.product_impact(dict(fit, trxr=worst), gain, trxr)["matters"]
+    # products untouched, but a substantial feature of the data (a clock error over a day)
+    assert ie.product_impact(fit, gain, trxr, chi2_share=7.5)["matters"]
 
 
 def test_simulation_kwargs_inject_the_catalogue_effects() -> None:
@@ -433,7 +464,11 @@ def test_suite_report_from_rows(rows: dict[str, dict], tmp_path: Path) -> None:
     s = result["summary"]
     assert s["cases"] == len(FAST_CASES) and 0 <= s["exact"] <= s["cases"]
     assert s["clean_controls"] == 3 and s["clean_with_no_name"] == 3
-    assert [x["case"] for x in s["indistinguishable"]] == ["clean_short_hera"]
+    # the summary lists exactly the rows whose search stopped between rival entries
+    stopped = [r["case"]["name"] for r in rows.values() if r.get("indistinguishable")]
+    assert [x["case"] for x in s["indistinguishable"]] == stopped
+    assert "clean_short_hera" in stopped
+    assert s["exact_matters"] == sum(r["exact_matters"] for r in rows.values())
     assert set(s["per_effect"]) == {
         "noise_drift",
         "cable_reflection",
