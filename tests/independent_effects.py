@@ -350,14 +350,19 @@ def draw_effect(name: str, span: Span, rng: np.random.Generator) -> Hidden:
         if mode not in ("fwhm", "stretch"):
             raise CaseError(f"unknown beam_width variant {mode!r}: fwhm or stretch")
         return Hidden(base, {"w": sign * rng.uniform(0.05, 0.15), "mode": mode})
+    if base == "timing_offset" and variant == "j2000":
+        # the sky in J2000 instead of the apparent frame of the date (the mistake of issue
+        # 21): precession since J2000 is mostly a turn in right ascension, which this
+        # catalogue entry names ("a sky in a frame rotated in right ascension")
+        return Hidden(base, {"sky_frame": "J2000"})
     if variant:
         raise CaseError(f"{base} has no variants")
+    if base == "timing_offset":
+        return Hidden(base, {"dt_s": sign * rng.uniform(30.0, 90.0)})
     if base == "gain_jitter":
         return Hidden(
             base, {"rms": rng.uniform(1e-3, 1e-2), "seed": int(rng.integers(0, 2**31 - 1))}
         )
-    if base == "timing_offset":
-        return Hidden(base, {"dt_s": sign * rng.uniform(30.0, 90.0)})
     if base == "antenna_gain_drift":
         return Hidden(base, {"seed": int(rng.integers(0, 2**31 - 1))})
     if base == "antenna_gain_jitter":
@@ -462,6 +467,8 @@ def simulation_kwargs(case: Case) -> dict[str, Any]:
             factors = factors * (1.0 + drift)
         elif eff.name == "gain_jitter":
             factors = factors * jitter_factors(p["rms"], p["seed"], ntime)
+        elif eff.name == "timing_offset" and "sky_frame" in p:
+            kwargs["sky_frame"] = p["sky_frame"]
         elif eff.name == "timing_offset":
             kwargs["clock_offset_s"] = p["dt_s"]
         elif eff.name == "antenna_gain_drift":
@@ -709,6 +716,7 @@ def effect_strength(
             sky=kw.get("sky"),
             beam_width=kw.get("beam_width", 0.0),
             beam_width_mode=kw.get("beam_width_mode", "fwhm"),
+            sky_frame=kw.get("sky_frame", "apparent"),
             **common,
         )
         feed_gain = kw.get("feed_gain")
@@ -984,7 +992,7 @@ def case_seed(name: str, seed: int = SUITE_SEED) -> int:
 
 
 def suite_plan(seed: int = SUITE_SEED) -> list[Case]:
-    """Return the fixed-seed suite (52 cases).
+    """Return the fixed-seed suite (54 cases).
 
     * 8 clean controls: the dipole over a day (1 antenna ee, twice with different noise;
       2 antennas ee + nn), over a short span at LST 3.23 h (1 antenna ee; 2 antennas
@@ -999,7 +1007,10 @@ def suite_plan(seed: int = SUITE_SEED) -> list[Case]:
     * nn, two antennas or the HERA beam (7 cases);
     * every antenna-pol its own gain jitter: 2 antennas x ee + nn over a short span, 3
       antennas (ee) over a day; its own gain drift, 2 antennas x ee + nn over a short span
-      (3 cases); a clock 30-90 s behind over a day (1 case);
+      (3 cases); a clock 30-90 s behind over a day (1 case); the sky in J2000 instead of
+      the frame of the date, over a day and a short span (2 cases, hidden as
+      ``timing_offset``, the catalogue entry for a sky in a frame turned in right
+      ascension);
     * pairs: the 6 of autocal's own suite over a day, 2 over a short span, 1 with the
       HERA beam over a day (9 cases).
 
@@ -1075,6 +1086,9 @@ def suite_plan(seed: int = SUITE_SEED) -> list[Case]:
     add("antenna_gain_jitter_day_3ant", ("antenna_gain_jitter",), "day", antennas=(0, 1, 2))
     add("antenna_gain_drift_short_2ant_eenn", ("antenna_gain_drift",), "short", **two)
     add("timing_offset_day", ("timing_offset",), "day")
+    # the sky in J2000 instead of the frame of the date (issue 21's implementation mistake)
+    add("sky_frame_j2000_day", ("timing_offset:j2000",), "day")
+    add("sky_frame_j2000_short", ("timing_offset:j2000",), "short")
     # pairs
     for a, b in _PAIRS:
         add(f"{a.split(':')[0]}+{b}_day", (a, b), "day")

@@ -251,15 +251,34 @@ def _galactic_pixels() -> Any:
     return SkyCoord(l=lon * u.deg, b=lat * u.deg, frame="galactic")
 
 
+#: The sky frames :func:`independent_tsky` can put the sky in: ``"apparent"`` (astropy's
+#: full Galactic -> AltAz transformation, the truth) or ``"J2000"`` (a mistake: the pixels'
+#: FK5 J2000 right ascension and declination taken as the apparent ones of the date, i.e.
+#: no precession, nutation or aberration since J2000).
+SKY_FRAMES = ("apparent", "J2000")
+
+
 @functools.lru_cache(maxsize=4)
-def _altaz(jds_key: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+def _altaz(
+    jds_key: tuple[float, ...], sky_frame: str = "apparent"
+) -> tuple[np.ndarray, np.ndarray]:
     """Altitude and azimuth (N through E) of every pixel centre: ``(Ntime, Npix)`` radians."""
     import astropy.units as u
-    from astropy.coordinates import AltAz
+    from astropy.coordinates import FK5, TETE, AltAz, SkyCoord
     from astropy.time import Time
 
+    if sky_frame not in SKY_FRAMES:
+        raise ValueError(f"unknown sky_frame {sky_frame!r}: use one of {SKY_FRAMES}")
     pixels = _galactic_pixels()
     jds = np.asarray(jds_key, dtype=np.float64)
+    if sky_frame == "J2000":
+        # where each pixel would be if its J2000 place were its apparent one (taken at the
+        # data's mean time: the apparent frame moves < 0.4 arcsec in a day)
+        j2000 = pixels.transform_to(FK5(equinox="J2000"))
+        mean_time = Time(float(jds.mean()), format="jd", scale="utc")
+        pixels = SkyCoord(ra=j2000.ra, dec=j2000.dec, frame=TETE(obstime=mean_time)).transform_to(
+            pixels.frame
+        )
     alt = np.empty((jds.size, len(pixels)))
     az = np.empty_like(alt)
     for start in range(0, jds.size, TIME_CHUNK):
@@ -438,11 +457,12 @@ def _exact_tsky(
     change: SkyChange | None = None,
     beam_width: float = 0.0,
     beam_width_mode: str = "fwhm",
+    sky_frame: str = "apparent",
 ) -> np.ndarray:
     """Beam-weighted Tsky evaluated exactly at every time: ``(Ntime, Nfreq)``."""
     freqs = np.asarray(freqs_key)
     sky = _true_sky(freqs_key, change)
-    alt, az = _altaz(jds_key)
+    alt, az = _altaz(jds_key, sky_frame)
     out = np.empty((alt.shape[0], freqs.size))
     stretch = beam_width != 0.0 and (beam_width_mode == "stretch" or beam == "hera")
     if beam == "dipole":
@@ -512,6 +532,7 @@ def _tsky_cached(
     change: SkyChange | None = None,
     beam_width: float = 0.0,
     beam_width_mode: str = "fwhm",
+    sky_frame: str = "apparent",
 ) -> np.ndarray:
     from scipy.interpolate import CubicSpline
 
@@ -526,6 +547,7 @@ def _tsky_cached(
         change,
         beam_width,
         beam_width_mode,
+        sky_frame,
     )
     if nodes.size == jds.size:
         result = exact
@@ -547,6 +569,7 @@ def independent_tsky(
     sky: SkyChange | None = None,
     beam_width: float = 0.0,
     beam_width_mode: str = "fwhm",
+    sky_frame: str = "apparent",
 ) -> np.ndarray:
     """Beam-weighted sky temperature at HERA, computed independently of autocal.
 
@@ -574,6 +597,9 @@ def independent_tsky(
         ``"fwhm"``: the dipole's FWHM times ``1 + w`` (azimuthal factor unchanged);
         ``"stretch"``: the dipole's whole pattern evaluated at ``za / (1 + w)`` (clipped
         to ``pi``). The HERA beam is always stretched.
+    sky_frame
+        ``"apparent"`` (the truth) or ``"J2000"`` (the sky put in the wrong frame,
+        :data:`SKY_FRAMES`).
 
     Returns
     -------
@@ -602,6 +628,7 @@ def independent_tsky(
         change,
         float(beam_width),
         beam_width_mode if beam_width else "fwhm",
+        sky_frame,
     ).copy()
 
 
@@ -818,6 +845,7 @@ def simulate_autos(
     beam_width_mode: str = "fwhm",
     feed_gain: np.ndarray | None = None,
     clock_offset_s: float = 0.0,
+    sky_frame: str = "apparent",
 ) -> Truth:
     """Simulate HERA auto-correlations and write them as a UVH5 file.
 
@@ -876,6 +904,9 @@ def simulate_autos(
     clock_offset_s
         The sky is simulated ``clock_offset_s`` seconds after the times written in the
         file (a clock running behind: the data's sky is that of ``t + dt``).
+    sky_frame
+        ``"apparent"`` or ``"J2000"``: the sky put in the wrong frame
+        (:func:`independent_tsky`).
 
     Returns
     -------
@@ -929,6 +960,7 @@ def simulate_autos(
                 sky=change,
                 beam_width=beam_width,
                 beam_width_mode=beam_width_mode,
+                sky_frame=sky_frame,
             )
             for pol in pols
         ]
@@ -982,6 +1014,7 @@ def simulate_autos(
         "beam_width": float(beam_width),
         "beam_width_mode": beam_width_mode,
         "clock_offset_s": float(clock_offset_s),
+        "sky_frame": sky_frame,
         "sky": None if change is None else dataclasses.asdict(change),
     }
     return Truth(

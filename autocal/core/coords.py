@@ -260,7 +260,10 @@ def resample_healpix(maps: np.ndarray, nside_out: int, source_vec: np.ndarray) -
 
 
 def resample_galactic_to_equatorial(
-    maps: np.ndarray, nside_out: int, epoch: str | float | Time | None = None
+    maps: np.ndarray,
+    nside_out: int,
+    epoch: str | float | Time | None = None,
+    rotation: np.ndarray | None = None,
 ) -> np.ndarray:
     """Galactic HEALPix maps as seen in the apparent equatorial frame of ``epoch``.
 
@@ -277,6 +280,9 @@ def resample_galactic_to_equatorial(
         Output HEALPix resolution.
     epoch
         Observation epoch (see :func:`parse_epoch`).
+    rotation
+        ``(3, 3)`` rotation of the sky in the apparent frame (``None``: none): the map
+        returned is ``M(R^T n)``, the sky turned by ``R`` (a sky in a wrong frame).
 
     Returns
     -------
@@ -284,4 +290,18 @@ def resample_galactic_to_equatorial(
         ``(Ncomp, 12 nside_out^2)`` apparent equatorial RING maps.
     """
     vec_eq = np.array(hp.pix2vec(nside_out, np.arange(hp.nside2npix(nside_out))))
+    if rotation is not None:
+        vec_eq = np.asarray(rotation, dtype=np.float64).T @ vec_eq
     return resample_healpix(maps, nside_out, apparent_to_galactic(vec_eq, epoch))
+
+
+def tilt_rotation(tilt_x_arcmin: float, tilt_y_arcmin: float) -> np.ndarray:
+    """Return the rotation by ``tilt_x`` about the equatorial x axis, then ``tilt_y`` about y.
+
+    The x axis points to right ascension 0 h, y to 6 h (declination 0); turns about the
+    pole (z) are a time offset. Positive angles turn counter-clockwise seen from the axis.
+    """
+    ax, ay = np.radians(np.array([tilt_x_arcmin, tilt_y_arcmin], dtype=np.float64) / 60.0)
+    rx = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(ax), -np.sin(ax)], [0.0, np.sin(ax), np.cos(ax)]])
+    ry = np.array([[np.cos(ay), 0.0, np.sin(ay)], [0.0, 1.0, 0.0], [-np.sin(ay), 0.0, np.cos(ay)]])
+    return ry @ rx

@@ -18,6 +18,7 @@ def catalogue(
     include_timing: bool = False,
     span_h: float | None = None,
     nfeeds: int | None = None,
+    include_tilt: bool = False,
 ) -> list[Effect]:
     """Return the candidate effects (drifts in every order ``1..max_drift_order``).
 
@@ -36,6 +37,11 @@ def catalogue(
     ntime
         Number of integrations: with 3 or more, include ``gain_jitter`` (one broadband
         gain factor per integration, the first one the reference).
+    include_tilt
+        With ``include_timing``, ``timing_offset`` also turns the sky about the equatorial
+        x and y axes (``tilt_x_arcmin``, ``tilt_y_arcmin``; needs
+        :attr:`.SkyTemplates.frame_tilt`): a sky in a wrong frame, e.g. J2000 instead of
+        the date, is turned about the pole and tilted.
     nfeeds
         Number of antenna-pols: with 2 or more, include ``antenna_gain_drift`` (every
         antenna-pol its own Legendre drift, orders ``1..max_drift_order``) and (with
@@ -46,7 +52,7 @@ def catalogue(
         *_jitter_entries(ntime, nfeeds),
         *_drift_entries(max_drift_order, nfeeds),
         *_diurnal_entries(span_h),
-        *_tsky_entries(include_timing, include_beam_width),
+        *_tsky_entries(include_timing, include_beam_width, include_tilt),
     ]
 
 
@@ -148,7 +154,9 @@ def _diurnal_entries(span_h: float | None) -> list[Effect]:
     return out
 
 
-def _tsky_entries(include_timing: bool, include_beam_width: bool) -> list[Effect]:
+def _tsky_entries(
+    include_timing: bool, include_beam_width: bool, include_tilt: bool = False
+) -> list[Effect]:
     """Return the Tsky entries and ``cable_reflection``."""
     out = [
         Effect("sky_scale", "tsky", ("s",), ("1",), signature="S -> (1 + s) S"),
@@ -176,7 +184,19 @@ def _tsky_entries(include_timing: bool, include_beam_width: bool) -> list[Effect
             signature="G(nu) smooth x (1 + a cos(2 pi nu tau + phi))",
         ),
     ]
-    if include_timing:
+    if include_timing and include_tilt:
+        out.append(
+            Effect(
+                "timing_offset",
+                "tsky",
+                ("dt_s", "tilt_x_arcmin", "tilt_y_arcmin"),
+                ("s", "arcmin", "arcmin"),
+                signature="Tsky(t + dt) of a sky also tilted about the equatorial x and y "
+                "axes: a clock or LST error, or a sky in a wrong frame (e.g. J2000 instead "
+                "of the frame of date: turned in right ascension and tilted)",
+            )
+        )
+    elif include_timing:
         out.append(
             Effect(
                 "timing_offset",

@@ -45,7 +45,7 @@ from autocal.errors import AutocalError
 from autocal.fit.model import FitModel
 from autocal.sky.beam_base import Beam, BeamEvaluator
 from autocal.sky.beam_names import get_beam
-from autocal.sky.models import T_CMB
+from autocal.sky.models import T_CMB, TiltedSky, get_sky
 from autocal.tsky.compute import compute_tsky
 
 logger = logging.getLogger(__name__)
@@ -73,6 +73,10 @@ EFFECT_NAMES = (
 DIURNAL_MIN_SPAN_H = 6.0
 #: Step (hours) of the central difference of Tsky in LST behind ``timing_offset``.
 LST_STEP_H = 2.0 / 60.0
+#: Step (arcmin) of the central differences of Tsky in the sky's tilt about the equatorial
+#: x and y axes behind ``timing_offset``'s frame-tilt parameters (linear well beyond the
+#: 6 arcmin a J2000 sky is tilted by in 2018).
+TILT_STEP_ARCMIN = 30.0
 
 
 class EffectError(AutocalError):
@@ -147,6 +151,11 @@ class SkyTemplates:
     lst_derivative
         ``(Npol, Ntime, Nfreq)`` ``dTsky / dt`` in kelvin per second of time (central
         difference over :data:`LST_STEP_H`), the template of ``timing_offset``, or ``None``.
+    frame_tilt
+        ``(2, Npol, Ntime, Nfreq)`` ``dTsky / d tilt`` in kelvin per arcminute for the sky
+        turned about the equatorial x and y axes (central differences over
+        :data:`TILT_STEP_ARCMIN`), the frame-tilt part of ``timing_offset`` over long spans,
+        or ``None``.
     meta
         Provenance.
     """
@@ -164,6 +173,7 @@ class SkyTemplates:
     nu0: float = 150e6
     meta: dict[str, Any] = field(default_factory=dict)
     lst_derivative: np.ndarray | None = None
+    frame_tilt: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         shape = self.total.shape
@@ -178,6 +188,8 @@ class SkyTemplates:
             raise EffectError("template beam_width_poly has the wrong shape")
         if self.lst_derivative is not None and self.lst_derivative.shape != shape:
             raise EffectError("template lst_derivative has the wrong shape")
+        if self.frame_tilt is not None and self.frame_tilt.shape != (2, *shape):
+            raise EffectError("template frame_tilt has the wrong shape")
 
     def subset(self, pols: slice = slice(None), channels: slice = slice(None)) -> SkyTemplates:
         """Return the templates of some polarisations and channels."""
@@ -189,6 +201,8 @@ class SkyTemplates:
             fields[name] = getattr(self, name)[pols, channels]
         if self.beam_width_poly is not None:
             fields["beam_width_poly"] = self.beam_width_poly[:, pols, :, channels]
+        if self.frame_tilt is not None:
+            fields["frame_tilt"] = self.frame_tilt[:, pols, :, channels]
         return replace(self, **fields)
 
 
@@ -206,6 +220,7 @@ def sky_templates(
     beam_width_step: float | None = 0.2,
     nu0: float | None = None,
     timing: bool = True,
+    tilt: bool = False,
 ) -> SkyTemplates:
     """Compute the model Tsky and its effect templates (one FFT Tsky pass per beam).
 
@@ -238,6 +253,11 @@ def sky_templates(
         sky, else the band centre.
     timing
         Compute the ``timing_offset`` template (Tsky's derivative in time).
+    tilt
+        With ``timing``, also the frame-tilt templates (Tsky's derivatives in the sky's
+        tilt about the equatorial x and y axes: 4 more Tsky computations per beam, each
+        preparing a turned sky); worth it over spans long enough to tell a tilt from a
+        time offset (the diagnosis asks for them over :data:`DIURNAL_MIN_SPAN_H`).
 
     Returns
     -------
@@ -246,7 +266,9 @@ def sky_templates(
     """
     freqs = np.asarray(freqs, np.float64)
     lsts = np.asarray(lsts, np.float64)
-    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("tot", "gal", "cmb", "gnd", "bw", "dt")}
+    parts: dict[str, list[np.ndarray]] = {
+        k: [] for k in ("tot", "gal", "cmb", "gnd", "bw", "dt", "tilt")
+    }
     fa, fb = [], []
     meta: dict[str, Any] = {}
     for pol in pols:
@@ -269,6 +291,8 @@ def sky_templates(
         meta = res.meta
         if timing:
             parts["dt"].append(_lst_derivative(sky, b, site, freqs, lsts, kw))
+            if tilt:
+                parts["tilt"].append(_frame_tilt(sky, b, site, freqs, lsts, kw))
         if beam_width_step:
             parts["bw"].append(
                 _beam_width_poly(sky, b, site, freqs, lsts, kw, beam_width_step, res.tsky)
@@ -287,6 +311,7 @@ def sky_templates(
         beam_dwidth=np.stack([c[0] for c in parts["bw"]]) if parts["bw"] else None,
         beam_width_poly=np.stack(parts["bw"], axis=1) if parts["bw"] else None,
         lst_derivative=np.stack(parts["dt"]) if parts["dt"] else None,
+        frame_tilt=np.stack(parts["tilt"], axis=1) if parts["tilt"] else None,
         nu0=nu0,
         meta={"tsky": meta, "tgnd_K": tgnd, "beam_width_step": beam_width_step},
     )
@@ -311,6 +336,33 @@ def _lst_derivative(
     )
     per_hour = (ahead - behind) / (2 * LST_STEP_H)
     return per_hour * SIDEREAL_RATE / 3600.0
+
+
+def _frame_tilt(
+    sky: Any,
+    beam: Beam,
+    site: Any,
+    freqs: np.ndarray,
+    lsts: np.ndarray,
+    kw: dict[str, Any],
+) -> np.ndarray:
+    """Return ``dTsky / d tilt`` (K per arcmin) about the equatorial x and y axes: ``(2, T, F)``.
+
+    Central differences over :data:`TILT_STEP_ARCMIN` of Tsky with the sky turned
+    (:class:`autocal.sky.models.TiltedSky`), cached like any other sky.
+    """
+    base = get_sky(sky) if isinstance(sky, str) else sky
+    h = TILT_STEP_ARCMIN
+    out = []
+    for axis in (0, 1):
+        turned = []
+        for sign in (1.0, -1.0):
+            angles = [0.0, 0.0]
+            angles[axis] = sign * h
+            tilted = TiltedSky(base=base, tilt_x_arcmin=angles[0], tilt_y_arcmin=angles[1])
+            turned.append(compute_tsky(tilted, beam, site, freqs, lsts, **kw).tsky)
+        out.append((turned[0] - turned[1]) / (2 * h))
+    return np.stack(out)
 
 
 def _beam_width_poly(
@@ -459,6 +511,10 @@ class Effect:
         elif self.name == "timing_offset":
             if tpl.lst_derivative is None:
                 raise EffectError("timing_offset needs templates built with timing=True")
+            if len(self.params) == 3:
+                if tpl.frame_tilt is None:
+                    raise EffectError("the frame tilt needs templates built with tilt=True")
+                return np.stack([tpl.lst_derivative, *tpl.frame_tilt], axis=-1)
             t = tpl.lst_derivative
         else:
             raise EffectError(f"{self.name} is not a Tsky effect")

@@ -280,6 +280,7 @@ def _candidate_list(
         include_beam_width=tpl.beam_dwidth is not None,
         ntime=obs.ntime,
         include_timing=tpl.lst_derivative is not None,
+        include_tilt=tpl.frame_tilt is not None,
         span_h=float(np.ptp(unwrap_lsts(obs.lsts))),
         nfeeds=obs.nant * len(obs.pols),
     )

@@ -34,7 +34,7 @@ from typing import Any
 import healpy as hp
 import numpy as np
 
-from autocal.core.coords import parse_epoch, resample_galactic_to_equatorial
+from autocal.core.coords import parse_epoch, resample_galactic_to_equatorial, tilt_rotation
 from autocal.errors import AutocalError
 from autocal.io.datasets import GSM2008_FILE, ensure_pygdsm_file
 
@@ -138,6 +138,10 @@ class SkyModel(ABC):
     def describe(self) -> dict[str, Any]:
         """Return a JSON-serialisable description (provenance and cache keys)."""
 
+    def frame_rotation(self) -> np.ndarray | None:
+        """Return the rotation of the sky in the apparent frame (``None`` for the true sky)."""
+        return None
+
     def components(
         self, freqs: np.ndarray | float, nside: int = 64, epoch: Any = None
     ) -> SkyComponents:
@@ -182,7 +186,7 @@ class SkyModel(ABC):
     def _components(self, freqs: np.ndarray, nside: int, time: Any) -> SkyComponents:
         """Compute :meth:`components` (arguments checked); the arrays are read-only."""
         maps, spectra, labels = self.galactic(freqs, nside)
-        eq_maps = resample_galactic_to_equatorial(maps, nside, time)
+        eq_maps = resample_galactic_to_equatorial(maps, nside, time, self.frame_rotation())
         if not self.maps_include_cmb:
             eq_maps = np.vstack([eq_maps, np.ones((1, eq_maps.shape[1]))])
             spectra = np.hstack([spectra, np.full((freqs.size, 1), T_CMB)])
@@ -231,6 +235,46 @@ class UniformSky(SkyModel):
 
     def describe(self) -> dict[str, Any]:  # noqa: D102
         return {"model": "uniform", "t0_K": float(self.t0), "includes_cmb": self.includes_cmb}
+
+
+@dataclass(frozen=True)
+class TiltedSky(SkyModel):
+    """Another sky model turned about the equatorial x and y axes (a sky in a wrong frame).
+
+    Used for the diagnosis's frame-tilt templates (:mod:`autocal.diagnosis.effects`): a
+    sky left in J2000 is, against the frame of the date, turned about the pole (a time
+    offset) and tilted (precession in declination, 20 arcsec a year).
+
+    Parameters
+    ----------
+    base
+        The sky model.
+    tilt_x_arcmin, tilt_y_arcmin
+        Turns about the x (RA 0 h) and y (RA 6 h) axes, arcminutes
+        (:func:`autocal.core.coords.tilt_rotation`).
+    """
+
+    base: SkyModel = field(default_factory=lambda: UniformSky())
+    tilt_x_arcmin: float = 0.0
+    tilt_y_arcmin: float = 0.0
+    name: str = "tilted"
+
+    @property
+    def maps_include_cmb(self) -> bool:  # type: ignore[override]
+        """Whether the base model's maps include the CMB."""
+        return self.base.maps_include_cmb
+
+    def galactic(self, freqs, nside):  # noqa: D102
+        return self.base.galactic(freqs, nside)
+
+    def frame_rotation(self) -> np.ndarray | None:  # noqa: D102
+        return tilt_rotation(self.tilt_x_arcmin, self.tilt_y_arcmin)
+
+    def describe(self) -> dict[str, Any]:  # noqa: D102
+        return {
+            **self.base.describe(),
+            "tilt_arcmin": [float(self.tilt_x_arcmin), float(self.tilt_y_arcmin)],
+        }
 
 
 # pygdsm models ---------------------------------------------------------------------------

@@ -56,3 +56,33 @@ def test_apparent_sky_maps_follow_astropy() -> None:
     at_rotated = hp.get_interp_val(gal, *hp.vec2ang(rotated.T))
     assert np.max(np.abs(eq[pixels] - at_astropy)) < 1e-8
     assert np.max(np.abs(at_rotated - at_astropy)) > 5e-5  # what the aberration moves
+
+
+def test_tilt_rotation_turns_about_the_equatorial_axes() -> None:
+    """A tilt about x moves the point at RA 6 h in declination; about y, the one at 0 h."""
+    from autocal.core.coords import tilt_rotation
+
+    rot = tilt_rotation(30.0, 0.0)
+    np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-15)
+    moved = rot @ np.array([0.0, 1.0, 0.0])  # RA 6 h, Dec 0
+    assert np.degrees(np.arcsin(moved[2])) * 60 == pytest.approx(30.0)
+    moved = tilt_rotation(0.0, 30.0) @ np.array([1.0, 0.0, 0.0])  # RA 0 h, Dec 0
+    assert np.degrees(np.arcsin(-moved[2])) * 60 == pytest.approx(30.0)
+    np.testing.assert_array_equal(tilt_rotation(0.0, 0.0), np.eye(3))
+
+
+def test_a_tilted_sky_is_the_sky_sampled_at_turned_directions() -> None:
+    """``M'(n) = M(R^T n)``: the tilted map at each pixel is the map at the turned place."""
+    from autocal.core.coords import tilt_rotation
+
+    nside, jd = 64, 2458116.71
+    gradient = np.array([0.3, -0.5, 0.8])
+    gal = gradient @ np.array(hp.pix2vec(nside, np.arange(hp.nside2npix(nside))))
+    rot = tilt_rotation(40.0, -25.0)
+    tilted = resample_galactic_to_equatorial(gal, nside, jd, rot)[0]
+    pixels = np.arange(0, hp.nside2npix(nside), 53)
+    turned = rot.T @ np.array(hp.pix2vec(nside, pixels))
+    expected = hp.get_interp_val(gal, *hp.vec2ang(apparent_to_galactic(turned, jd).T))
+    np.testing.assert_allclose(tilted[pixels], expected, atol=1e-12)
+    plain = resample_galactic_to_equatorial(gal, nside, jd)[0]
+    assert np.max(np.abs(tilted - plain)) > 1e-3  # 47 arcmin moves the dipole map

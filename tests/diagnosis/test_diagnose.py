@@ -149,3 +149,29 @@ def test_timing_offset(setup):
     assert abs(step["parameters"]["dt_s"]["value"] - dt) < 3 * step["parameters"]["dt_s"]["sigma"]
     assert step["product_impact"]["G"]["median_change_over_sigma"] < 0.1
     assert step["delta"] > 0.1 * diag.final_fit.ndata
+
+
+def test_tilted_sky_frame(setup):
+    """A sky tilted by 8 arcmin about the equatorial y axis (a frame error, like J2000 against
+    the date): with the frame-tilt templates, ``timing_offset`` names it with its tilt and
+    no time offset; the tilt is computed from a turned sky, not from the template."""
+    from autocal.diagnosis.effects import sky_templates
+    from autocal.sky.models import TiltedSky, get_sky
+
+    obs, _ = setup
+    epoch = night_epoch(obs.jds, obs.site.lon_deg)
+    tpl = sky_templates(
+        SKY, "dipole", "hera", obs.freqs, obs.lsts, nside=32, epoch=epoch, tilt=True
+    )
+    assert tpl.frame_tilt is not None and tpl.frame_tilt.shape == (2, *tpl.total.shape)
+    tilted = TiltedSky(base=get_sky(SKY), tilt_y_arcmin=8.0)
+    truth = compute_tsky(
+        tilted, "dipole", "hera", obs.freqs, obs.lsts, nside=32, epoch=epoch, pol="ee"
+    ).tsky[None]
+    diag = diagnose(hidden(obs, truth), tpl)
+    assert diag.effects == ["timing_offset"], diag.effects
+    params = diag.steps[0]["parameters"]
+    assert set(params) == {"dt_s", "tilt_x_arcmin", "tilt_y_arcmin"}
+    for name, value in (("tilt_y_arcmin", 8.0), ("tilt_x_arcmin", 0.0), ("dt_s", 0.0)):
+        got = params[name]
+        assert abs(got["value"] - value) < 3 * got["sigma"] + 0.05 * abs(value), (name, got)

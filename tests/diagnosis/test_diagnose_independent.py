@@ -302,6 +302,7 @@ FAST_CASES = (
     "antenna_gain_jitter_short_2ant_eenn",
     "antenna_gain_drift_short_2ant_eenn",
     "clean_short_hera",
+    "sky_frame_j2000_day",
 )
 
 
@@ -365,6 +366,26 @@ def test_clean_day_names_nothing(rows: dict[str, dict]) -> None:
     row = rows["clean_day"]
     assert row["named"] == [] and row["correct"]
     assert set(row["negligible"]) <= {"gain_drift", "timing_offset"}
+
+
+@pytest.mark.data
+@pytest.mark.slow
+def test_a_sky_left_in_j2000_is_named_a_frame_error_not_the_instrument(
+    rows: dict[str, dict],
+) -> None:
+    """The mistake of issue 21 (GSM2008's J2000 places taken as those of the date, 2018):
+    ``timing_offset`` alone, turned by precession in right ascension and tilted by it in
+    declination (20 arcsec a year over 18 years: ~6 arcmin about the y axis), and no gain
+    or noise drift (before the tilt parameters: a diurnal ``gain_drift`` at Delta BIC 747
+    came with it)."""
+    row = rows["sky_frame_j2000_day"]
+    assert row["named"] == ["timing_offset"] and row["exact"]
+    assert not row["negligible"] and not row.get("below_model_accuracy")
+    params = row["steps"][0]["parameters"]
+    assert 40.0 < params["dt_s"]["value"] < 65.0
+    tilt_y = params["tilt_y_arcmin"]
+    assert abs(tilt_y["value"] - 6.0) < 3 * tilt_y["sigma"] + 0.5
+    assert abs(params["tilt_x_arcmin"]["value"]) < 3 * params["tilt_x_arcmin"]["sigma"] + 0.5
 
 
 @pytest.mark.data
