@@ -235,8 +235,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"- exact names (named set = hidden set, strictly): {s['exact']} / {s['cases']} "
         f"({100 * s['exact_fraction']:.0f} %)",
         f"- exact against the visible hidden effects only: {s['exact_visible']} / {s['cases']}",
-        f"- exact when a hidden effect reported 'detected, negligible' counts: "
-        f"{s['exact_or_negligible']} / {s['cases']}",
+        f"- exact when 'detected, negligible' counts as naming (named or reported set = "
+        f"hidden set): {s['exact_or_negligible']} / {s['cases']}",
         f"- **exact on the effects that move the products: {s['exact_matters']} / "
         f"{s['cases']} ({100 * s['exact_matters_fraction']:.0f} %)**: every hidden effect "
         "that biases `G` or `Trxr` beyond autocal's negligibility rule, judged from the truth "

@@ -775,8 +775,9 @@ def score_names(
     -------
     dict
         ``exact`` (named == hidden), ``extras`` (named, not hidden), ``misses`` (hidden,
-        not named), ``exact_or_negligible`` (named plus the hidden effects reported
-        negligible == hidden; no extras), ``exact_visible`` (named == the visible
+        not named), ``exact_or_negligible`` (named plus reported "detected, negligible" ==
+        hidden: a negligible report of an effect that is not hidden counts against it),
+        ``exact_visible`` (named == the visible
         hidden effects), ``exact_matters`` (every hidden effect that matters named, and
         nothing named that is not hidden: the issue's rule that an effect too small to
         matter is not added to the model, judged from the truth) and ``correct``: nothing
@@ -792,7 +793,7 @@ def score_names(
         "exact": h == n,
         "extras": sorted(n - h),
         "misses": sorted(h - n),
-        "exact_or_negligible": found == h,
+        "exact_or_negligible": n | set(negligible) == h,
         "exact_visible": n == vis,
         "exact_matters": must <= n <= h,
         "correct": n <= h and vis <= found,

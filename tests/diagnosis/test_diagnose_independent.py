@@ -113,6 +113,7 @@ def test_score_names_is_exact() -> None:
     assert not ie.score_names(["sky_scale"], [])["correct"]
     s = ie.score_names([], [], negligible=["gain_drift"])  # reported negligible: no extra
     assert s["exact"] and s["correct"] and not s["extras"]
+    assert not s["exact_or_negligible"]  # ... but a report of an effect that is not there
     # exact on what moves the products: an effect that does not may be left unnamed, one
     # that does must be named, and a name that is not hidden is still wrong
     s = ie.score_names(["ground_temperature"], [], matters=[])
