@@ -500,6 +500,7 @@ def test_suite_report_from_rows(rows: dict[str, dict], tmp_path: Path) -> None:
         "gain_jitter",
         "antenna_gain_jitter",
         "antenna_gain_drift",
+        "timing_offset",
     }
     assert 0 <= s["exact"] <= s["correct"] <= s["cases"]
     text = script.markdown(result)
