@@ -173,3 +173,76 @@ def test_the_unrolled_two_parameter_kernel_is_the_general_one_bit_for_bit(
     for name, value in general.items():
         np.testing.assert_array_equal(unrolled[name], value, err_msg=name)
         np.testing.assert_array_equal(np.signbit(unrolled[name]), np.signbit(value))
+
+
+def test_the_condition_bound_flags_as_the_eigenvalues_do() -> None:
+    """Legendre-1 systems (4 x 4) conditioned from 1e4 to 1e15 around the 1e12 limit: the
+    compiled solver, which takes ``||A||_inf ||A^-1||_inf`` for the condition when it is far
+    below the limit, flags exactly the channels the numpy reference's eigenvalues flag, and
+    solves the others alike."""
+    rng = np.random.default_rng(4)
+    n = 3000
+    q, _ = np.linalg.qr(rng.normal(size=(n, 4, 4)))
+    cond = 10.0 ** rng.uniform(4, 15, n)
+    lam = np.stack([np.ones(n), cond ** (1 / 3), cond ** (2 / 3), cond], -1) * 1e3
+    ata = np.einsum("nij,nj,nkj->nik", q, lam, q)
+    ata = (ata + np.swapaxes(ata, -1, -2)) / 2
+    truth = np.stack([rng.uniform(0.5, 2.0, n), rng.normal(size=n), 150 + rng.normal(size=n)], -1)
+    truth = np.concatenate([truth, rng.normal(size=(n, 1))], -1)
+    aty = np.einsum("nij,nj->ni", ata, truth)
+    yty = np.einsum("ni,ni->n", aty, truth) + 10.0
+    sums = NormalSums(
+        model=FitModel.for_lsts(LSTS, "legendre", 1),
+        nflagged=np.zeros((1, 1, n), np.int64),
+        ata=ata.reshape(1, 1, n, 4, 4),
+        aty=aty.reshape(1, 1, n, 4),
+        yty=yty.reshape(1, 1, n),
+        count=np.full((1, 1, n), 100),
+    )
+    got = solve_sums(sums, scale_covariance=False, positive_gain=False)
+    ref = solve_sums_numpy(sums, scale_covariance=False, positive_gain=False)
+    reasons = set(np.unique(ref["flag_reason"]))
+    assert {0, 2} <= reasons  # both sides of the limit
+    np.testing.assert_array_equal(got["flag_reason"], ref["flag_reason"])
+    # where the solution is well determined (cond x eps < 1e-10), both give it
+    solved = ((ref["flag_reason"] == 0) & (cond < 1e6)).reshape(1, 1, n)
+    assert solved.sum() > 100
+    np.testing.assert_allclose(got["coeffs"][solved], ref["coeffs"][solved], rtol=1e-6, atol=1e-8)
+
+
+def test_the_bounded_condition_path_is_the_eigenvalue_path_bit_for_bit() -> None:
+    """The general kernel with and without the condition bound: every output identical
+    (NaNs and signs of zero included) on 4 x 4 systems conditioned 1e4-1e15, zero, NaN and
+    exactly singular ones, with and without the positive-gain check."""
+    from autocal.fit import solve_kernel
+
+    rng = np.random.default_rng(9)
+    n = 5000
+    q, _ = np.linalg.qr(rng.normal(size=(n, 4, 4)))
+    cond = 10.0 ** rng.uniform(4, 15, n)
+    lam = np.stack([np.ones(n), cond ** (1 / 3), cond ** (2 / 3), cond], -1)
+    ata = np.einsum("nij,nj,nkj->nik", q, lam, q)
+    ata = (ata + np.swapaxes(ata, -1, -2)) / 2
+    aty = rng.normal(size=(n, 4)) * 10
+    yty = np.full(n, 1e4)
+    count = np.full(n, 40)
+    ata[:40] = 0.0
+    ata[40:80, 2, 2] = np.nan
+    ata[80:120, :, 3] = ata[80:120, :, 2]  # two equal columns: exactly singular
+    ata[80:120, 3, :] = ata[80:120, 2, :]
+    for positive in (False, True):
+        outs = []
+        for bounded in (False, True):
+            out = {
+                "coeffs": np.empty((n, 4)),
+                "cov": np.empty((n, 4, 4)),
+                "chi2": np.empty(n),
+                "flag_reason": np.zeros(n, np.int8),
+            }
+            args = (ata, aty, yty, count, 5, 2, 1e12, positive, *out.values())
+            solve_kernel._kernel(*args, 0, -(-n // solve_kernel._CHUNK), bounded)
+            outs.append(out)
+        assert {0, 2} <= set(np.unique(outs[0]["flag_reason"]))
+        for name, value in outs[0].items():
+            np.testing.assert_array_equal(outs[1][name], value, err_msg=name)
+            np.testing.assert_array_equal(np.signbit(outs[1][name]), np.signbit(value))
