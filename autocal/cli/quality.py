@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from autocal.compare.report import OUTPUT_NAMES
+from autocal.compare.names import OUTPUT_NAMES
 from autocal.pipeline.products import FIGURE_FILES, PRODUCT_FILES, SUMMARY_NAME
 
 #: Exit status of a run whose solution is fully or mostly flagged (products are written).

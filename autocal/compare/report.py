@@ -18,12 +18,12 @@ import numpy as np
 from autocal import __version__
 from autocal.compare.comparison import Comparison
 from autocal.compare.figures import plot_comparison
+from autocal.compare.names import OUTPUT_NAMES
 from autocal.core.files import atomic_path
 
 logger = logging.getLogger(__name__)
 
 #: Output file names written by :func:`write_comparison`.
-OUTPUT_NAMES = {"json": "compare.json", "png": "compare.png", "h5": "compare.h5"}
 
 
 def json_safe(value: Any) -> Any:
