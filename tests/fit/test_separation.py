@@ -125,3 +125,27 @@ def test_the_summary_medians_are_numpys_over_the_solved_finite_channels() -> Non
         assert e["G_halves"] == [one_by_one(sol.total.G_halves[h], ia, ip) for h in range(2)]
         for i, t in enumerate(sol.total.profile_trxr):
             assert e["G_if_trxr_K"][f"{t:g}"] == one_by_one(sol.total.profile_G[:, :, i], ia, ip)
+
+
+def test_the_closed_form_drift_sensitivity_is_the_lapack_solve() -> None:
+    """The constant model's Cramer's-rule solve equals numpy's batched LAPACK solve to
+    rounding, and gives NaN for singular or non-finite systems and unsolved channels."""
+    from autocal.fit.centring import uncentre
+    from autocal.fit.separation import _drift_sensitivity_2x2
+
+    rng = np.random.default_rng(3)
+    n = 4000
+    m = rng.normal(size=(n, 2, 3))
+    a = m @ np.swapaxes(m, -1, -2) * rng.uniform(1e-3, 1e3, (n, 1, 1))
+    rhs = rng.normal(size=(n, 2))
+    c = rng.uniform(100, 1000, n)
+    theta = np.stack([rng.uniform(0.5, 2.0, n), rng.uniform(100, 300, n)], -1)
+    vg = np.array([1.0, 0.0])
+    ok = np.ones(n, bool)
+    a[:10] = 0.0  # singular
+    a[10:20, 0, 1] = np.nan
+    ok[20:30] = False  # unsolved channels
+    got = _drift_sensitivity_2x2(a, rhs, ok, c, vg, theta)
+    dx = uncentre(np.linalg.solve(a[30:], rhs[30:, :, None])[..., 0], c[30:])
+    np.testing.assert_allclose(got[30:], (dx @ vg) / theta[30:, 0], rtol=1e-9)
+    assert np.isnan(got[:30]).all()
