@@ -239,10 +239,11 @@ def markdown(result: dict[str, Any]) -> str:
         f"hidden set): {s['exact_or_negligible']} / {s['cases']}",
         f"- **exact on the effects that move the products: {s['exact_matters']} / "
         f"{s['cases']} ({100 * s['exact_matters_fraction']:.0f} %)**: every hidden effect "
-        "that biases `G` or `Trxr` beyond autocal's negligibility rule, judged from the truth "
-        "(the clean model fitted to the noiseless data against the true `G` and `Trxr`, "
-        "radiometer sigma; `product_impact`), named, and nothing named that is not hidden. "
-        "Hidden effects that do not: "
+        "that matters named, and nothing named that is not hidden; an instrument effect always "
+        "matters, a forward-model effect when autocal's negligibility rule, applied to the "
+        "truth (the clean model fitted to the noiseless data against the true `G` and `Trxr`, "
+        "radiometer sigma, the chi2-share clause included; `product_impact`), does not clear "
+        "it. Hidden effects that do not matter: "
         + (
             ", ".join(f"{x['case']}: {x['effects']}" for x in s.get("hidden_not_mattering", []))
             or "none"

@@ -543,14 +543,18 @@ def _integration_jds(span: Span) -> np.ndarray:
     return jd0 + np.arange(span.ntime) * (span.integration_s / 86400.0)
 
 
-def effect_parameters(effect: Hidden, ntime: int, nfeeds: int = 1) -> int:
+def effect_parameters(effect: Hidden, ntime: int, nfeeds: int = 1, span_h: float = 0.0) -> int:
     """Free parameters of the catalogue entry that describes ``effect``.
 
     ``gain_drift`` linear / ``noise_drift``: 1 (Legendre order 1); ``gain_drift``
     diurnal: 2 (sine and cosine); ``gain_jitter``: one per integration but the first;
     ``antenna_gain_jitter``: that for each of the ``nfeeds`` antenna-pols;
-    ``missing_cmb``: 0 (a discrete hypothesis); ``cable_reflection``: 3; others 1.
+    ``missing_cmb``: 0 (a discrete hypothesis); ``cable_reflection``: 3;
+    ``timing_offset``: 3 over spans of ``span_h`` >= 6 h (the time offset and two frame
+    tilts, as the diagnosis fits it), else 1; others 1.
     """
+    if effect.name == "timing_offset":
+        return 3 if span_h >= 6.0 else 1
     if effect.name == "gain_drift":
         return 2 if effect.params.get("profile") == "diurnal" else 1
     if effect.name == "gain_jitter":
@@ -729,7 +733,8 @@ def effect_strength(
             impacts.append(product_impact(fit, fed.mean(axis=0), trxr, share))
     nfeeds = len(case.antennas) * len(case.pols)
     ndata = nfeeds * freqs.size * (ntime + 1)
-    k = effect_parameters(effect, ntime, nfeeds)
+    span_h = (ntime - 1) * case.span.integration_s / 3600.0
+    k = effect_parameters(effect, ntime, nfeeds, span_h)
     dbic = chi2 - k * math.log(ndata)
     visible = effect.name == "cable_reflection" or dbic > BIC_THRESHOLD
     impact = _worst_impact(impacts)

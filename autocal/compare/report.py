@@ -23,8 +23,6 @@ from autocal.core.files import atomic_path
 
 logger = logging.getLogger(__name__)
 
-#: Output file names written by :func:`write_comparison`.
-
 
 def json_safe(value: Any) -> Any:
     """Return a structure made strict-JSON safe (NaN/inf -> None, numpy -> Python).

@@ -23,7 +23,13 @@ from autocal.core.observation import Observation
 from autocal.diagnosis.bandpass import fit_cable_reflection
 from autocal.diagnosis.consistency import WALD_SHORTFALL, wald_statistic
 from autocal.diagnosis.dispersion import robust_overdispersion
-from autocal.diagnosis.effects import LST_STEP_H, SIDEREAL_RATE, Effect, SkyTemplates
+from autocal.diagnosis.effects import (
+    LST_STEP_H,
+    SIDEREAL_RATE,
+    TILT_STEP_ARCMIN,
+    Effect,
+    SkyTemplates,
+)
 from autocal.diagnosis.errors import DiagnoseError
 from autocal.diagnosis.extended_fit import ExtendedFit, fit_extended
 from autocal.diagnosis.feeds import FEED_JITTER_MAX_FEEDS, fit_feed_gains
@@ -63,6 +69,9 @@ PLAUSIBLE_LIMITS = {
 #: in right ascension. (It was 240 s until a real night, JD 2458116, fitted -227 +- 8 s
 #: next to a per-antenna jitter: the template trading off against the jitter series.)
 TIMING_MAX_S = LST_STEP_H * 3600.0 / SIDEREAL_RATE
+#: Largest frame tilt (arcmin) of ``timing_offset`` taken as one: the tilt templates are
+#: central differences over :data:`autocal.diagnosis.effects.TILT_STEP_ARCMIN`.
+TILT_MAX_ARCMIN = TILT_STEP_ARCMIN
 #: Most times one search re-fits its model from a candidate's better minimum
 #: (:func:`escape_local_minimum`).
 MAX_RESTARTS = 2
@@ -253,12 +262,22 @@ def _implausible(eff: Effect, trial: ExtendedFit) -> tuple[str, str] | None:
 
 
 def _beyond_timing_range(eff: Effect, trial: ExtendedFit) -> tuple[str, str] | None:
-    """Refuse a timing offset beyond :data:`TIMING_MAX_S`."""
-    if eff.name == "timing_offset" and abs(trial.params[eff.name][0]) > TIMING_MAX_S:
+    """Refuse a timing offset beyond :data:`TIMING_MAX_S`, a tilt beyond :data:`TILT_MAX_ARCMIN`."""
+    if eff.name != "timing_offset":
+        return None
+    values = trial.params[eff.name]
+    if abs(values[0]) > TIMING_MAX_S:
         return "timing_offset", (
-            f"best dt {trial.params[eff.name][0]:.0f} s is beyond the linear "
+            f"best dt {values[0]:.0f} s is beyond the linear "
             f"template's range (+-{TIMING_MAX_S:.0f} s; a frame error of decades is "
             "~1 min): the template absorbs other time structure, not a timing error"
+        )
+    tilts = [abs(v) for v in values[1:]]
+    if tilts and max(tilts) > TILT_MAX_ARCMIN:
+        return "timing_offset", (
+            f"best tilt {max(tilts):.0f} arcmin is beyond the templates' range "
+            f"(+-{TILT_MAX_ARCMIN:.0f} arcmin, their central-difference step; J2000 against "
+            "the date is ~6 arcmin in 2018): they absorb other structure, not a frame error"
         )
     return None
 

@@ -37,16 +37,16 @@ def catalogue(
     ntime
         Number of integrations: with 3 or more, include ``gain_jitter`` (one broadband
         gain factor per integration, the first one the reference).
-    include_tilt
-        With ``include_timing``, ``timing_offset`` also turns the sky about the equatorial
-        x and y axes (``tilt_x_arcmin``, ``tilt_y_arcmin``; needs
-        :attr:`.SkyTemplates.frame_tilt`): a sky in a wrong frame, e.g. J2000 instead of
-        the date, is turned about the pole and tilted.
     nfeeds
         Number of antenna-pols: with 2 or more, include ``antenna_gain_drift`` (every
         antenna-pol its own Legendre drift, orders ``1..max_drift_order``) and (with
         ``ntime`` >= 3) ``antenna_gain_jitter``, every antenna-pol its own ``gain_jitter``
         series (tested against a common series once ``gain_jitter`` is in the model).
+    include_tilt
+        With ``include_timing``, ``timing_offset`` also turns the sky about the equatorial
+        x and y axes (``tilt_x_arcmin``, ``tilt_y_arcmin``; needs
+        :attr:`.SkyTemplates.frame_tilt`): a sky in a wrong frame, e.g. J2000 instead of
+        the date, is turned about the pole and tilted.
     """
     return [
         *_jitter_entries(ntime, nfeeds),

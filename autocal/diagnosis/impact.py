@@ -53,24 +53,21 @@ NEGLIGIBLE_MAX_CHI2_SHARE = 0.1
 #: beams, a hard horizon) differ by 6.4e-5 of the data rms over a clean day (a 150 K
 #: receiver) once the per-channel ``G`` and ``n`` are fitted, smooth in time and much of it
 #: common to all channels, i.e. gain-like (``tests/diagnosis/test_model_accuracy.py``
-#: measures it). An effect whose Delta chi^2
-#: corresponds to less than this (:func:`signal_rms`) is reported "below the forward model's
-#: accuracy" rather than "detected".
+#: measures it, for the dipole; through the two codes' HERA beams the difference is larger,
+#: forward-model entries fitted at 1.9-2.1e-4 on the independent suite's HERA-beam days, so
+#: there the floor is conservative). An effect whose Delta chi^2 corresponds to less than
+#: this (:func:`signal_rms`) is reported "below the forward model's accuracy" rather than
+#: "detected".
 FORWARD_MODEL_ACCURACY = 1e-4
 #: The entries seen through the data's structure in time and frequency, to which
 #: :data:`FORWARD_MODEL_ACCURACY` applies. The time-constant Tsky entries (``sky_offset``,
 #: ``sky_scale``, ``sky_spectral_index``, ``ground_temperature``, ``missing_cmb``) are seen
-#: through the receiver prior, and ``cable_reflection`` in the bandpass: not these.
+#: through the receiver prior, and ``cable_reflection`` in the bandpass: not these; nor the
+#: per-antenna entries, whose signal :func:`signal_rms` would dilute over every antenna-pol
+#: while the forward model's error, common to all of them, cannot explain one antenna's
+#: departure.
 DATA_STRUCTURE_EFFECTS = frozenset(
-    {
-        "gain_drift",
-        "gain_jitter",
-        "noise_drift",
-        "antenna_gain_drift",
-        "antenna_gain_jitter",
-        "beam_width",
-        "timing_offset",
-    }
+    {"gain_drift", "gain_jitter", "noise_drift", "beam_width", "timing_offset"}
 )
 
 

@@ -701,6 +701,8 @@ def _below_model_accuracy(diag: Diagnosis, radiometer: float) -> None:
         name = st["name"]
         if name not in DATA_STRUCTURE_EFFECTS or name not in diag.negligible:
             continue
+        if st.get("dropped_in_backward_pass") or st.get("superseded_by"):
+            continue  # not the step whose effect the final model keeps
         size = signal_rms(float(st["delta"]), radiometer)
         st["signal_rms"] = size
         if size < FORWARD_MODEL_ACCURACY:

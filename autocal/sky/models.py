@@ -401,6 +401,9 @@ class PowerLawSky(SkyModel):
             t0 = t0 - T_CMB
         return t0
 
+    def frame_rotation(self) -> np.ndarray | None:  # noqa: D102
+        return self.base.frame_rotation()
+
     def galactic(self, freqs, nside):  # noqa: D102
         ref = self.reference_map(nside)[None, :]
         return ref, ((freqs / self.nu0) ** self.beta)[:, None], ("powerlaw",)

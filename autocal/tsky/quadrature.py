@@ -206,6 +206,7 @@ def tsky_quadrature(
     nside_map = hp.npix2nside(maps.shape[1])
     eq0 = _equatorial_at_lst0(grid, np.radians(site.lat_deg))[:, :nsky]
     time = parse_epoch(epoch)
+    turned = sky.frame_rotation()  # a sky in a wrong frame (TiltedSky): M(R^T n)
     logger.info(
         "Tsky quadrature: %d nodes (%d above the horizon), step %.3g deg, sky nside %d",
         grid.size,
@@ -220,7 +221,8 @@ def tsky_quadrature(
     ):
         c, s = np.cos(lst), np.sin(lst)
         turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        gal = apparent_to_galactic(turn @ eq0, time)
+        vec = turn @ eq0
+        gal = apparent_to_galactic(vec if turned is None else turned.T @ vec, time)
         theta, phi = hp.vec2ang(gal.T)
         pix, wgt = hp.get_interp_weights(nside_map, theta, phi)
         comp = np.zeros((maps.shape[0], nsky))

@@ -251,3 +251,27 @@ def test_negligible_effects_below_the_model_accuracy_are_not_detections() -> Non
     text = summary_text(diag)
     assert "below the forward model's accuracy" in text and "4.0e-05 of the data rms" in text
     assert diag.to_dict()["below_model_accuracy"] == ["gain_drift"]
+
+
+def test_timing_offsets_and_tilts_beyond_their_templates_are_refused() -> None:
+    """The clock offset beyond its template's step, and (over long spans) a frame tilt beyond
+    its templates' +-30 arcmin, are refused as other structure; within them, accepted."""
+    from autocal.diagnosis.candidate_fits import (
+        TILT_MAX_ARCMIN,
+        TIMING_MAX_S,
+        _beyond_timing_range,
+    )
+
+    entries = catalogue(include_timing=True, include_tilt=True, ntime=100)
+    timing = next(e for e in entries if e.name == "timing_offset")
+    assert timing.params == ("dt_s", "tilt_x_arcmin", "tilt_y_arcmin")
+
+    def trial(*values: float) -> SimpleNamespace:
+        return SimpleNamespace(params={"timing_offset": np.array(values)})
+
+    assert _beyond_timing_range(timing, trial(50.0, 0.1, 6.0)) is None
+    assert "beyond the linear" in _beyond_timing_range(timing, trial(TIMING_MAX_S + 1, 0, 0))[1]
+    refused = _beyond_timing_range(timing, trial(50.0, 0.0, -(TILT_MAX_ARCMIN + 1)))
+    assert refused is not None and "tilt" in refused[1]
+    short = next(e for e in catalogue(include_timing=True, ntime=100) if e.name == "timing_offset")
+    assert short.params == ("dt_s",) and _beyond_timing_range(short, trial(50.0)) is None
