@@ -47,7 +47,11 @@ _OFFLINE_NEEDS = frozenset(
 )
 #: Modules whose import is running under :class:`_ConfigureAfterImport`.
 _EXECUTING: set[str] = set()
-_offline_state = {"configured": False, "configuring": False}
+_offline_state = {"configured": False, "configuring": False, "sites": False}
+
+#: astropy's coordinates, whose ``EarthLocation`` gets autocal's site registry when first
+#: imported (importing them with astropy itself would cost every process ~0.3 s).
+_COORDINATES = "astropy.coordinates"
 
 
 class _ConfigureAfterImport:
@@ -88,7 +92,7 @@ class _OfflineImportHook:
     def find_spec(
         self, fullname: str, path: Sequence[str] | None, target: ModuleType | None = None
     ) -> ModuleSpec | None:
-        if fullname != "astropy" and not fullname.startswith("autocal."):
+        if fullname not in ("astropy", _COORDINATES) and not fullname.startswith("autocal."):
             return None
         finders = sys.meta_path[sys.meta_path.index(self) + 1 :] if self in sys.meta_path else []
         for finder in finders:
@@ -104,29 +108,34 @@ class _OfflineImportHook:
 def _configure_when_ready() -> None:
     """Configure astropy offline once it is loaded and its configuration can be imported.
 
-    That is: no module in :data:`_OFFLINE_NEEDS` is half-way through its import. Then the
-    hook leaves :data:`sys.meta_path`.
+    That is: no module in :data:`_OFFLINE_NEEDS` is half-way through its import. The site
+    registry follows once astropy's coordinates are loaded; then the hook leaves
+    :data:`sys.meta_path`.
     """
     state = _offline_state
-    if state["configured"] or state["configuring"] or "astropy" not in sys.modules:
+    if state["configuring"] or "astropy" not in sys.modules:
         return
     if "astropy" in _EXECUTING or _EXECUTING & _OFFLINE_NEEDS:
         return
     state["configuring"] = True
     try:
-        from autocal.core.offline import configure_offline  # deferred: imports astropy
+        from autocal.core import offline  # deferred: imports astropy
 
-        configure_offline()
-        state["configured"] = True
+        if not state["configured"]:
+            offline.configure_offline(sites=False)
+            state["configured"] = True
+        if not state["sites"] and _COORDINATES in sys.modules and _COORDINATES not in _EXECUTING:
+            offline.configure_sites()
+            state["sites"] = True
     finally:
         state["configuring"] = False
-    sys.meta_path[:] = [f for f in sys.meta_path if not isinstance(f, _OfflineImportHook)]
+    if state["sites"]:
+        sys.meta_path[:] = [f for f in sys.meta_path if not isinstance(f, _OfflineImportHook)]
 
 
-if "astropy" in sys.modules:
-    _configure_when_ready()
-elif not any(isinstance(f, _OfflineImportHook) for f in sys.meta_path):
+if not any(isinstance(f, _OfflineImportHook) for f in sys.meta_path):
     sys.meta_path.insert(0, _OfflineImportHook())
+_configure_when_ready()
 
 #: Public names imported on first use: name -> module that defines it.
 _LAZY = {

@@ -49,7 +49,6 @@ from autocal.io.uvh5_meta import (
     select_antennas,
     select_channels,
     select_pols,
-    site_of,
 )
 from autocal.io.uvh5_uvdata import build_uvdata, file_history, header_keywords
 
@@ -271,7 +270,7 @@ def _merge_keywords(metas: list[FileMeta]) -> dict[str, Any]:
     per_file = [
         {
             str(k): (keyword_scalar(v) if keyword_scalar(v) is not None else v)
-            for k, v in m.uv.extra_keywords.items()
+            for k, v in m.header.extra_keywords.items()
         }
         for m in metas
     ]
@@ -415,13 +414,13 @@ def read_uvh5(
         jds=join("jds", 0),
         antennas=np.array(ants),
         pols=tuple(first.pol_names[i] for i in pol_idx),
-        site=site_of(first.uv),
+        site=first.header.site,
         flags=join("flags", 2),
         channel_width=first.channel_width[chans],
         integration_time=join("integration_time", 0),
         nsamples=join("nsamples", 2),
         antenna_names=antenna_names(first, ants),
-        telescope_name=str(first.uv.telescope.name),
+        telescope_name=first.header.telescope_name,
         meta=meta_out,
     )
     logger.info(
@@ -441,7 +440,7 @@ def _provenance(first: FileMeta, used: list[FileMeta]) -> dict[str, Any]:
     One history when the files share it, else each file's under its name; extra keywords
     merged (:func:`_merge_keywords`).
     """
-    histories = [m.uv.history or "" for m in used]
+    histories = [m.header.history or "" for m in used]
     if all(h == histories[0] for h in histories):
         history = histories[0]
     else:
@@ -455,6 +454,6 @@ def _provenance(first: FileMeta, used: list[FileMeta]) -> dict[str, Any]:
         "sha256": {f: file_checksum(f) for f in files},
         "history": history,
         "extra_keywords": _merge_keywords(used),
-        "vis_units": str(first.uv.vis_units),
+        "vis_units": first.header.vis_units,
         "x_orientation": first.x_orientation,
     }

@@ -39,7 +39,6 @@ from autocal.io.uvh5_meta import (
     select_antennas,
     select_channels,
     select_pols,
-    site_of,
 )
 
 logger = logging.getLogger(__name__)
@@ -205,16 +204,16 @@ class _BlockReader:
             "freqs": meta.freqs[chans],
             "antennas": np.array(ants),
             "pols": tuple(meta.pol_names[i] for i in pol_idx),
-            "site": site_of(meta.uv),
+            "site": meta.header.site,
             "channel_width": meta.channel_width[chans],
             "antenna_names": antenna_names(meta, ants),
-            "telescope_name": str(meta.uv.telescope.name),
+            "telescope_name": meta.header.telescope_name,
         }
         self.file_meta: dict[str, Any] = {
             "source": "uvh5",
             "files": [str(meta.path)],
             "x_orientation": meta.x_orientation,
-            "vis_units": str(meta.uv.vis_units),
+            "vis_units": meta.header.vis_units,
         }
         c0, c1 = int(chans.min()), int(chans.max()) + 1
         self.chans = slice(c0, c1)

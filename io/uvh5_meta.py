@@ -17,18 +17,18 @@ import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import h5py
 import numpy as np
-from pyuvdata import utils as uvutils
 
 from autocal.core.observation import ObservationError
 from autocal.core.sites import Site
 from autocal.errors import AutocalError
+from autocal.io.polarisations import codes_to_names, name_to_code
 from autocal.io.pyuvdata_helpers import uvdata_class, warnings_to_log
 from autocal.io.pyuvdata_helpers import x_orientation as feed_orientation
+from autocal.io.uvh5_header import HeaderArrays, UVH5Header, header_from_uvdata, read_plain_header
 
 logger = logging.getLogger(__name__)
 
@@ -70,8 +70,7 @@ def keyword_scalar(value: Any) -> Any:
 def polarisation_names(codes: Sequence[int], x_orientation: str | None) -> list[str]:
     """Pyuvdata pol codes -> names: ee/nn when the orientation is known, else xx/yy."""
     orient = x_orientation if x_orientation in ("east", "north") else None
-    names = uvutils.polnum2str(list(int(c) for c in codes), x_orientation=orient)
-    return [str(n).lower() for n in np.atleast_1d(names)]
+    return codes_to_names(codes, orient)
 
 
 def describe_freqs(freqs: np.ndarray) -> str:
@@ -86,12 +85,12 @@ class FileMeta:
     """What the readers need to know about one file before reading its data.
 
     Made by :func:`read_file_meta` (and :func:`scan_files` for every file of an
-    observation). ``uv`` keeps only the header fields read later (telescope, vis_units,
-    history, extra_keywords), not pyuvdata's per baseline-time arrays.
+    observation). ``header`` keeps the header fields read later (telescope, site, units,
+    history, extra keywords), nothing per baseline-time row.
     """
 
     path: Path
-    uv: Any  # the header fields read later: telescope, vis_units, history, extra_keywords
+    header: UVH5Header
     freqs: np.ndarray  # (Nfreq,) file order
     channel_width: np.ndarray
     pol_codes: list[int]
@@ -136,14 +135,42 @@ def check_uvh5_file(path: Path) -> None:
 
 
 def read_file_meta(path: Path) -> FileMeta:
-    """Read one file's header through pyuvdata (no data) into a :class:`FileMeta`.
+    """Read one file's header (no data) into a :class:`FileMeta`.
 
-    Raises :class:`UVH5FormatError` for a missing, non-UVH5 or corrupt file, or one
-    without auto-correlations.
+    The header is read with h5py (:func:`autocal.io.uvh5_header.read_plain_header`) when it
+    has the usual plain form, else through pyuvdata. Raises :class:`UVH5FormatError` for a
+    missing, non-UVH5 or corrupt file, or one without auto-correlations.
     """
-    UVData = uvdata_class()
-
     check_uvh5_file(path)
+    plain = read_plain_header(path)
+    header, arrays = plain if plain is not None else _header_through_pyuvdata(path)
+    is_auto = arrays.ant_1 == arrays.ant_2
+    if not np.any(is_auto):
+        nbls = np.unique(np.stack([arrays.ant_1, arrays.ant_2]), axis=1).shape[1]
+        raise UVH5FormatError(
+            f"{path} has no auto-correlations (baselines (a, a)); it holds only "
+            f"{nbls} cross-correlation baseline(s). Use a file with autos."
+        )
+    auto_ants = sorted(int(a) for a in np.unique(arrays.ant_1[is_auto]))
+    times, first = np.unique(arrays.times[is_auto], return_index=True)
+    lsts = lst_hours(arrays.lsts_rad[is_auto][first])
+    return FileMeta(
+        path=path,
+        header=header,
+        freqs=arrays.freqs,
+        channel_width=arrays.channel_width,
+        pol_codes=arrays.pol_codes,
+        pol_names=polarisation_names(arrays.pol_codes, header.x_orientation),
+        x_orientation=header.x_orientation,
+        auto_ants=auto_ants,
+        times=times,
+        lsts=lsts,
+    )
+
+
+def _header_through_pyuvdata(path: Path) -> tuple[UVH5Header, HeaderArrays]:
+    """Read the header with pyuvdata (headers not in the plain form, broken ones)."""
+    UVData = uvdata_class()
     try:
         with _warnings_to_log(f"reading metadata of {path.name}"):
             uv = UVData.from_file(str(path), file_type="uvh5", read_data=False)
@@ -152,40 +179,7 @@ def read_file_meta(path: Path) -> FileMeta:
             f"pyuvdata cannot read the UVH5 header of {path}: {type(err).__name__}: {err}; "
             "the file may be corrupt or not a UVData UVH5 file"
         ) from err
-    is_auto = uv.ant_1_array == uv.ant_2_array
-    if not np.any(is_auto):
-        raise UVH5FormatError(
-            f"{path} has no auto-correlations (baselines (a, a)); it holds only "
-            f"{uv.Nbls} cross-correlation baseline(s). Use a file with autos."
-        )
-    auto_ants = sorted(int(a) for a in np.unique(uv.ant_1_array[is_auto]))
-    freqs = np.asarray(uv.freq_array, dtype=np.float64).ravel()
-    width = np.broadcast_to(np.asarray(uv.channel_width, dtype=np.float64).ravel(), freqs.shape)
-    codes = [int(c) for c in np.asarray(uv.polarization_array).ravel()]
-    x_orientation = feed_orientation(uv.telescope)
-    times, first = np.unique(uv.time_array[is_auto], return_index=True)
-    lsts = lst_hours(uv.lst_array[is_auto][first])
-    # keep the header, not the UVData: its per baseline-time arrays (uvw, times, LSTs,
-    # antenna pairs, ~100 bytes per row) would grow with the night when every file of a
-    # long observation is scanned before its data are read
-    header = SimpleNamespace(
-        telescope=uv.telescope,
-        vis_units=uv.vis_units,
-        history=uv.history,
-        extra_keywords=dict(uv.extra_keywords),
-    )
-    return FileMeta(
-        path=path,
-        uv=header,
-        freqs=freqs,
-        channel_width=np.array(width),
-        pol_codes=codes,
-        pol_names=polarisation_names(codes, x_orientation),
-        x_orientation=x_orientation,
-        auto_ants=auto_ants,
-        times=times,
-        lsts=lsts,
-    )
+    return header_from_uvdata(uv, feed_orientation(uv.telescope))
 
 
 def check_joinable(first: FileMeta, other: FileMeta) -> None:
@@ -214,8 +208,10 @@ def check_joinable(first: FileMeta, other: FileMeta) -> None:
         fail(f"it has autos of antennas {other.auto_ants}, the first file {first.auto_ants}")
     if other.pol_names != first.pol_names:
         fail(f"it has polarisations {other.pol_names}, the first file {first.pol_names}")
-    if other.uv.telescope.name != first.uv.telescope.name:
-        fail(f"its telescope is {other.uv.telescope.name!r}, not {first.uv.telescope.name!r}")
+    if other.header.telescope_name != first.header.telescope_name:
+        fail(
+            f"its telescope is {other.header.telescope_name!r}, not {first.header.telescope_name!r}"
+        )
 
 
 def select_pols(meta: FileMeta, pols: Sequence[str] | None) -> list[int]:
@@ -233,8 +229,8 @@ def select_pols(meta: FileMeta, pols: Sequence[str] | None) -> list[int]:
             chosen.append(meta.pol_names.index(name))
             continue
         try:  # aliases: "xx" for "ee" when x points east, etc.
-            code = int(uvutils.polstr2num(name, x_orientation=orient))
-        except (KeyError, ValueError):
+            code = name_to_code(name, orient)
+        except KeyError:
             code = None
         if code is None or code not in meta.pol_codes:
             raise ObservationError(
@@ -279,11 +275,8 @@ def select_channels(meta: FileMeta, freq_range: tuple[float, float] | None) -> n
 
 def antenna_names(meta: FileMeta, ants: Sequence[int]) -> tuple[str, ...]:
     """Return the names of antennas ``ants`` in the file's telescope (``ant<N>`` if unnamed)."""
-    telescope = meta.uv.telescope
-    names_by_number = {
-        int(n): str(name)
-        for n, name in zip(telescope.antenna_numbers, telescope.antenna_names, strict=True)
-    }
+    header = meta.header
+    names_by_number = dict(zip(header.antenna_numbers, header.antenna_names, strict=True))
     return tuple(names_by_number.get(a, f"ant{a}") for a in ants)
 
 
@@ -295,19 +288,6 @@ def lst_mask(lsts: np.ndarray, lst_range: tuple[float, float] | None) -> np.ndar
     if start <= stop:
         return (lsts >= start) & (lsts <= stop)
     return (lsts >= start) | (lsts <= stop)
-
-
-def site_of(uv: Any) -> Site:
-    """Return the :class:`Site` of a UVData header's telescope (named after it, lowercased)."""
-    loc = uv.telescope.location
-    try:
-        lat = float(loc.lat.deg)
-        lon = float(loc.lon.deg)
-        alt = float(loc.height.to_value("m"))
-    except AttributeError as err:  # pragma: no cover - non-Earth telescopes
-        raise UVH5FormatError(f"telescope location {loc!r} is not a geodetic location") from err
-    name = str(uv.telescope.name or "unknown").strip().lower() or "unknown"
-    return Site(name, lat, lon, alt)
 
 
 def scan_files(paths: str | Path | Sequence[str | Path]) -> list[FileMeta]:
@@ -367,7 +347,7 @@ def scan_uvh5(paths: str | Path | Sequence[str | Path]) -> list[UVH5File]:
             np.sort(m.freqs),
             tuple(m.auto_ants),
             tuple(m.pol_names),
-            site_of(m.uv),
+            m.header.site,
             m,
         )
         for m in scan_files(paths)

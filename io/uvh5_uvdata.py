@@ -18,12 +18,11 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from pyuvdata import Telescope
-from pyuvdata import utils as uvutils
 
 from autocal import __version__
 from autocal.core.observation import ObservationError
 from autocal.core.sites import Site
+from autocal.io.polarisations import name_to_code
 from autocal.io.pyuvdata_helpers import uvdata_class, warnings_to_log
 from autocal.io.uvh5_meta import keyword_scalar, lst_hours, wrap_hours
 
@@ -52,6 +51,8 @@ def _warnings_to_log(context: str) -> Any:
 
 
 def _hera_telescope(antennas: np.ndarray, site: Site) -> Any:
+    from pyuvdata import Telescope  # ~1.5 s to import: only when a file is written
+
     telescope = Telescope.from_known_telescopes("HERA")
     if not telescope.instrument:
         telescope.instrument = telescope.name
@@ -79,6 +80,8 @@ def _hera_telescope(antennas: np.ndarray, site: Site) -> Any:
 def _generic_telescope(
     name: str, site: Site, antennas: np.ndarray, antenna_names: Sequence[str]
 ) -> Any:
+    from pyuvdata import Telescope
+
     with _warnings_to_log("building the telescope"):
         return Telescope.new(
             name=name,
@@ -100,10 +103,10 @@ def _pol_codes_for_write(pols: Sequence[str]) -> tuple[list[int], str | None]:
         )
     x_orientation = "east" if compass else None
     try:
-        codes = uvutils.polstr2num(list(pols), x_orientation=x_orientation)
-    except (KeyError, ValueError) as err:
+        codes = [name_to_code(p, x_orientation) for p in pols]
+    except KeyError as err:
         raise ObservationError(f"polarisations {list(pols)} have no UVH5 code: {err}") from err
-    return [int(c) for c in np.atleast_1d(codes)], x_orientation
+    return codes, x_orientation
 
 
 def header_keywords(meta: dict[str, Any], extra: dict | None) -> dict[str, Any]:

@@ -17,10 +17,10 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-import healpy as hp
 import numpy as np
 from astropy.time import Time
 
+from autocal.core.lazy import healpy as hp
 from autocal.core.stopping import checkpoint
 from autocal.errors import AutocalError
 

@@ -32,8 +32,6 @@ from typing import Any
 import astropy
 import astropy_iers_data
 import numpy as np
-from astropy.coordinates import EarthLocation
-from astropy.coordinates.sites import SiteRegistry
 from astropy.utils import iers
 from astropy.utils.data import conf as data_conf
 
@@ -50,31 +48,48 @@ def downloads_allowed() -> bool:
     return os.environ.get("AUTOCAL_ALLOW_DOWNLOAD", "").strip().lower() in {"1", "true", "yes"}
 
 
-def configure_offline() -> None:
+def configure_offline(sites: bool = True) -> None:
     """Configure astropy so that no code path needs the internet.
 
-    Idempotent; called when :mod:`autocal` is imported.
+    Idempotent; called when :mod:`autocal` is imported (or astropy, after it).
+
+    Parameters
+    ----------
+    sites
+        Also give astropy's ``EarthLocation`` a site registry (:func:`configure_sites`),
+        which imports astropy's coordinates (~0.3 s). The import hook of :mod:`autocal`
+        passes False and configures the registry when the coordinates are first imported.
     """
     global _CONFIGURED
-    if _CONFIGURED:
-        return
+    if not _CONFIGURED:
+        allow = downloads_allowed()
+        iers.conf.auto_download = allow
+        iers.conf.auto_max_age = None
+        data_conf.allow_internet = allow
+        if not allow:
+            install_iers_table()
+        _CONFIGURED = True
+        logger.debug("astropy configured for %s use", "online" if allow else "offline")
+    if sites:
+        configure_sites()
 
-    allow = downloads_allowed()
-    iers.conf.auto_download = allow
-    iers.conf.auto_max_age = None
-    data_conf.allow_internet = allow
-    if not allow and getattr(EarthLocation, "_site_registry", None) is None:
-        registry = SiteRegistry()
-        # A non-empty registry stops astropy from fetching the online one.  The
-        # entries are the two sites autocal knows; pyuvdata falls back to its own
-        # built-in telescope locations for everything else.
-        for site in SITES.values():
-            registry.add_site([site.name], site.location)
-        EarthLocation._site_registry = registry
-    if not allow:
-        install_iers_table()
-    _CONFIGURED = True
-    logger.debug("astropy configured for %s use", "online" if allow else "offline")
+
+def configure_sites() -> None:
+    """Give ``EarthLocation`` a registry of autocal's sites, so astropy fetches none.
+
+    A non-empty registry stops astropy from fetching the online one. The entries are the two
+    sites autocal knows; pyuvdata falls back to its own built-in telescope locations for
+    everything else. Nothing changes when downloads are allowed or a registry is set.
+    """
+    from astropy.coordinates import EarthLocation
+    from astropy.coordinates.sites import SiteRegistry
+
+    if downloads_allowed() or getattr(EarthLocation, "_site_registry", None) is not None:
+        return
+    registry = SiteRegistry()
+    for site in SITES.values():
+        registry.add_site([site.name], site.location)
+    EarthLocation._site_registry = registry
 
 
 def iers_cache_file() -> Path | None:

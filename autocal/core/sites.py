@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
-
-from astropy import units as u
-from astropy.coordinates import EarthLocation
+from typing import TYPE_CHECKING
 
 from autocal.errors import AutocalError
+
+if TYPE_CHECKING:  # astropy's coordinates take ~0.3 s to import: only when a location is used
+    from astropy.coordinates import EarthLocation
 
 
 class SiteError(AutocalError):
@@ -43,6 +44,9 @@ class Site:
     @cached_property
     def location(self) -> EarthLocation:
         """The site as an :class:`astropy.coordinates.EarthLocation`."""
+        from astropy import units as u
+        from astropy.coordinates import EarthLocation
+
         return EarthLocation.from_geodetic(
             lon=self.lon_deg * u.deg, lat=self.lat_deg * u.deg, height=self.alt_m * u.m
         )

@@ -17,11 +17,11 @@ from abc import abstractmethod
 from functools import cached_property
 from pathlib import Path
 
-import healpy as hp
 import numpy as np
 from scipy.interpolate import CubicSpline
 
 from autocal.core.files import file_checksum
+from autocal.core.lazy import healpy as hp
 from autocal.io.beamfits import read_healpix_power_beam
 from autocal.io.feko import read_feko_beam
 from autocal.sky.beam_base import Beam, BeamEvaluator, check_pol

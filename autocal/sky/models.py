@@ -31,10 +31,10 @@ from dataclasses import dataclass, field
 from importlib.metadata import version
 from typing import Any
 
-import healpy as hp
 import numpy as np
 
 from autocal.core.coords import parse_epoch, resample_galactic_to_equatorial, tilt_rotation
+from autocal.core.lazy import healpy as hp
 from autocal.errors import AutocalError
 from autocal.io.datasets import GSM2008_FILE, ensure_pygdsm_file
 

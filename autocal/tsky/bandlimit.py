@@ -25,9 +25,9 @@ import time
 from dataclasses import replace
 from typing import Any
 
-import healpy as hp
 import numpy as np
 
+from autocal.core.lazy import healpy as hp
 from autocal.core.stopping import checkpoint
 from autocal.sky.models import SkyComponents, SkyModel
 

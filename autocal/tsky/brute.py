@@ -9,12 +9,12 @@
 
 from __future__ import annotations
 
-import healpy as hp
 import numpy as np
 import scipy.fft as sp_fft
 from tqdm.auto import tqdm
 
 from autocal.core.coords import hadec_to_altaz, healpix_ra_dec
+from autocal.core.lazy import healpy as hp
 from autocal.core.sites import Site
 from autocal.core.stopping import checkpoint
 from autocal.sky.beam_base import Beam

@@ -17,7 +17,6 @@ from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from typing import Any
 
-import healpy as hp
 import numpy as np
 from astropy.time import Time
 
@@ -56,6 +55,23 @@ class _Request:
     horizon_width_deg: float
     method: str
     progress: bool | None
+
+
+def _nside_ok(nside: Any) -> bool:
+    """Whether ``nside`` is a HEALPix nside of the nested scheme >= 2 (as healpy checks it).
+
+    A power of two from 2 to 2**29, given as an integer or an integral float.
+    """
+    if isinstance(nside, bool):
+        return False
+    if isinstance(nside, (float, np.floating)):
+        if not float(nside).is_integer():
+            return False
+        nside = int(nside)
+    if not isinstance(nside, (int, np.integer)):
+        return False
+    n = int(nside)
+    return 2 <= n <= 2**29 and not (n & (n - 1))
 
 
 def compute_tsky(
@@ -123,7 +139,7 @@ def compute_tsky(
     tg = tgnd_array(tgnd, freqs.size)
     if method not in {"fft", "brute"}:
         raise TskyError(f"unknown method {method!r}: use 'fft' or 'brute'")
-    if not hp.isnsideok(nside, nest=True) or nside < 2:
+    if not _nside_ok(nside):
         raise TskyError(f"nside {nside} must be a power of two >= 2")
     req = _Request(
         sky_model,

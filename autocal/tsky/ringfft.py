@@ -32,11 +32,11 @@ import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 
-import healpy as hp
 import numpy as np
 import scipy.fft as sp_fft
 from tqdm.auto import tqdm
 
+from autocal.core.lazy import healpy as hp
 from autocal.core.sites import Site
 from autocal.core.stopping import checkpoint
 from autocal.sky.beam_base import Beam, BeamEvaluator

@@ -11,8 +11,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import healpy as hp
 import numpy as np
+
+from autocal.core.lazy import healpy as hp
 
 
 @dataclass(frozen=True)

@@ -123,7 +123,8 @@ def test_import_autocal_loads_no_science_module() -> None:
     [
         "import pyuvdata",  # astropy imported by another package
         "import astropy.units",  # by the user
-        "import autocal.core.sites",  # by a module the configuration itself imports
+        # by a module the configuration itself imports, coordinates first
+        "from autocal.core.sites import HERA; HERA.location",
         "import autocal.core.offline",
         "from autocal.tsky.compute import compute_tsky",
     ],
@@ -145,6 +146,21 @@ def test_astropy_is_configured_offline_by_whoever_imports_it(first_import: str) 
     assert result["auto_download"] is False and result["internet"] is False
     assert result["sites"], "no site registry: astropy would download one"
     assert "_OfflineImportHook" not in result["hooks"], "the hook stays after its work"
+
+
+def test_the_offline_configuration_does_not_import_astropys_coordinates() -> None:
+    """astropy's coordinates (~0.3 s) wait until something uses them; then get the sites."""
+    code = (
+        "import json, sys, autocal\n"
+        "import astropy.units, astropy.time\n"
+        "before = 'astropy.coordinates' in sys.modules\n"
+        "configured = autocal._offline_state['configured']\n"
+        "from astropy.coordinates import EarthLocation\n"
+        "print(json.dumps([before, configured, EarthLocation._site_registry.names]))\n"
+    )
+    before, configured, sites = _fresh(code)
+    assert before is False and configured is True
+    assert "hera" in sites
 
 
 def test_astropy_loaded_before_autocal_is_configured_at_import() -> None:
