@@ -9,8 +9,6 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
-from pyuvdata import UVBeam
-from pyuvdata import utils as uvutils
 
 from autocal.io.feko import BeamFileError
 
@@ -79,6 +77,9 @@ def read_healpix_power_beam(path: str | Path, pol: str = "ee") -> HealpixBeamDat
 def _read_cached(path: str, pol: str, _mtime: int) -> HealpixBeamData:
     if pol not in POL_NAMES:
         raise BeamFileError(f"polarisation {pol!r} not supported: use one of {POL_NAMES}")
+    from pyuvdata import UVBeam  # ~1 s to import: only when a beam file is read
+    from pyuvdata import utils as uvutils
+
     try:
         with warnings.catch_warnings():
             # Old files lack mount_type / feed metadata: pyuvdata's deprecation notices

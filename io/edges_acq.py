@@ -43,8 +43,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import read_acq
-from read_acq.read_acq import ACQError
 
 from autocal.core.files import atomic_path, file_checksum
 from autocal.io.edges_spectra import (
@@ -108,6 +106,9 @@ def _decode_acq(path: Path, allow_partial: bool) -> tuple[np.ndarray, np.ndarray
         raise EdgesFormatError(f"{path} is a folder, not an ACQ file: pass the .acq files in it")
     if path.stat().st_size == 0:
         raise _not_acq(path, "the file is empty")
+    import read_acq  # imports astropy's coordinates (~0.3 s): only when an ACQ file is read
+    from read_acq.read_acq import ACQError
+
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -293,6 +294,8 @@ def write_acq(
             spectra.aux.get("data_drops", np.zeros((ntime, 3), int)), dtype=np.int64
         ),
     }
+    import read_acq
+
     path = Path(path)
     with atomic_path(path) as tmp:
         read_acq.encode(tmp, p=list(full), meta=meta, ancillary=ancillary)

@@ -42,6 +42,7 @@ atomically (temporary file, then rename) and never overwritten unless asked.
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import logging
 import platform
@@ -212,9 +213,9 @@ def build_provenance(solution: Solution, extra: dict[str, Any] | None = None) ->
         the top level and the ``provenance`` and ``calibration`` sections),
         ``model`` and ``extra`` entries.
     """
-    try:  # pyuvdata takes a second to import; a process that only reads products never does
-        from pyuvdata import __version__ as uvd_version
-    except ImportError:  # pragma: no cover
+    try:  # pyuvdata takes a second to import: its installed version, without importing it
+        uvd_version = importlib.metadata.version("pyuvdata")
+    except importlib.metadata.PackageNotFoundError:  # pragma: no cover
         uvd_version = None
     config = solution.config or {}
     conventions: dict[str, Any] = {}

@@ -89,14 +89,19 @@ class Beam(ABC):
         """Range of valid frequencies in Hz, or ``None`` if unbounded."""
         return None
 
-    def check_freqs(self, freqs: np.ndarray) -> np.ndarray:
-        """Validate a frequency array (Hz) against this beam, returning it as float64."""
+    def check_freqs(self, freqs: np.ndarray, in_range: bool = True) -> np.ndarray:
+        """Validate a frequency array (Hz) against this beam, returning it as float64.
+
+        With ``in_range=False`` only the grid itself is checked (not empty, finite,
+        positive), not the beam's range: a beam read from a file then need not be read
+        (a Tsky cache hit checks the range of nothing it computes).
+        """
         freqs = np.atleast_1d(np.asarray(freqs, dtype=np.float64))
         if freqs.size == 0:
             raise BeamError("the frequency grid is empty: give at least one frequency")
         if not np.all(np.isfinite(freqs)) or np.any(freqs <= 0):
             raise BeamError("frequencies must be finite and positive (Hz)")
-        rng = self.freq_range
+        rng = self.freq_range if in_range else None
         if rng is not None:
             lo, hi = rng
             tol = 1e-6 * hi

@@ -18,12 +18,11 @@ from functools import cached_property
 from pathlib import Path
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 
 from autocal.core.files import file_checksum
 from autocal.core.lazy import healpy as hp
-from autocal.io.beamfits import read_healpix_power_beam
-from autocal.io.feko import read_feko_beam
+from autocal.io.beamfits import HealpixBeamData, read_healpix_power_beam
+from autocal.io.feko import BeamFileError, read_feko_beam
 from autocal.sky.beam_base import Beam, BeamEvaluator, check_pol
 
 logger = logging.getLogger(__name__)
@@ -71,6 +70,8 @@ class GriddedFileBeam(Beam):
         nat = self.native_freqs.size
         if nat < 3:  # constant or linear: no curvature
             return np.zeros((nat, nat))
+        from scipy.interpolate import CubicSpline  # ~0.25 s to import: not for a cache hit
+
         spline = CubicSpline(self.native_freqs, np.eye(nat), axis=0)
         return spline.derivative(2)(self.native_freqs)  # (knot, basis)
 
@@ -182,6 +183,17 @@ def _upsampled(path: str, pol: str, nside_out: int, mtime: int, maps: np.ndarray
 _UPSAMPLED: dict[tuple, np.ndarray] = {}
 
 
+def _header_nside(path: Path) -> int | None:
+    """Return the ``NSIDE`` of a beamfits file's primary header (pyuvdata's), or None."""
+    from astropy.io import fits
+
+    try:
+        value = fits.getval(path, "NSIDE", ext=0)
+    except (OSError, KeyError, ValueError, IndexError):
+        return None
+    return int(value) if isinstance(value, (int, np.integer)) and value > 0 else None
+
+
 class HealpixFileBeam(GriddedFileBeam):
     """A HEALPix power beam read with pyuvdata (e.g. the HERA Fagnoni beamfits).
 
@@ -195,9 +207,30 @@ class HealpixFileBeam(GriddedFileBeam):
     def __init__(self, path: str | Path, pol: str = "ee", upsample_nside: int = 512) -> None:
         self.path = Path(path)
         self.pol = check_pol(pol)
-        self.data = read_healpix_power_beam(self.path, self.pol)
-        self.native_freqs = self.data.freqs
         self.name = self.path.name
+        if not self.path.is_file():
+            raise BeamFileError(f"beam file {self.path} does not exist")
+        # The file is read (through pyuvdata, ~1 s with its import) when its values are
+        # first needed: naming the beam for a Tsky cache hit needs only its nside, from
+        # the primary FITS header. Without one the file is read now, with its errors.
+        nside = _header_nside(self.path)
+        if nside is None:
+            nside = self.data.nside
+        self.upsample_nside = max(int(upsample_nside), nside)
+
+    @cached_property
+    def data(self) -> HealpixBeamData:
+        """The file's beam at its native frequencies and pixels."""
+        return read_healpix_power_beam(self.path, self.pol)
+
+    @property
+    def native_freqs(self) -> np.ndarray:  # type: ignore[override]
+        """The file's frequencies (Hz)."""
+        return self.data.freqs
+
+    @cached_property
+    def _native_maps(self) -> np.ndarray:
+        """``(Nfreq, Npix)`` RING maps at the file's nside (zero where it has no pixel)."""
         nside = self.data.nside
         full = np.zeros((self.data.freqs.size, hp.nside2npix(nside)))
         pix = self.data.pixels
@@ -211,8 +244,7 @@ class HealpixFileBeam(GriddedFileBeam):
                 pix.size,
                 hp.nside2npix(nside),
             )
-        self.upsample_nside = max(int(upsample_nside), nside)
-        self._native_maps = full
+        return full
 
     @cached_property
     def _maps_t(self) -> np.ndarray:

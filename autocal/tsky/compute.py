@@ -134,7 +134,10 @@ def compute_tsky(
     sky_model = get_sky(sky)
     beam_obj = get_beam(beam, pol)
     site_obj = get_site(site)
-    freqs = beam_obj.check_freqs(check_grid(freqs, "frequency"))
+    cached_harmonics = method == "fft" and not keep_components
+    # the beam's range is checked before anything is computed, not for a cache hit (the
+    # entry's key holds the beam file's checksum and these frequencies: it passed then)
+    freqs = beam_obj.check_freqs(check_grid(freqs, "frequency"), in_range=not cached_harmonics)
     lsts = check_grid(lsts, "LST")
     tg = tgnd_array(tgnd, freqs.size)
     if method not in {"fft", "brute"}:
@@ -153,7 +156,7 @@ def compute_tsky(
         progress,
     )
     meta = _describe(req, tg)
-    if method == "fft" and not keep_components:
+    if cached_harmonics:
         # the LST-free harmonics are what is cached: any LST grid (every observation of
         # a night) and any ground temperature then reuse them
         lst_free = {k: v for k, v in meta.items() if k != "tgnd_K"}
@@ -199,6 +202,7 @@ def _harmonics(req: _Request, lst_free: dict[str, Any], cache: bool) -> TskyHarm
         if cache and harmonics is None:  # another process may have stored it meanwhile
             harmonics = tsky_cache.load(key)
         if harmonics is None:
+            req.beam.check_freqs(req.freqs)
             harmonics = _compute_harmonics(req, lst_free)
             if cache:
                 tsky_cache.store(key, harmonics)

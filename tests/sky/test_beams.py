@@ -114,6 +114,45 @@ def test_hera_beam_is_upsampled_only_when_evaluated(data_root, tmp_cache, monkey
 
 
 @pytest.mark.data
+def test_a_cache_hit_does_not_read_the_beam_file(data_root, tmp_cache):
+    """Naming the HERA beam needs its checksum and the header's nside, not the file's maps.
+
+    In a fresh process: the key is the one the read beam gives, a Tsky cache hit neither
+    reads the file nor imports pyuvdata or healpy, and a miss still checks the range.
+    """
+    import json
+    import subprocess
+    import sys
+
+    from autocal.sky.file_beams import HealpixFileBeam
+    from autocal.tsky.compute import compute_tsky
+
+    beam = get_beam("hera", "nn")
+    assert "data" not in vars(beam)
+    named = beam.describe()
+    assert beam.upsample_nside == max(512, beam.data.nside)  # the file read now
+    assert named == beam.describe()
+    args = ("uniform:100", "hera", "hera", np.array([150e6, 160e6]), np.array([1.0, 2.0]))
+    compute_tsky(*args, nside=16, pol="nn")  # computed and cached
+    code = (
+        "import json, sys\n"
+        "import numpy as np\n"
+        "from autocal.tsky.compute import compute_tsky\n"
+        "t = compute_tsky('uniform:100', 'hera', 'hera', np.array([150e6, 160e6]),\n"
+        "    np.array([1.0, 2.0]), nside=16, pol='nn')\n"
+        "mods = [m for m in ('pyuvdata', 'healpy') if m in sys.modules]\n"
+        "print(json.dumps([t.meta['beam'], mods]))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    meta_beam, imported = json.loads(out.stdout)
+    assert meta_beam == named and imported == []
+    with pytest.raises(BeamError, match="outside"):
+        compute_tsky("uniform:100", "hera", "hera", np.array([250e6]), np.array([1.0]), nside=16)
+    assert isinstance(beam, HealpixFileBeam)
+
+
+@pytest.mark.data
 def test_hera_file_beam_interpolates_frequency_smoothly(data_root):
     beam = get_beam("hera", "ee")
     assert beam.freq_range == (100e6, 200e6)
