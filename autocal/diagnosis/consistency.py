@@ -84,7 +84,8 @@ class BandCheck:
         Chi-square of the halves' difference (over its variance and the halves'
         overdispersion), its degrees of freedom and survival probability.
     relative_difference
-        Norm of the halves' difference over that of the whole band's values.
+        Norm of the halves' difference over that of the whole band's values, for the
+        parameters of each unit apart (the largest).
     message
         One line on the comparison.
     partner
@@ -155,7 +156,8 @@ def band_consistency(
     from the two halves. They disagree when the difference is significant (chi-square of
     the difference over the summed variances, scaled by the halves' overdispersion,
     survival probability below :data:`CONSISTENCY_ALPHA`) and larger than
-    :data:`CONSISTENCY_RELATIVE` of the whole band's value (a real effect measured with
+    :data:`CONSISTENCY_RELATIVE` of the whole band's value, for the parameters of each unit
+    apart (a real effect measured with
     tiny errors may differ slightly between halves when the sky model is slightly wrong).
 
     A real effect next to another missing chromatic one (a noise drift while the sky's
@@ -244,7 +246,7 @@ def _compare_halves(
     chi2 = float(np.sum((lo - hi)[ok] ** 2 / var[ok]) / chat)
     k = int(ok.sum())
     pval = float(stats.chi2.sf(chi2, k))
-    rel = float(np.linalg.norm((lo - hi)[ok]) / max(np.linalg.norm(whole[ok]), 1e-300))
+    rel = _relative_difference(eff, lo - hi, whole, ok)
     consistent = bool(pval >= CONSISTENCY_ALPHA or rel <= CONSISTENCY_RELATIVE)
     show = (
         f"{eff.params[0]} = {lo[0]:.4g} +- {slo[0]:.2g} (lower half), {hi[0]:.4g} +- "
@@ -263,6 +265,23 @@ def _compare_halves(
         relative_difference=rel,
         message=f"{show}; chi2 {chi2:.3g} for {k}, p {pval:.2g}",
     )
+
+
+def _relative_difference(eff: Effect, diff: np.ndarray, whole: np.ndarray, ok: np.ndarray) -> float:
+    """Return the halves' difference over the whole band's values, unit by unit (largest).
+
+    Parameters of one unit are compared as a vector (the norm of their difference over the
+    norm of their whole-band values, e.g. a gain drift's Legendre coefficients); parameters
+    of different units are not mixed (``timing_offset``'s seconds and arcminutes: a tilt
+    the halves disagree on is not hidden behind a large clock offset).
+    """
+    units = np.array(eff.units if len(eff.units) == diff.size else ("",) * diff.size)
+    worst = 0.0
+    for unit in dict.fromkeys(units[ok].tolist()):
+        group = ok & (units == unit)
+        size = max(float(np.linalg.norm(whole[group])), 1e-300)
+        worst = max(worst, float(np.linalg.norm(diff[group])) / size)
+    return worst
 
 
 #: Most partners tried for a candidate whose parameters the band's halves disagree on.

@@ -113,3 +113,34 @@ def test_wald_statistic_uses_the_full_covariance_block(setup):
     diagonal = float(np.sum((values / sigmas) ** 2))
     assert full == pytest.approx(dchi2, rel=0.02)
     assert abs(diagonal - dchi2) > 0.05 * dchi2
+
+
+def test_the_relative_escape_compares_parameters_of_one_unit_only() -> None:
+    """A tilt the halves disagree on is not hidden behind a large clock offset."""
+    from autocal.diagnosis.consistency import _relative_difference
+    from autocal.diagnosis.effects import Effect
+
+    timing = Effect(
+        "timing_offset",
+        "tsky",
+        ("dt_s", "tilt_x_arcmin", "tilt_y_arcmin"),
+        ("s", "arcmin", "arcmin"),
+    )
+    whole = np.array([50.0, 0.5, 6.0])
+    diff = np.array([1.0, 2.0, 2.0])  # 2 % of the offset, 47 % of the tilt
+    ok = np.ones(3, bool)
+    mixed = np.linalg.norm(diff) / np.linalg.norm(whole)  # the old, unit-mixing figure
+    assert mixed < 0.1
+    assert _relative_difference(timing, diff, whole, ok) == pytest.approx(
+        np.linalg.norm(diff[1:]) / np.linalg.norm(whole[1:])
+    )
+    # one unit: the norm over all parameters, as before
+    drift = Effect("gain_drift", "gain", ("d_1", "d_2"), ("", ""))
+    d2, w2 = np.array([0.1, -0.2]), np.array([1.0, 0.5])
+    assert _relative_difference(drift, d2, w2, np.ones(2, bool)) == pytest.approx(
+        np.linalg.norm(d2) / np.linalg.norm(w2)
+    )
+    # parameters left out (not finite in a half) are left out of their unit's norm
+    assert _relative_difference(timing, diff, whole, np.array([True, False, True])) == (
+        pytest.approx(2.0 / 6.0)
+    )
