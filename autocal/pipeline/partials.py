@@ -265,7 +265,12 @@ class _FileSums:
     sums
         The file's sums so far (without time blocks).
     blocks
-        ``{block: sums of the extended model}`` so far (with time blocks).
+        ``{block: sums of the extended model}`` of the blocks still being read (with time
+        blocks).
+    fitted, extended
+        The blocks read to their end (the file's blocks come in time order): each one's
+        fitted-model sums, and the extended model's sums of them all, added in block order
+        (:meth:`_retire`).
     offset
         Integrations added so far.
     """
@@ -277,6 +282,8 @@ class _FileSums:
     nbins: int
     sums: NormalSums | None = None
     blocks: dict[int, NormalSums] = field(default_factory=dict)
+    fitted: dict[int, NormalSums] = field(default_factory=dict)
+    extended: NormalSums | None = None
     waterfall: np.ndarray | None = None
     checksums: dict[str, str] = field(default_factory=dict)
     antennas: np.ndarray | None = None
@@ -374,6 +381,9 @@ class _FileSums:
         nt = chunk.ntime
         start = self.task.offset + self.offset
         for b, sl in _block_slices(spec.edges, start, start + nt):
+            if b in self.fitted:  # pragma: no cover - a reader yields blocks in time order
+                raise PipelineError(f"file {self.task.index}: time block {b} read again")
+            self._retire(before=b)
             part = accumulate(  # added into the running sums of its block, in place
                 self.acc_model,
                 chunk.data[:, :, sl],
@@ -390,23 +400,33 @@ class _FileSums:
             else:
                 self.blocks[b] = part
 
+    def _retire(self, before: int | None = None) -> None:
+        """Reduce the time blocks read to their end (all, or those before ``before``).
+
+        Each keeps the fitted model's sums (a copy) and its extended sums are added into the
+        file's extended total, in block order: the operations, and so the values, of
+        reducing them all when the file ends, without holding every block's extended sums
+        until then (five blocks of a HERA-size file: 1 GB).
+        """
+        for b in sorted(self.blocks):
+            if before is not None and b >= before:
+                break
+            part = self.blocks.pop(b)
+            self.fitted[b] = base_sums(part, self.spec.model)
+            self.extended = part if self.extended is None else _add_into(self.extended, part)
+
     def finish(self, stats: ReadStats, seconds: float) -> FilePartial:
         """Return the file's partial once all its blocks were added.
 
         With time blocks, the extended model's sums are added once per file and each
-        block keeps the fitted model's sums (copies).
+        block keeps the fitted model's sums (copies), as :meth:`_retire` reduces them.
         """
         task = self.task
-        blocks = self.blocks
+        self._retire()
+        blocks = self.fitted
         if (self.sums is None and not blocks) or self.antennas is None or self.waterfall is None:
             raise PipelineError(f"file {task.index}: the selection left no data")
-        extended: NormalSums | None = None
-        if blocks:
-            fitted: dict[int, NormalSums] = {}
-            for b in sorted(blocks):
-                fitted[b] = base_sums(blocks[b], self.spec.model)
-                extended = blocks[b] if extended is None else _add_into(extended, blocks[b])
-            blocks = fitted
+        extended = self.extended
         if self.offset != task.lsts.size:
             raise PipelineError(
                 f"file {task.index} yielded {self.offset} integrations, "
