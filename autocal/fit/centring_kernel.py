@@ -16,6 +16,34 @@ from autocal.fit.centring import minus_product as _minus_product_py
 #: Compiled :func:`autocal.fit.centring.minus_product` (the same arithmetic).
 minus_product = numba.njit(cache=True)(_minus_product_py)
 
+#: The same as a ufunc over arrays (broadcasting as numpy's): the same arithmetic and bits
+#: as the numpy function, without its dozen temporaries (0.45 s -> 0.02 s for the
+#: jackknife's five refits of a HERA-size file's million channels).
+minus_product_array = numba.vectorize(["float64(float64, float64, float64)"], cache=True)(
+    _minus_product_py
+)
+
+
+@numba.njit(cache=True, nogil=True)
+def _centre_many(a: np.ndarray, c: np.ndarray, out: np.ndarray) -> None:
+    for i in range(a.shape[0]):
+        centre_with_into(a[i], c[i], out[i])
+
+
+def centre_many(ata: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Return :func:`autocal.fit.centring.centre` of ``(..., M, M)`` matrices, compiled.
+
+    One system at a time into the output (the numpy function makes five copies of the
+    matrices); the same operations, so the same values.
+    """
+    m = ata.shape[-1]
+    lead = ata.shape[:-2]
+    flat = np.ascontiguousarray(ata, dtype=np.float64).reshape(-1, m, m)
+    cf = np.ascontiguousarray(np.broadcast_to(np.asarray(c, np.float64), lead)).reshape(-1)
+    out = np.empty_like(flat)
+    _centre_many(flat, cf, out)
+    return out.reshape(ata.shape)
+
 
 @numba.njit(cache=True)
 def centre_into(a: np.ndarray, out: np.ndarray) -> float:

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from autocal.fit.blocks import base_index
-from autocal.fit.centring import centre, centre_rhs, sky_mean, uncentre
+from autocal.fit.centring import centre_rhs, sky_mean, uncentre
 from autocal.fit.model import FitModel
 from autocal.fit.sums import NormalSums
 
@@ -70,7 +70,9 @@ def drift_sensitivity(
     eye = np.eye(a.shape[-1])
     # solved in the sky-centred frame, as the fit is (a short span's A is ill-conditioned)
     c = sky_mean(a)
-    a, rhs = centre(a, c), centre_rhs(rhs[..., 0], c)[..., None]
+    from autocal.fit.centring_kernel import centre_many  # numba: the same values as centre
+
+    a, rhs = centre_many(a, c), centre_rhs(rhs[..., 0], c)[..., None]
     if a.shape[-1] == 2:  # the constant model: Cramer's rule, not a LAPACK call per channel
         return _drift_sensitivity_2x2(a, rhs[..., 0], ok, c, vg, theta)
     good = ok & (np.linalg.det(np.where(ok[..., None, None], a, eye)) != 0)
