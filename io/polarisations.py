@@ -43,11 +43,22 @@ NAME_TO_CODE: dict[str, int] = {
 #: The x and y feeds' compass letters for each orientation of the x feed.
 _FEED_LETTERS = {"east": {"x": "e", "y": "n"}, "north": {"x": "n", "y": "e"}}
 
+#: The spellings of the orientation pyuvdata accepts (its ``XORIENTMAP``).
+_ORIENTATIONS = {"east": "east", "e": "east", "ew": "east", "north": "north", "n": "north"}
+_ORIENTATIONS["ns"] = "north"
+
 
 def _letters(x_orientation: str | None) -> dict[str, str] | None:
+    """Return the compass letters of an orientation; None without one (x and y stay x, y).
+
+    Raises
+    ------
+    KeyError
+        For an orientation pyuvdata does not know (it warns and keeps x and y).
+    """
     if x_orientation is None:
         return None
-    return _FEED_LETTERS.get(str(x_orientation).lower())
+    return _FEED_LETTERS[_ORIENTATIONS[str(x_orientation).lower()]]
 
 
 def code_to_name(code: int, x_orientation: str | None = None) -> str:
@@ -68,7 +79,7 @@ def code_to_name(code: int, x_orientation: str | None = None) -> str:
     Raises
     ------
     KeyError
-        For a code that is not a polarisation.
+        For a code that is not a polarisation, or an orientation pyuvdata does not know.
     """
     name = CODE_TO_NAME[int(code)]
     letters = _letters(x_orientation)

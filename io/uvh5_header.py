@@ -36,24 +36,35 @@ logger = logging.getLogger(__name__)
 #: derives the x orientation.
 FEED_ANGLE_ATOL = 1e-6
 
-#: The datasets a plain header needs; without one of them the scan goes through pyuvdata.
+#: The datasets a plain header needs (those pyuvdata requires, and the LSTs); without one
+#: of them the scan goes through pyuvdata, which reads the header or says what is wrong.
 REQUIRED = (
     "ant_1_array",
     "ant_2_array",
     "time_array",
     "lst_array",
+    "integration_time",
     "freq_array",
     "channel_width",
+    "spw_array",
     "polarization_array",
     "latitude",
     "longitude",
     "altitude",
     "telescope_name",
+    "instrument",
     "antenna_numbers",
     "antenna_names",
+    "antenna_positions",
+    "history",
     "Nblts",
+    "Nbls",
+    "Ntimes",
     "Nfreqs",
     "Npols",
+    "Nspws",
+    "Nants_data",
+    "Nants_telescope",
 )
 
 
@@ -93,25 +104,44 @@ def _text(value: Any) -> str:
     return bytes(value).decode("utf8")
 
 
+#: astropy's unit scales (``u.deg.to(u.rad)``, ``u.rad.to(u.deg)``) and its 360 degrees in
+#: radians (``u.deg.to(u.rad, 360.0)``), as its angles use them.
+_D2R = 0.017453292519943295
+_R2D = 57.29577951308232
+_A360 = _D2R * 360.0
+
+
+def _wrap_at(angle: float, wrap: float, a360: float) -> float:
+    """Wrap ``angle`` into ``[wrap - a360, wrap)`` as astropy's ``Angle.wrap_at`` does."""
+    floor = wrap - a360
+    if floor <= angle < wrap or not np.isfinite(angle):
+        return angle
+    angle = angle - ((angle - floor) // a360) * a360
+    if angle >= wrap:
+        angle -= a360
+    if angle < floor:
+        angle += a360
+    return angle
+
+
 def geodetic_site(name: str, lat_deg: float, lon_deg: float, alt_m: float) -> Site:
     """Return the :class:`Site` pyuvdata's ``EarthLocation`` gives for a geodetic location.
 
-    pyuvdata builds the location from geodetic coordinates (WGS84, to ECEF) and autocal
-    read them back (ECEF to geodetic); the round trip moves them by ~1e-14 deg and ~1e-9 m,
-    enough to change a cache key built from them. ERFA's ``gd2gc``/``gc2gd`` are the
-    functions astropy calls, so the values are the same to the bit.
+    pyuvdata builds the location from geodetic coordinates (WGS84, to ECEF) and autocal read
+    them back (ECEF to geodetic); the round trip moves them by ~1e-14 deg and ~1e-9 m,
+    enough to change a cache key built from them. These are astropy's steps: the longitude
+    wrapped at 180 deg and then at 360 deg, ERFA's ``gd2gc``, ``gc2gd``, the longitude wrapped
+    at 360 deg in radians and at 180 deg in degrees, with astropy's unit scales; so the
+    values are the same to the bit (``tests/io/test_uvh5_header.py``, against astropy for
+    sites all round the Earth).
     """
     import erfa
 
-    xyz = erfa.gd2gc(1, np.deg2rad(lon_deg), np.deg2rad(lat_deg), alt_m)
-    lon, lat, alt = erfa.gc2gd(1, xyz)
-    # astropy's EarthLocation.lon is wrapped to (-180, 180] deg; gc2gd returns it so
-    return Site(
-        name.strip().lower() or "unknown",
-        float(np.rad2deg(lat)),
-        float(np.rad2deg(lon)),
-        float(alt),
-    )
+    lon_in = _wrap_at(_wrap_at(lon_deg, 180.0, 360.0), 360.0, 360.0)
+    xyz = erfa.gd2gc(1, lon_in * _D2R, lat_deg * _D2R, alt_m)
+    elong, phi, height = erfa.gc2gd(1, xyz)
+    lon = _wrap_at(_wrap_at(float(elong), _A360, _A360) * _R2D, 180.0, 360.0)
+    return Site(name.strip().lower() or "unknown", float(phi) * _R2D, lon, float(height))
 
 
 def x_orientation_of_feeds(feed_array: np.ndarray, feed_angle: np.ndarray) -> str | None:
@@ -126,13 +156,17 @@ def x_orientation_of_feeds(feed_array: np.ndarray, feed_angle: np.ndarray) -> st
 
 
 def _x_orientation(header: h5py.Group) -> tuple[bool, str | None]:
-    """(plain, orientation): the feeds' orientation, or plain=False for an unusual form."""
+    """(plain, orientation): the feeds' orientation, or plain=False for an unusual form.
+
+    Without feed information pyuvdata takes the feeds of a telescope it knows (MWA, ATA,
+    OVRO-LWA ... "east"): such a header is left to it.
+    """
     if "feed_array" in header and "feed_angle" in header:
         return True, x_orientation_of_feeds(header["feed_array"][()], header["feed_angle"][()])
     if "x_orientation" in header:
         value = _text(header["x_orientation"][()]).lower()
         return value in ("east", "north"), value  # "e", "ew" ...: pyuvdata maps them
-    return True, None
+    return False, None
 
 
 def _extra_keywords(header: h5py.Group) -> dict[str, Any]:
@@ -184,10 +218,15 @@ def _read(header: h5py.Group) -> tuple[UVH5Header, HeaderArrays] | None:
     lsts = np.asarray(header["lst_array"][()], dtype=np.float64)
     if any(a.shape != (nblts,) for a in [*rows, lsts]):
         return None
-    freqs = np.asarray(header["freq_array"][()], dtype=np.float64).ravel()
+    freq_array = np.asarray(header["freq_array"][()], dtype=np.float64)
+    freqs = freq_array.ravel()
     width = np.asarray(header["channel_width"][()], dtype=np.float64).ravel()
     codes = [int(c) for c in np.asarray(header["polarization_array"][()]).ravel()]
-    if freqs.size != int(header["Nfreqs"][()]) or width.size not in (1, freqs.size):
+    if freqs.size != int(header["Nfreqs"][()]):
+        return None
+    # a file of the current form (1-D freq_array) has a width per channel; an older one
+    # (2-D, one window) one width
+    if width.size != (freqs.size if freq_array.ndim == 1 else 1):
         return None
     if len(codes) != int(header["Npols"][()]):
         return None
@@ -197,12 +236,10 @@ def _read(header: h5py.Group) -> tuple[UVH5Header, HeaderArrays] | None:
         return None
     telescope = _text(header["telescope_name"][()])
     vis_units = _text(header["vis_units"][()]) if "vis_units" in header else "uncalib"
-    site = geodetic_site(
-        telescope,
-        float(header["latitude"][()]),
-        float(header["longitude"][()]),
-        float(header["altitude"][()]),
-    )
+    lat, lon, alt = (float(header[k][()]) for k in ("latitude", "longitude", "altitude"))
+    if not (-90.0 <= lat <= 90.0 and np.isfinite(lon) and np.isfinite(alt)):
+        return None  # pyuvdata refuses it, and says why
+    site = geodetic_site(telescope, lat, lon, alt)
     out = UVH5Header(
         telescope_name=telescope,
         site=site,
@@ -210,7 +247,7 @@ def _read(header: h5py.Group) -> tuple[UVH5Header, HeaderArrays] | None:
         antenna_names=names,
         x_orientation=orientation,
         vis_units="uncalib" if vis_units == "UNCALIB" else vis_units,
-        history=_text(header["history"][()]) if "history" in header else "",
+        history=_text(header["history"][()]),
         extra_keywords=_extra_keywords(header),
     )
     arrays = HeaderArrays(
@@ -225,8 +262,14 @@ def _read(header: h5py.Group) -> tuple[UVH5Header, HeaderArrays] | None:
     return out, arrays
 
 
-def header_from_uvdata(uv: Any, orientation: str | None) -> tuple[UVH5Header, HeaderArrays]:
-    """Return the same records from a pyuvdata ``UVData`` read with ``read_data=False``."""
+def header_from_uvdata(
+    uv: Any, orientation: str | None, history: str | None = None
+) -> tuple[UVH5Header, HeaderArrays]:
+    """Return the same records from a pyuvdata ``UVData`` read with ``read_data=False``.
+
+    ``history``: the file's own (pyuvdata's has its "Read/written with pyuvdata" line
+    appended); pyuvdata's when not given.
+    """
     loc = uv.telescope.location
     try:
         lat, lon = float(loc.lat.deg), float(loc.lon.deg)
@@ -235,16 +278,15 @@ def header_from_uvdata(uv: Any, orientation: str | None) -> tuple[UVH5Header, He
         from autocal.io.uvh5_meta import UVH5FormatError
 
         raise UVH5FormatError(f"telescope location {loc!r} is not a geodetic location") from err
-    name = str(uv.telescope.name or "unknown")
     telescope = uv.telescope
     header = UVH5Header(
-        telescope_name=name,
-        site=Site(name.strip().lower() or "unknown", lat, lon, alt),
+        telescope_name=str(telescope.name),
+        site=Site(str(telescope.name or "").strip().lower() or "unknown", lat, lon, alt),
         antenna_numbers=tuple(int(n) for n in telescope.antenna_numbers),
         antenna_names=tuple(str(n) for n in telescope.antenna_names),
         x_orientation=orientation,
         vis_units=str(uv.vis_units),
-        history=str(uv.history or ""),
+        history=str(uv.history or "") if history is None else history,
         extra_keywords=dict(uv.extra_keywords),
     )
     freqs = np.asarray(uv.freq_array, dtype=np.float64).ravel()

@@ -179,7 +179,17 @@ def _header_through_pyuvdata(path: Path) -> tuple[UVH5Header, HeaderArrays]:
             f"pyuvdata cannot read the UVH5 header of {path}: {type(err).__name__}: {err}; "
             "the file may be corrupt or not a UVData UVH5 file"
         ) from err
-    return header_from_uvdata(uv, feed_orientation(uv.telescope))
+    return header_from_uvdata(uv, feed_orientation(uv.telescope), file_history(path))
+
+
+def file_history(path: Path) -> str | None:
+    """Return the ``history`` a UVH5 file holds (without what a reader appends), or None."""
+    try:
+        with h5py.File(path, "r") as h5:
+            value = h5["Header"].get("history")
+            return None if value is None else bytes(value[()]).decode("utf8")
+    except (OSError, UnicodeDecodeError, TypeError):
+        return None
 
 
 def check_joinable(first: FileMeta, other: FileMeta) -> None:

@@ -275,12 +275,17 @@ def _relative_difference(eff: Effect, diff: np.ndarray, whole: np.ndarray, ok: n
     of different units are not mixed (``timing_offset``'s seconds and arcminutes: a tilt
     the halves disagree on is not hidden behind a large clock offset).
     """
-    units = np.array(eff.units if len(eff.units) == diff.size else ("",) * diff.size)
+    if len(eff.units) != diff.size:
+        raise ValueError(f"{eff.name}: {len(eff.units)} units for {diff.size} parameters")
+    units = np.array(eff.units)
     worst = 0.0
     for unit in dict.fromkeys(units[ok].tolist()):
         group = ok & (units == unit)
         size = max(float(np.linalg.norm(whole[group])), 1e-300)
-        worst = max(worst, float(np.linalg.norm(diff[group])) / size)
+        ratio = float(np.linalg.norm(diff[group])) / size
+        if not np.isfinite(ratio):  # no whole-band value to compare with: no escape
+            return np.inf
+        worst = max(worst, ratio)
     return worst
 
 

@@ -34,7 +34,7 @@ def centre_many(ata: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Return :func:`autocal.fit.centring.centre` of ``(..., M, M)`` matrices, compiled.
 
     One system at a time into the output (the numpy function makes five copies of the
-    matrices); the same operations, so the same values.
+    matrices); the same operations, so the same bits (signed zeros included).
     """
     m = ata.shape[-1]
     lead = ata.shape[:-2]
@@ -42,6 +42,7 @@ def centre_many(ata: np.ndarray, c: np.ndarray) -> np.ndarray:
     cf = np.ascontiguousarray(np.broadcast_to(np.asarray(c, np.float64), lead)).reshape(-1)
     out = np.empty_like(flat)
     _centre_many(flat, cf, out)
+    out += 0.0  # numpy's centre adds a zero to every element as it mirrors: -0.0 -> 0.0
     return out.reshape(ata.shape)
 
 

@@ -202,6 +202,10 @@ class HealpixFileBeam(GriddedFileBeam):
     ``3 nside - 1`` of the file) to ``upsample_nside`` (stored as float32), then
     interpolated bilinearly: the beam is smooth, so evaluating it on rotated grids does
     not add pixel-scale noise. A cubic spline interpolates in frequency.
+
+    The file is read when its values are first needed (a Tsky cache hit never needs them):
+    a missing file is reported at construction, a file without the polarisation or with
+    unreadable values when the beam is first evaluated or its frequency range asked for.
     """
 
     def __init__(self, path: str | Path, pol: str = "ee", upsample_nside: int = 512) -> None:

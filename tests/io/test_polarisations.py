@@ -7,7 +7,7 @@ from pyuvdata import utils as uvutils
 
 from autocal.io.polarisations import CODE_TO_NAME, NAME_TO_CODE, code_to_name, name_to_code
 
-ORIENTATIONS = [None, "east", "north"]
+ORIENTATIONS = [None, "east", "north", "e", "EW", "n", "ns", "North"]
 
 
 @pytest.mark.parametrize("orientation", ORIENTATIONS)
@@ -28,10 +28,12 @@ def test_codes_of_every_name_and_alias_are_pyuvdatas(orientation) -> None:
         ), name
 
 
-def test_unknown_codes_and_names_raise_keyerror() -> None:
+def test_unknown_codes_names_and_orientations_raise_keyerror() -> None:
     with pytest.raises(KeyError):
         code_to_name(-9)
     with pytest.raises(KeyError):
         name_to_code("ee")  # e/n names need the feeds' orientation
     with pytest.raises(KeyError):
         name_to_code("zz", "east")
+    with pytest.raises(KeyError):
+        code_to_name(-5, "up")  # pyuvdata only warns and keeps xx

@@ -72,14 +72,34 @@ def _replace(header, name, value) -> None:
     header[name] = value
 
 
+def _no_feeds(header) -> None:
+    for name in ("feed_array", "feed_angle", "x_orientation"):
+        if name in header:
+            del header[name]
+
+
 @pytest.mark.parametrize(
     "edit",
     [
         lambda h: h.__delitem__("lst_array"),  # pyuvdata computes LSTs (astropy)
         lambda h: h.__delitem__("latitude"),  # an old ECEF location
         lambda h: _replace(h, "telescope_frame", np.bytes_("mcmf")),  # on the Moon
+        lambda h: _replace(h, "latitude", 100.0),  # pyuvdata refuses it
+        lambda h: h.__delitem__("history"),  # pyuvdata requires one
+        lambda h: h.__delitem__("integration_time"),
+        lambda h: _replace(h, "channel_width", 97656.25),  # 1-D freq_array: one per channel
+        _no_feeds,  # pyuvdata takes a known telescope's feeds
     ],
-    ids=["no-lsts", "no-latitude", "lunar-frame"],
+    ids=[
+        "no-lsts",
+        "no-latitude",
+        "lunar-frame",
+        "latitude-100",
+        "no-history",
+        "no-integration-time",
+        "scalar-width",
+        "no-feeds",
+    ],
 )
 def test_unusual_headers_go_through_pyuvdata(tmp_path, edit) -> None:
     """Anything but the plain form is left to pyuvdata (which reads it or says why not)."""
@@ -89,13 +109,46 @@ def test_unusual_headers_go_through_pyuvdata(tmp_path, edit) -> None:
 
 
 def test_a_header_without_lsts_is_scanned_through_pyuvdata(tmp_path) -> None:
-    """The fallback gives the same scan as the plain path gave before the edit."""
+    """The fallback gives the same scan as the plain path gave before the edit (the site,
+    the names, the file's own history without pyuvdata's line)."""
     path = write_uvh5(synthetic_observation(), tmp_path / "a.uvh5")
     before = scan_uvh5([path])[0]
     _edit_header(path, lambda h: h.__delitem__("lst_array"))
     after = scan_uvh5([path])[0]
     assert after.site == before.site and after.pols == before.pols
+    assert after.header.header == before.header.header
     np.testing.assert_allclose(after.lsts, before.lsts, atol=1e-6)  # pyuvdata's LSTs, hours
+
+
+def test_without_feeds_the_orientation_is_pyuvdatas(tmp_path) -> None:
+    """A header without feed information is read through pyuvdata, which may know the
+    telescope's feeds: the scan names the polarisations as pyuvdata does."""
+    path = write_uvh5(synthetic_observation(), tmp_path / "a.uvh5")
+    _edit_header(path, _no_feeds)
+    assert read_plain_header(path) is None
+    meta = read_file_meta(path)
+    slow, slow_arrays = _through_pyuvdata(path)
+    assert meta.x_orientation == slow.x_orientation
+    assert meta.pol_codes == slow_arrays.pol_codes
+
+
+def test_the_site_is_astropys_all_round_the_earth() -> None:
+    """West and east, across the date line, beyond +-180 deg: EarthLocation's values, bit
+    for bit (they key the Tsky cache)."""
+    import astropy.units as u
+    from astropy.coordinates import EarthLocation
+
+    from autocal.io.uvh5_header import geodetic_site
+
+    rng = np.random.default_rng(5)
+    lons = [-360.0, -180.0, -118.2817, -107.6184, -0.0, 0.0, 21.4278, 180.0, 359.999]
+    lons += rng.uniform(-360.0, 360.0, 400).tolist()
+    for lon in lons:
+        lat, alt = float(rng.uniform(-90.0, 90.0)), float(rng.uniform(-400.0, 5000.0))
+        loc = EarthLocation.from_geodetic(lon=lon * u.deg, lat=lat * u.deg, height=alt * u.m)
+        site = geodetic_site("x", lat, lon, alt)
+        want = (float(loc.lat.deg), float(loc.lon.deg), float(loc.height.to_value("m")))
+        assert (site.lat_deg, site.lon_deg, site.alt_m) == want, (lat, lon, alt)
 
 
 def test_inconsistent_row_counts_leave_the_error_to_pyuvdata(tmp_path) -> None:

@@ -140,7 +140,8 @@ def test_a_cache_hit_does_not_read_the_beam_file(data_root, tmp_cache):
         "from autocal.tsky.compute import compute_tsky\n"
         "t = compute_tsky('uniform:100', 'hera', 'hera', np.array([150e6, 160e6]),\n"
         "    np.array([1.0, 2.0]), nside=16, pol='nn')\n"
-        "mods = [m for m in ('pyuvdata', 'healpy') if m in sys.modules]\n"
+        "heavy = ('pyuvdata', 'healpy', 'matplotlib', 'astropy.coordinates')\n"
+        "mods = [m for m in heavy if m in sys.modules]\n"
         "print(json.dumps([t.meta['beam'], mods]))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
