@@ -70,7 +70,7 @@ def expected_jackknife(
     proj = np.ascontiguousarray(proj, dtype=np.float64)
     sky = np.ascontiguousarray(np.broadcast_to(c, lead), dtype=np.float64).reshape(-1)
     nchunk = -(-flat.shape[0] // _CHUNK)
-    in_threads(lambda c0, c1: _kernel(flat, blocks, prior, proj, sky, out, c0, c1, m), nchunk)
+    in_threads(lambda c0, c1: _kernel(flat, blocks, prior, proj, sky, out, c0, c1), nchunk)
     return out.reshape(*lead, 2, 2)
 
 
@@ -115,23 +115,14 @@ def _matmul(x: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
 #: Channels per chunk of the loop (its scratch arrays are allocated once per chunk).
 _CHUNK = 4096
 
-# The helpers inlined into the loop, so that with ``M`` a literal (:func:`_kernel`) their
-# loops over it unroll: the same operations in the same order, so the same bits.
-_centre_inline = numba.njit(inline="always")(centre_with_into.py_func)
-_invert_inline = numba.njit(inline="always")(invert_in_place.py_func)
-_matmul_inline = numba.njit(inline="always")(_matmul.py_func)
-
 
 @numba.njit(cache=True, nogil=True)
-def _kernel(a, blocks, prior, proj, sky, out, c0, c1, m):  # type: ignore[no-untyped-def]
-    """Fill ``out[n]`` for the channels of chunks ``c0`` to ``c1 - 1`` (``M = m``).
+def _kernel(a, blocks, prior, proj, sky, out, c0, c1):  # type: ignore[no-untyped-def]
+    """Fill ``out[n]`` for the channels of chunks ``c0`` to ``c1 - 1``.
 
-    See :func:`expected_jackknife`. ``m`` is compiled as a literal, one specialisation
-    per model size: the loops over it unroll (the constant model's 2 x 2 systems ~2x
-    faster), with the same operations in the same order.
+    See :func:`expected_jackknife`.
     """
-    numba.literally(m)
-    nblk, nchan = blocks.shape[0], blocks.shape[1]
+    nblk, nchan, m, _ = blocks.shape
     frac = (nblk - 1) / nblk
     for c in range(c0, c1):
         ysum = np.empty((2, m))
@@ -153,19 +144,19 @@ def _kernel(a, blocks, prior, proj, sky, out, c0, c1, m):  # type: ignore[no-unt
             same[:] = 0.0
             ok = True
             cn = sky[n]
-            _centre_inline(a[n], cn, ac)
+            centre_with_into(a[n], cn, ac)
             for b in range(nblk):
                 for i in range(m):
                     for j in range(m):
                         rest[i, j] = a[n, i, j] - blocks[b, n, i, j] + pn[i, j]
-                _centre_inline(rest, cn, k)  # inverted in the sky-centred frame
-                if not _invert_inline(k, True):
+                centre_with_into(rest, cn, k)  # inverted in the sky-centred frame
+                if not invert_in_place(k, True):
                     ok = False
                     break
-                _centre_inline(blocks[b, n], cn, bc)
-                _matmul_inline(proj, k, y)  # Y_b
-                _matmul_inline(y, bc, ya)  # Y_b A_b
-                _matmul_inline(y, ac, yr)
+                centre_with_into(blocks[b, n], cn, bc)
+                _matmul(proj, k, y)  # Y_b
+                _matmul(y, bc, ya)  # Y_b A_b
+                _matmul(y, ac, yr)
                 for i in range(2):
                     for q in range(m):
                         yr[i, q] -= ya[i, q]  # Y_b (A - A_b)
@@ -179,7 +170,7 @@ def _kernel(a, blocks, prior, proj, sky, out, c0, c1, m):  # type: ignore[no-unt
             if not ok:
                 out[n] = np.nan
                 continue
-            _matmul_inline(ysum, ac, yr)  # Ysum A
+            _matmul(ysum, ac, yr)  # Ysum A
             for i in range(2):
                 for j in range(2):
                     every = same[i, j]

@@ -47,24 +47,3 @@ def test_the_kernel_gives_the_numpy_expectation(m: int, with_prior: bool) -> Non
     assert np.isnan(got[3]).all() and np.isfinite(got[:3]).all()  # singular refit, or not
     np.testing.assert_allclose(got, ref, rtol=1e-9, atol=0)
     np.testing.assert_allclose(got, np.swapaxes(got, -1, -2), rtol=1e-9)  # a covariance
-
-
-@pytest.mark.parametrize("m", [2, 4])
-def test_the_literal_size_specialisation_keeps_the_bits(m: int) -> None:
-    """The kernel is compiled with ``M`` a literal (its loops unroll): the same bits as the
-    same loop run by the interpreter over the compiled helpers, channel by channel."""
-    from autocal.fit import jackknife_kernel as jk
-
-    blocks, fitted = _blocks(m, 64, 5, seed=10 + m)
-    a = np.ascontiguousarray(fitted.ata)
-    parts = np.stack([b.ata for b in blocks.blocks])
-    prior = np.zeros((1, m, m))
-    rng = np.random.default_rng(m)
-    proj = rng.standard_normal((2, m))
-    sky = rng.uniform(100.0, 300.0, a.shape[0])
-    compiled = np.empty((a.shape[0], 2, 2))
-    interpreted = np.empty((a.shape[0], 2, 2))
-    jk._kernel(a, parts, prior, proj, sky, compiled, 0, 1, m)
-    jk._kernel.py_func(a, parts, prior, proj, sky, interpreted, 0, 1, m)
-    assert np.isnan(compiled[3]).all()  # the singular refit
-    np.testing.assert_array_equal(compiled.view(np.int64), interpreted.view(np.int64))
