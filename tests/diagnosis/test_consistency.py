@@ -144,3 +144,23 @@ def test_the_relative_escape_compares_parameters_of_one_unit_only() -> None:
     assert _relative_difference(timing, diff, whole, np.array([True, False, True])) == (
         pytest.approx(2.0 / 6.0)
     )
+
+
+def test_the_relative_escape_is_closed_without_a_whole_band_value() -> None:
+    """A unit whose whole-band value is not finite gives no escape (inf), and units that do
+    not match the parameters are an error, not a silent mix."""
+    from autocal.diagnosis.consistency import _relative_difference
+    from autocal.diagnosis.effects import Effect
+
+    timing = Effect(
+        "timing_offset",
+        "tsky",
+        ("dt_s", "tilt_x_arcmin", "tilt_y_arcmin"),
+        ("s", "arcmin", "arcmin"),
+    )
+    ok = np.ones(3, bool)
+    whole = np.array([50.0, np.nan, 6.0])
+    assert _relative_difference(timing, np.array([1.0, 0.1, 0.1]), whole, ok) == np.inf
+    short = Effect("timing_offset", "tsky", ("dt_s",), ("s",))
+    with pytest.raises(ValueError, match="units"):
+        _relative_difference(short, np.zeros(3), np.ones(3), ok)
