@@ -192,10 +192,11 @@ def read_plain_header(path: Path) -> tuple[UVH5Header, HeaderArrays] | None:
     Returns
     -------
     tuple of UVH5Header and HeaderArrays, or None
-        None when a field is missing or unusual (no stored LSTs, an ECEF or lunar
-        telescope location, an x orientation spelt otherwise than east/north, row or
-        channel counts that disagree): pyuvdata then reads the header and reports what
-        is wrong with it.
+        None when a field is missing or unusual (no stored LSTs or another field pyuvdata
+        requires, an ECEF or lunar telescope location, a latitude beyond +-90 deg, no feed
+        information or an x orientation spelt otherwise than east/north, row or channel
+        counts that disagree): pyuvdata then reads the header and reports what is wrong
+        with it.
     """
     try:
         with h5py.File(path, "r") as h5:
