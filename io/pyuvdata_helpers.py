@@ -51,10 +51,13 @@ def cache_jit() -> int:
     ``numba.njit()`` but no ``cache=True``, so every process compiled them again on its
     first UVH5 read. Numba's own :meth:`Dispatcher.enable_caching` keeps the machine code
     beside the module (or under ``NUMBA_CACHE_DIR``), so a later process loads it.
-    Measured on a HERA-size night file in fresh processes: ``scan_uvh5`` 3.3-3.8 s ->
-    1.4-1.5 s (the rest is astropy reading its IERS table); ``autocal calibrate`` of the
-    file with its Tsky cached 13.6-14.6 s -> 12.5-13.3 s (three runs each, alternated).
-    Where nothing is writable, or pyuvdata changes, the functions compile as before.
+    Measured on a HERA-size night file in fresh processes, when every header scan went
+    through pyuvdata: ``scan_uvh5`` 3.3-3.8 s -> 1.4-1.5 s (the rest is astropy reading its
+    IERS table); ``autocal calibrate`` of the file with its Tsky cached 13.6-14.6 s ->
+    12.5-13.3 s (three runs each, alternated). Plain headers are now read with h5py
+    (:mod:`autocal.io.uvh5_header`); this serves the headers pyuvdata still reads and its
+    other readers. Where nothing is writable, or pyuvdata changes, the functions compile as
+    before.
     """
     try:  # numba and pyuvdata are heavy: imported on the first UVH5 read only
         from numba.core.dispatcher import Dispatcher
