@@ -213,7 +213,8 @@ def _calibrate(
     if out is not None:  # a per-time calh5 too large to hold is refused before any reading
         nant = len(source.antenna_numbers(config.antennas))
         shape = (nant, len(pols), source.freqs.size, source.lsts.size)
-        check_per_time_memory(config.products, shape)
+        constant = config.model == "constant" or config.order == 0
+        check_per_time_memory(config.products, shape, constant=constant)
     epoch = night_epoch(source.jds, source.site.lon_deg)
     report(
         0.05, f"Tsky for {len(pols)} pol(s), {source.freqs.size} channels, {source.lsts.size} LSTs"

@@ -49,13 +49,25 @@ SUMMARY_NAME = "summary.json"
 logger = logging.getLogger(__name__)
 
 #: Bytes in memory per gain value (antenna x pol x channel x integration) of a per-time
-#: calh5 / calfits: pyuvdata's ``UVCal`` holds the gains (complex64), their flags and
-#: qualities and writes them whole (one 350-antenna, 1536-channel, 192-integration night
-#: file: 2.3 GB peak for 206 M values, 11.2 bytes each, measured with the calh5 alone).
-PER_TIME_BYTES_PER_VALUE = 12
+#: product, by product and by whether the time model is constant. calfits: pyuvdata's
+#: ``UVCal`` writes it whole, through float64 (one 350-antenna, 1536-channel,
+#: 192-integration night file with the calfits alone: peak 7.15 GB, 5.5 GB above the
+#: fit's, for 206 M values: 27 bytes each).
+#: calh5 is written an antenna at a time (:mod:`autocal.io.calsol_write`): a constant
+#: model's gains, flags and qualities are one integration's, seen at every time, and only
+#: the flags of integrations flagged whole are held per time (1 byte); a time-varying
+#: model's are held whole (complex64 gains, flags, float32 qualities: 13 bytes).
+PER_TIME_BYTES_PER_VALUE = {
+    ("calh5", True): 1,
+    ("calh5", False): 13,
+    ("calfits", True): 27,
+    ("calfits", False): 27,
+}
 
 
-def check_per_time_memory(products: Sequence[str], shape: tuple[int, int, int, int]) -> None:
+def check_per_time_memory(
+    products: Sequence[str], shape: tuple[int, int, int, int], *, constant: bool = False
+) -> None:
     """Refuse, before any data are read, a per-time UVCal product the machine cannot hold.
 
     Parameters
@@ -64,6 +76,8 @@ def check_per_time_memory(products: Sequence[str], shape: tuple[int, int, int, i
         The requested products (``calh5`` and ``calfits`` are per time).
     shape
         ``(Nant, Npol, Nfreq, Ntime)`` of the solution.
+    constant
+        Whether the time model is constant (its per-time gains are one integration's).
 
     Raises
     ------
@@ -75,13 +89,14 @@ def check_per_time_memory(products: Sequence[str], shape: tuple[int, int, int, i
     if not per_time:
         return
     nant, npol, nfreq, ntime = shape
-    need = PER_TIME_BYTES_PER_VALUE * nant * npol * nfreq * ntime
+    per_value = max(PER_TIME_BYTES_PER_VALUE[(p, constant)] for p in per_time)
+    need = per_value * nant * npol * nfreq * ntime
     avail = available_memory()
     if avail is not None and need > avail:
         raise PipelineError(
             f"the per-time {'/'.join(per_time)} of {ntime} integrations x {nant} antennas x "
             f"{npol} pols x {nfreq} channels needs about {need / 1e9:.1f} GB in memory "
-            f"(pyuvdata writes it whole) and {max(avail, 0) / 1e9:.1f} GB are available: "
+            f"and {max(avail, 0) / 1e9:.1f} GB are available: "
             "calibrate the files one by one (as `autocal nightly` does; hera_cal applies one "
             "calibration file per data file), or ask only for products=hdf5,png (every G(t) "
             "of the time model is in solution.h5)"

@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
+import h5py
 import numpy as np
 import pytest
 
@@ -109,6 +108,73 @@ def test_a_constant_model_shares_one_integrations_arrays(tmp_path):
     assert np.ptp(np.abs(back.gain_array), axis=2).max() == 0  # the same at every time
 
 
+@pytest.mark.parametrize(
+    ("order", "per_time", "time_flags"),
+    [(0, True, False), (0, True, True), (1, True, False), (0, False, False)],
+)
+def test_the_calh5_reads_back_as_pyuvdatas_own_writer_writes_it(
+    tmp_path, order, per_time, time_flags
+):
+    """autocal writes the calh5 an antenna at a time; pyuvdata's ``UVCal.write_calh5`` of
+    the same object (materialised) reads back equal, header and arrays, and each 4-D
+    dataset has pyuvdata's type and filter with one antenna per chunk."""
+    from dataclasses import replace
+
+    from pyuvdata import UVCal
+
+    from autocal.io.calsol_uvcal import solution_to_uvcal
+    from autocal.io.calsol_write import _write_calh5_file
+
+    sol = fitted_solution(order=order, residuals=False)
+    if time_flags:
+        flags_t = np.zeros((sol.G.shape[0], sol.G.shape[1], sol.jds.size), bool)
+        flags_t[0, 0, 2] = True
+        sol = replace(sol, time_flags=flags_t)
+    uvc = solution_to_uvcal(sol, per_time=per_time, shared_times=True)  # as write_calh5
+    ours, theirs = tmp_path / "ours.calh5", tmp_path / "pyuvdata.calh5"
+    _write_calh5_file(uvc, ours)
+    uvc.write_calh5(str(theirs))
+    a, b = UVCal.from_file(str(ours)), UVCal.from_file(str(theirs))
+    assert a.__eq__(b, check_extra=True)
+    assert a.Ntimes == (sol.jds.size if per_time else 1)
+    if time_flags:
+        assert a.flag_array[0, :, 2, 0].all() and not sol.flags[0, 0].all()
+        np.testing.assert_array_equal(a.flag_array[0, :, 1, 0], sol.flags[0, 0])
+    with h5py.File(ours) as f, h5py.File(theirs) as g:
+        assert (
+            set(f["Data"])
+            == set(g["Data"])
+            == {
+                "gains",
+                "flags",
+                "qualities",
+                "total_qualities",
+            }
+        )
+        for name in f["Data"]:
+            mine, ref = f["Data"][name], g["Data"][name]
+            assert (mine.dtype, mine.compression) == (ref.dtype, ref.compression), name
+            if mine.ndim == 4:
+                assert mine.chunks == (1, *mine.shape[1:]), name
+
+
+def test_the_antenna_fill_copies_any_layout():
+    """The wide-item fill of a zero-time-stride view equals numpy's copy, and arrays it
+    cannot widen (three feeds, another type) are copied as numpy copies them."""
+    from autocal.io.calsol_write import _fill
+
+    rng = np.random.default_rng(3)
+    for dtype, njones in [(np.complex64, 2), (np.float32, 2), (bool, 2), (np.float32, 3)]:
+        one = (rng.normal(size=(5, 1, njones)) > 0).astype(dtype)
+        for src in (np.broadcast_to(one, (5, 4, njones)), np.repeat(one, 4, axis=1)):
+            out = np.empty(src.shape, dtype)
+            np.testing.assert_array_equal(_fill(out, src), src)
+    src = rng.normal(size=(5, 4, 2))
+    np.testing.assert_array_equal(
+        _fill(np.empty(src.shape, np.float32), src), src.astype(np.float32)
+    )
+
+
 def test_non_hera_antennas_get_a_minimal_telescope(tmp_path):
     from pyuvdata import UVCal
 
@@ -126,8 +192,6 @@ def test_non_hera_antennas_get_a_minimal_telescope(tmp_path):
 
 
 def test_refuses_overwrite_and_writes_atomically(tmp_path, monkeypatch):
-    from pyuvdata import UVCal
-
     sol = make_solution()
     path = write_calh5(sol, tmp_path / "g.calh5")
     before = path.read_bytes()
@@ -137,11 +201,10 @@ def test_refuses_overwrite_and_writes_atomically(tmp_path, monkeypatch):
         write_calfits(sol, path)
     assert path.read_bytes() == before
 
-    def broken(self, filename, **kwargs):
-        Path(filename).write_bytes(b"partial")
-        raise OSError("disk full")
+    def broken(self, *args, **kwargs):
+        raise OSError("disk full")  # the header and a dataset are in the file by now
 
-    monkeypatch.setattr(UVCal, "write_calh5", broken)
+    monkeypatch.setattr(h5py.Dataset, "write_direct", broken)
     with pytest.raises(OSError, match="disk full"):
         write_calh5(make_solution(flagged=(1,)), path, overwrite=True)
     assert path.read_bytes() == before  # untouched
