@@ -28,6 +28,7 @@ from autocal.core.files import file_checksum
 from autocal.core.observation import Observation
 from autocal.errors import AutocalError
 from autocal.io.uvh5_chunks import Buffers, CountingFile, ReadStats, RepeatedChunks, read_rows
+from autocal.io.uvh5_inflate import InflatingReader
 from autocal.io.uvh5_integrity import data_set_integrity, log_unchecked, read_error
 from autocal.io.uvh5_meta import (
     FileMeta,
@@ -93,6 +94,7 @@ def iter_uvh5_blocks(
     prefetch: bool = True,
     reuse_buffers: bool = False,
     decode_repeats_once: bool = True,
+    inflate: bool = True,
 ) -> Iterator[Observation]:
     """Yield the autos of one UVH5 file in blocks of consecutive integrations.
 
@@ -136,6 +138,10 @@ def iter_uvh5_blocks(
         Decode each distinct stored chunk of the flags and nsamples once and copy its
         repeats (:class:`~autocal.io.uvh5_chunks.RepeatedChunks`; on raw files a third
         of the HDF5 time). The values are the same; ``False`` decodes every chunk.
+    inflate
+        Inflate the chunks of shuffle/deflate (gzip) data sets on the process's threads
+        outside HDF5 (:class:`~autocal.io.uvh5_inflate.InflatingReader`: HDF5 decodes on
+        one core); ``False`` leaves every chunk to HDF5. The values are the same.
 
     Yields
     ------
@@ -167,7 +173,7 @@ def iter_uvh5_blocks(
     raw = CountingFile(meta.path)
     try:
         with h5py.File(raw, "r") as h5:
-            reader.open(h5, raw, decode_repeats_once)
+            reader.open(h5, raw, decode_repeats_once, inflate)
             if checksum:
                 stats.checksum_bytes += meta.path.stat().st_size
             yield from _run_blocks(
@@ -228,7 +234,9 @@ class _BlockReader:
         self.raw_sets = (Buffers(), Buffers()) if reuse_buffers else None
         self.counted = 0  # bytes of the file counted into stats.bytes_read so far
 
-    def open(self, h5: Any, raw: CountingFile, decode_repeats_once: bool) -> None:
+    def open(
+        self, h5: Any, raw: CountingFile, decode_repeats_once: bool, inflate: bool = True
+    ) -> None:
         """Read the header's per-row arrays and map every row onto (antenna, time)."""
         meta = self.meta
         self.raw = raw
@@ -264,6 +272,8 @@ class _BlockReader:
         self.repeats = [None] + [
             RepeatedChunks(d) if decode_repeats_once else None for d in self.datasets[1:]
         ]
+        # gzip chunks inflated on threads, not by HDF5 on one core
+        self.inflaters = [InflatingReader(d) if inflate else None for d in self.datasets]
 
     def read(self, iblock: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """Stage 1: the block's rows of the three data sets, as stored (HDF5)."""
@@ -274,10 +284,11 @@ class _BlockReader:
         if rows.size:
             bufs = None if self.raw_sets is None else self.raw_sets[iblock % 2]
             keys = ("data", "flags", "nsamples")
-            for key, dset, rep in zip(keys, self.datasets, self.repeats, strict=True):
+            sets = zip(keys, self.datasets, self.repeats, self.inflaters, strict=True)
+            for key, dset, rep, inflater in sets:
                 try:
                     arrays[key] = read_rows(
-                        dset, rows, self.chans, self.pols, self.stats, bufs, rep
+                        dset, rows, self.chans, self.pols, self.stats, bufs, rep, inflater
                     )
                 except OSError as err:  # a chunk failing its checksum, not decoding, short
                     what = f"integrations {t0}-{t1 - 1}"

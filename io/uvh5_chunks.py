@@ -16,9 +16,12 @@ import itertools
 import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from autocal.io.uvh5_inflate import InflatingReader
 
 logger = logging.getLogger(__name__)
 
@@ -104,6 +107,7 @@ def read_rows(
     stats: ReadStats,
     buffers: Buffers | None = None,
     repeats: RepeatedChunks | None = None,
+    inflater: InflatingReader | None = None,
 ) -> np.ndarray:
     """Read ``rows`` (sorted blt indices) of a data set as ``(Nrows, Nchan, Npol)``.
 
@@ -113,14 +117,18 @@ def read_rows(
     slab of consecutive rows is decoded into a reused array (``read_direct``; no fresh
     pages to fault in per block); the result is then only valid until the next read of
     this data set. With ``repeats`` such a slab is assembled from the data set's distinct
-    stored chunks, each decoded once (:class:`RepeatedChunks`).
+    stored chunks, each decoded once (:class:`RepeatedChunks`), and with ``inflater`` its
+    chunks are inflated on threads outside HDF5
+    (:class:`~autocal.io.uvh5_inflate.InflatingReader`).
     """
     lo, hi = int(rows[0]), int(rows[-1]) + 1
     dense = rows.size >= 0.5 * (hi - lo)
     first: slice | np.ndarray = slice(lo, hi) if dense else rows
     index: tuple[Any, ...] = (first, 0, chans, pols) if dset.ndim == 4 else (first, chans, pols)
     slab = dense and rows.size == hi - lo and not dset.dtype.names
-    if slab and (buffers is not None or (repeats is not None and repeats.active)):
+    repeating = repeats is not None and repeats.active
+    inflating = inflater is not None and inflater.active
+    if slab and (buffers is not None or repeating or inflating):
         nchan = len(range(*chans.indices(dset.shape[-2])))
         npol = len(range(*pols.indices(dset.shape[-1])))
         shape = (rows.size, nchan, npol)
@@ -129,8 +137,7 @@ def read_rows(
             if buffers is None
             else buffers.get(f"raw {dset.name}", shape, dset.dtype)
         )
-        if repeats is None or not repeats.fill(arr, lo, hi, chans, pols, stats):
-            dset.read_direct(arr, source_sel=index)
+        _fill_slab(dset, arr, index, (lo, hi, chans, pols), stats, repeats, inflater)
     else:
         arr = dset[index]
     if arr.dtype.names:  # the HERA correlator's compound type (fields r, i)
@@ -140,6 +147,23 @@ def read_rows(
     if dense and rows.size != hi - lo:
         arr = arr[rows - lo]
     return arr
+
+
+def _fill_slab(
+    dset: Any,
+    arr: np.ndarray,
+    index: tuple[Any, ...],
+    where: tuple[int, int, slice, slice],
+    stats: ReadStats,
+    repeats: RepeatedChunks | None,
+    inflater: InflatingReader | None,
+) -> None:
+    """Fill ``arr`` with a slab: repeated chunks copied, else inflated on threads, else HDF5."""
+    if repeats is not None and repeats.fill(arr, *where, stats):
+        return
+    if inflater is not None and inflater.fill(arr, *where):
+        return
+    dset.read_direct(arr, source_sel=index)
 
 
 class Buffers:
@@ -219,7 +243,8 @@ class RepeatedChunks:
         for offset in itertools.product(*grids):
             try:
                 mask, stored = self.dsid.read_direct_chunk(offset)
-            except (KeyError, OSError, RuntimeError, ValueError):  # not stored: fill value
+            except (KeyError, OSError, RuntimeError, ValueError, MemoryError):  # not stored
+                # (h5py raises MemoryError for a chunk never written): the fill value
                 self.active = False
                 self.decoded.clear()
                 return False
