@@ -7,10 +7,11 @@ a ~10 s fit on this two-core machine. For a data set whose filters are shuffle a
 only, :class:`InflatingReader` reads the stored bytes of each chunk with h5py's
 ``read_direct_chunk`` (no decoding; a few milliseconds per block), inflates them with ISA-L
 (the ``isal`` package; the standard library's ``zlib`` without it; both release the GIL)
-and undoes the shuffle with numpy, chunk by chunk on a pool of threads, each writing its
-chunk's part of the slab. Inflating and unshuffling are exact, so the values are those HDF5
-decodes, bit for bit (``tests/io/test_uvh5_inflate.py``). Any other filter, a chunk stored
-with a filter skipped, or a chunk not stored at all leaves the data set to HDF5.
+and undoes the shuffle (:mod:`autocal.io.shuffle_kernel`), chunk by chunk on a pool of
+threads, each writing its chunk's part of the slab. Inflating and unshuffling are exact,
+so the values are those HDF5 decodes, bit for bit (``tests/io/test_uvh5_inflate.py``).
+Any other filter, a chunk stored with a filter skipped, or a chunk not stored at all
+leaves the data set to HDF5.
 """
 
 from __future__ import annotations
@@ -137,18 +138,17 @@ class InflatingReader:
                 self.active = False
                 return False
             tasks.append((offset, stored))
-        view = out.view(np.uint8).reshape(*out.shape, self.dtype.itemsize)
-        _map(lambda task: self._decode_into(view, ranges, *task), tasks)
+        _map(lambda task: self._decode_into(out, ranges, *task), tasks)
         return True
 
     def _decode_into(
         self,
-        view: np.ndarray,
+        out: np.ndarray,
         ranges: list[tuple[int, int]],
         offset: tuple[int, ...],
         stored: bytes,
     ) -> None:
-        """Inflate one chunk and copy its part of the slab into ``view`` (bytes of ``out``)."""
+        """Inflate one chunk and copy its part of the slab into ``out``."""
         try:
             raw = _inflate_lib.decompress(stored)
         except (_inflate_lib.error, zlib.error, ValueError, OSError) as err:
@@ -158,12 +158,12 @@ class InflatingReader:
                 f"{self.name}: the chunk at {offset} inflates to {len(raw)} bytes, "
                 f"not {self.chunk_bytes}"
             )
-        item = self.dtype.itemsize
         flat = np.frombuffer(raw, np.uint8)
         if self.shuffled:  # byte k of every value, then byte k + 1, ...
-            chunk = np.moveaxis(flat.reshape(item, *self.chunks), 0, -1)
-        else:
-            chunk = flat.reshape(*self.chunks, item)
+            from autocal.io.shuffle_kernel import unshuffle  # numba
+
+            flat = unshuffle(flat, self.dtype.itemsize, np.empty(flat.size, np.uint8))
+        chunk = flat.view(self.dtype).reshape(self.chunks)
         src, dst = [], []
         for (start, stop), o, size in zip(ranges, offset, self.chunks, strict=True):
             a, b = max(start, o), min(stop, o + size)
@@ -172,4 +172,4 @@ class InflatingReader:
         part = chunk[tuple(src)]
         if self.ndim == 4:
             part, dst = part[:, 0], [dst[0], *dst[2:]]
-        view[tuple(dst)] = part
+        out[tuple(dst)] = part
