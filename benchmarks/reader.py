@@ -8,7 +8,9 @@ the other, interleaved over the repeats (best and median of N):
 1. ``plain``: every stage in the calling thread, fresh arrays per block, every chunk decoded;
 2. ``+ prefetch``: HDF5 reads and conversion pipelined in background threads;
 3. ``+ reused buffers``: blocks decoded into two alternating sets of arrays;
-4. ``+ repeated chunks decoded once``: the pipeline's default.
+4. ``+ repeated chunks decoded once``: flags and nsamples chunks compared stored;
+5. ``+ gzip inflated on threads``: chunks inflated outside HDF5
+   (:mod:`autocal.io.uvh5_inflate`), the pipeline's default.
 
 The normal sums are checked to be identical in every configuration. Usage::
 
@@ -30,14 +32,22 @@ from autocal.fit.model import FitModel
 from autocal.io.uvh5_meta import scan_uvh5
 from autocal.pipeline.partials import FileTask, PartialSpec, compute_partial
 
+_OFF = {"prefetch": False, "reuse_buffers": False, "decode_repeats_once": False, "inflate": False}
 CONFIGS = {
-    "plain": {"prefetch": False, "reuse_buffers": False, "decode_repeats_once": False},
-    "+ prefetch": {"prefetch": True, "reuse_buffers": False, "decode_repeats_once": False},
-    "+ reused buffers": {"prefetch": True, "reuse_buffers": True, "decode_repeats_once": False},
+    "plain": _OFF,
+    "+ prefetch": {**_OFF, "prefetch": True},
+    "+ reused buffers": {**_OFF, "prefetch": True, "reuse_buffers": True},
     "+ repeated chunks decoded once": {
+        **_OFF,
         "prefetch": True,
         "reuse_buffers": True,
         "decode_repeats_once": True,
+    },
+    "+ gzip inflated on threads": {
+        "prefetch": True,
+        "reuse_buffers": True,
+        "decode_repeats_once": True,
+        "inflate": True,
     },
 }
 

@@ -39,8 +39,9 @@ _WIDE = {2: np.int16, 4: np.int32, 8: np.int64, 16: np.complex128}
 def _antenna_chunks(shape: tuple[int, ...], itemsize: int) -> tuple[int, ...]:
     """Chunk shape of a calh5's ``(antenna, channel, integration, feed)`` array.
 
-    One antenna's whole spectra and integrations (cut in time to stay under
-    :data:`MAX_CHUNK_BYTES`): how the files are read, an antenna at a time. pyuvdata's
+    One antenna's whole spectra and integrations, cut in time to keep a chunk under
+    :data:`MAX_CHUNK_BYTES` (but never below one integration): how the files are read, an
+    antenna at a time. pyuvdata's
     ``chunks=True`` lets h5py guess ~30 kB chunks, ~200 000 of them for a 350-antenna HERA
     file, and compressing the qualities and flags through them took ~13 s of the calh5's
     ~18 s (``benchmarks/README.md``).
@@ -70,7 +71,7 @@ def _write_calh5_file(uvc: Any, path: Path) -> None:
 
     The header is pyuvdata's own (``CalH5._write_header``, as ``UVCal.write_calh5`` writes
     it), and so are the datasets' names, types and filters (gains uncompressed, flags and
-    qualities LZF); the arrays are written an antenna per chunk from the solution's
+    qualities LZF); the arrays are written an antenna at a time from the solution's
     arrays, so a time-constant solution's are never materialised whole (pyuvdata's
     writer made contiguous copies of the 1.65 GB of gains of a HERA file). The file reads
     back equal to the one ``UVCal.write_calh5`` writes (``tests/io/test_calsol_write.py``).

@@ -1,17 +1,20 @@
 """Decoding the deflate-compressed chunks of a UVH5 data set on threads, outside HDF5.
 
 HDF5 decodes a chunked data set one chunk at a time under h5py's lock, so a process decodes
-on one core however many threads read: for a HERA night file (visibilities in gzip level 1
-chunks with the shuffle filter, as pyuvdata and the correlator write them) that was 6.5 s of
+on one core however many threads read: for a HERA-size night file as ``benchmarks/night.py``
+writes them (visibilities in gzip level 1 chunks with the shuffle filter) that was 6.5 s of
 a ~10 s fit on this two-core machine. For a data set whose filters are shuffle and deflate
-only, :class:`InflatingReader` reads the stored bytes of each chunk with h5py's
-``read_direct_chunk`` (no decoding; a few milliseconds per block), inflates them with ISA-L
-(the ``isal`` package; the standard library's ``zlib`` without it; both release the GIL)
-and undoes the shuffle (:mod:`autocal.io.shuffle_kernel`), chunk by chunk on a pool of
-threads, each writing its chunk's part of the slab. Inflating and unshuffling are exact,
-so the values are those HDF5 decodes, bit for bit (``tests/io/test_uvh5_inflate.py``).
-Any other filter, a chunk stored with a filter skipped, or a chunk not stored at all
-leaves the data set to HDF5.
+only and whose stored type is the one h5py reads it as, :class:`InflatingReader` reads the
+stored bytes of each chunk with h5py's ``read_direct_chunk`` (no decoding; a few
+milliseconds per block), inflates them with ISA-L (the ``isal`` package; the standard
+library's ``zlib`` without it; both release the GIL) and undoes the shuffle
+(:mod:`autocal.io.shuffle_kernel`), chunk by chunk on a pool of threads, each writing its
+chunk's part of the slab. Inflating and unshuffling are exact, so the values are those HDF5
+decodes, bit for bit (``tests/io/test_uvh5_inflate.py``). Any other filter or stored type
+(e.g. uncompressed or LZF data sets, which is how pyuvdata writes visibilities by default and
+how the real HERA files of the data folder are stored; the correlator's compound integers), a
+chunk stored with a filter skipped, not stored at all, or not inflating to a chunk leaves
+the data set to HDF5 (which then reports a chunk that is really corrupt).
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import os
 import threading
 import zlib
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from typing import Any
 
 import h5py
@@ -39,7 +42,7 @@ except ImportError:  # pragma: no cover - isal is a dependency; zlib is the fall
 SHUFFLE, DEFLATE = h5py.h5z.FILTER_SHUFFLE, h5py.h5z.FILTER_DEFLATE
 
 _pool_lock = threading.Lock()
-_pool: tuple[int, int, ThreadPoolExecutor] | None = None  # (pid, threads, pool)
+_pool: tuple[int, ThreadPoolExecutor] | None = None  # (pid, pool)
 
 
 def _threads() -> int:
@@ -48,31 +51,69 @@ def _threads() -> int:
     return default_threads()
 
 
+def _forget_pool_in_child() -> None:
+    global _pool, _pool_lock
+    _pool, _pool_lock = None, threading.Lock()  # a forked child has none of its threads
+
+
+os.register_at_fork(after_in_child=_forget_pool_in_child)
+
+
 def _map(run: Callable[[Any], None], tasks: list[Any]) -> None:
-    """Run ``run`` over ``tasks`` on the process's decoding threads (inline with one)."""
+    """Run ``run`` over ``tasks`` on the process's decoding threads (inline with one).
+
+    Every task has finished when this returns or raises (the first task's error), so no
+    thread writes into the caller's arrays afterwards.
+    """
     global _pool
-    nthreads = min(_threads(), len(tasks))
-    if nthreads <= 1:
+    nthreads = _threads()
+    if nthreads <= 1 or len(tasks) <= 1:
         for task in tasks:
             run(task)
         return
-    with _pool_lock:  # one pool per process (a forked child makes its own)
-        if _pool is None or _pool[0] != os.getpid() or _pool[1] < nthreads:
+    with _pool_lock:  # one pool per process
+        if _pool is None or _pool[0] != os.getpid():
             _pool = (
                 os.getpid(),
-                nthreads,
                 ThreadPoolExecutor(nthreads, thread_name_prefix="autocal-inflate"),
             )
-        pool = _pool[2]
-    list(pool.map(run, tasks))
+        pool = _pool[1]
+    futures = [pool.submit(run, task) for task in tasks]
+    wait(futures)
+    for future in futures:
+        future.result()  # raises the first task's error
 
 
 def _pipeline(dset: Any) -> tuple[int, ...] | None:
-    """Return the data set's filter ids in writing order (``None``: not chunked)."""
+    """Return the data set's filter ids in writing order.
+
+    ``None`` when it is not chunked, or its shuffle is for another value size than its own.
+    """
     if dset.chunks is None:
         return None
     plist = dset.id.get_create_plist()
-    return tuple(plist.get_filter(i)[0] for i in range(plist.get_nfilters()))
+    filters = [plist.get_filter(i) for i in range(plist.get_nfilters())]
+    for fid, _, values, _ in filters:
+        if fid == SHUFFLE and values and values[0] != dset.dtype.itemsize:
+            return None
+    return tuple(f[0] for f in filters)
+
+
+class _InflateError(Exception):
+    """A stored chunk that does not inflate to a chunk's bytes (HDF5 then reads it)."""
+
+
+def _stored_as_read(dset: Any) -> bool:
+    """Whether the stored type is the one h5py reads the data set as, byte for byte.
+
+    h5py reads some stored types as another numpy type (a compound of two floats as
+    complex, whatever its field offsets or padding); their stored bytes are not the
+    values' bytes.
+    """
+    try:
+        return bool(dset.id.get_type().equal(h5py.h5t.py_create(dset.dtype, logical=True)))
+    except (TypeError, ValueError):  # pragma: no cover - a type h5py cannot describe
+        return False
 
 
 class InflatingReader:
@@ -97,6 +138,7 @@ class InflatingReader:
             filters in ((DEFLATE,), (SHUFFLE, DEFLATE))
             and not dset.dtype.names
             and dset.dtype.kind in "biufc"
+            and _stored_as_read(dset)
         )
         self.shuffled = filters is not None and SHUFFLE in filters
         # h5py properties take its lock on every access: read them once
@@ -107,13 +149,8 @@ class InflatingReader:
     def fill(self, out: np.ndarray, lo: int, hi: int, chans: slice, pols: slice) -> bool:
         """Fill ``out`` (C-ordered: rows ``lo:hi``, ``chans``, ``pols``) and return ``True``.
 
-        ``False`` (nothing written to ``out``) when the data set is to be read by HDF5:
-        it is then for the rest of the file.
-
-        Raises
-        ------
-        OSError
-            A stored chunk that does not inflate to a chunk's size (corrupt data).
+        ``False`` when the data set is to be read by HDF5 (``out`` may then hold part of
+        the slab; HDF5 writes all of it): it is then for the rest of the file.
         """
         if not self.active:
             return False
@@ -130,16 +167,23 @@ class InflatingReader:
         for offset in itertools.product(*grids):
             try:
                 mask, stored = self.dsid.read_direct_chunk(offset)
-            except (KeyError, OSError, RuntimeError, ValueError, MemoryError):  # not stored
-                # (h5py raises MemoryError for a chunk never written): a fill value
-                mask, stored = -1, b""
-            if mask != 0:  # a filter skipped for this chunk, or no chunk: HDF5 knows
-                logger.debug("%s: chunk %s is not plainly stored; HDF5 decodes", self.name, offset)
-                self.active = False
-                return False
+            except (KeyError, OSError, RuntimeError, ValueError, MemoryError) as err:
+                # not stored (h5py raises MemoryError for a chunk never written: the fill
+                # value), or not readable: HDF5 reads it, or says what is wrong
+                return self._to_hdf5(f"chunk {offset} not read directly ({type(err).__name__})")
+            if mask != 0:
+                return self._to_hdf5(f"chunk {offset} is stored with filter mask {mask}")
             tasks.append((offset, stored))
-        _map(lambda task: self._decode_into(out, ranges, *task), tasks)
+        try:
+            _map(lambda task: self._decode_into(out, ranges, *task), tasks)
+        except _InflateError as err:  # e.g. an edge chunk stored unfiltered: HDF5 knows
+            return self._to_hdf5(str(err))
         return True
+
+    def _to_hdf5(self, why: str) -> bool:
+        logger.debug("%s: %s; HDF5 decodes the rest of the file", self.name, why)
+        self.active = False
+        return False
 
     def _decode_into(
         self,
@@ -149,14 +193,13 @@ class InflatingReader:
         stored: bytes,
     ) -> None:
         """Inflate one chunk and copy its part of the slab into ``out``."""
-        try:
-            raw = _inflate_lib.decompress(stored)
+        try:  # at most one byte more than a chunk: enough to tell a chunk too long
+            raw = _inflate_lib.decompressobj().decompress(stored, self.chunk_bytes + 1)
         except (_inflate_lib.error, zlib.error, ValueError, OSError) as err:
-            raise OSError(f"{self.name}: the chunk at {offset} does not inflate ({err})") from err
+            raise _InflateError(f"the chunk at {offset} does not inflate ({err})") from err
         if len(raw) != self.chunk_bytes:
-            raise OSError(
-                f"{self.name}: the chunk at {offset} inflates to {len(raw)} bytes, "
-                f"not {self.chunk_bytes}"
+            raise _InflateError(
+                f"the chunk at {offset} inflates to {len(raw)} bytes, not {self.chunk_bytes}"
             )
         flat = np.frombuffer(raw, np.uint8)
         if self.shuffled:  # byte k of every value, then byte k + 1, ...

@@ -56,10 +56,11 @@ logger = logging.getLogger(__name__)
 #: calh5 is written an antenna at a time (:mod:`autocal.io.calsol_write`): a constant
 #: model's gains, flags and qualities are one integration's, seen at every time, and only
 #: the flags of integrations flagged whole are held per time (1 byte); a time-varying
-#: model's are held whole (complex64 gains, flags, float32 qualities: 13 bytes).
+#: model's are held whole (complex64 gains, flags, float32 qualities, and a second flag
+#: array while the integrations flagged whole are added: 14 bytes).
 PER_TIME_BYTES_PER_VALUE = {
     ("calh5", True): 1,
-    ("calh5", False): 13,
+    ("calh5", False): 14,
     ("calfits", True): 27,
     ("calfits", False): 27,
 }

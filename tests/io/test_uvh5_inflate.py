@@ -108,15 +108,87 @@ def test_a_chunk_stored_without_its_filter_or_not_stored_goes_back_to_hdf5(tmp_p
     assert reader.active and not reader.fill(out, 0, 16, slice(0, 8), slice(0, 1))
 
 
-def test_a_corrupt_chunk_is_an_os_error_naming_it(tmp_path):
-    f = h5py.File(tmp_path / "d.h5", "w")
-    dset = f.create_dataset("x", shape=(8, 8, 1), dtype="<f4", chunks=(8, 8, 1), compression="gzip")
-    dset.id.write_direct_chunk((0, 0, 0), b"not a deflate stream")
-    with pytest.raises(OSError, match=r"/x: the chunk at \(0, 0, 0\) does not inflate"):
-        InflatingReader(dset).fill(np.empty((8, 8, 1), "<f4"), 0, 8, slice(0, 8), slice(0, 1))
-    dset.id.write_direct_chunk((0, 0, 0), zlib.compress(b"short"))
-    with pytest.raises(OSError, match="inflates to 5 bytes, not 256"):
-        InflatingReader(dset).fill(np.empty((8, 8, 1), "<f4"), 0, 8, slice(0, 8), slice(0, 1))
+@pytest.mark.parametrize("threads", ["1", "2"])
+def test_a_chunk_that_does_not_inflate_goes_back_to_hdf5(tmp_path, monkeypatch, threads):
+    """Not a deflate stream, or one of the wrong length (e.g. an edge chunk HDF5 stored
+    unfiltered): the slab goes to HDF5, which decodes what it can (it takes a short
+    stream as it is) and reports the rest."""
+    monkeypatch.setenv("AUTOCAL_FIT_THREADS", threads)
+    path = tmp_path / "d.h5"
+    for stored in (b"not a deflate stream", zlib.compress(b"short")):
+        with h5py.File(path, "w") as f:
+            f.create_dataset(
+                "x", data=_values((32, 8, 1), "<f4"), chunks=(8, 8, 1), compression="gzip"
+            )
+            f["x"].id.write_direct_chunk((16, 0, 0), stored)
+        with h5py.File(path, "r") as f:
+            reader = InflatingReader(f["x"])
+            out = np.empty((32, 8, 1), "<f4")
+            assert reader.active and not reader.fill(out, 0, 32, slice(0, 8), slice(0, 1))
+            assert not reader.active
+            if stored.startswith(b"not"):
+                with pytest.raises(OSError, match="filter returned failure"):
+                    f["x"].read_direct(out)  # HDF5 reports the corrupt chunk itself
+
+
+def test_a_corrupt_chunk_in_a_file_is_a_clear_read_error(night_file, tmp_path):
+    """A visibility chunk whose stored bytes are damaged: the block reader hands the slab
+    to HDF5, whose error names the file and the integrations."""
+    from autocal.io.uvh5_meta import UVH5FormatError
+
+    broken = tmp_path / "broken.uvh5"
+    broken.write_bytes(night_file.read_bytes())
+    with h5py.File(broken, "r+") as f:
+        dset = f["Data/visdata"]
+        mask, stored = dset.id.read_direct_chunk((5, 0, 0))
+        dset.id.write_direct_chunk((5, 0, 0), stored[: len(stored) // 2], mask)
+    with pytest.raises(UVH5FormatError, match=r"broken\.uvh5"):
+        _blocks(broken, True)
+
+
+def test_complex_stored_as_another_compound_is_left_to_hdf5(tmp_path):
+    """h5py reads a compound of two floats as complex whatever its layout; stored with
+    the imaginary part first, or padded, its stored bytes are not the values' bytes."""
+    values = _values((16, 8, 1), "<c8")
+    for fields in (
+        {"names": ["r", "i"], "formats": ["<f4", "<f4"], "offsets": [4, 0], "itemsize": 8},
+        {"names": ["r", "i"], "formats": ["<f4", "<f4"], "offsets": [0, 4], "itemsize": 12},
+    ):
+        f = h5py.File(tmp_path / "c.h5", "w")
+        stored = np.empty(values.shape, np.dtype(fields))
+        stored["r"], stored["i"] = values.real, values.imag
+        dset = f.create_dataset("x", data=stored, chunks=(8, 8, 1), compression="gzip")
+        del f["x"]
+        tid = h5py.h5t.py_create(np.dtype(fields))
+        space = h5py.h5s.create_simple(values.shape)
+        plist = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+        plist.set_chunk((8, 8, 1))
+        plist.set_deflate(1)
+        h5py.h5d.create(f.id, b"x", tid, space, dcpl=plist).write(
+            h5py.h5s.ALL, h5py.h5s.ALL, stored
+        )
+        dset = f["x"]
+        assert dset.dtype == np.complex64  # how h5py reads it
+        np.testing.assert_array_equal(dset[()], values)
+        assert not InflatingReader(dset).active
+        f.close()
+
+
+def test_the_memory_check_of_per_time_products_knows_the_time_model(monkeypatch):
+    """A constant model's per-time calh5 holds one integration's gains (1 byte per value,
+    the per-time flags), a time-varying one holds them all (14): refused only then."""
+    import autocal.pipeline.products as products
+    from autocal.pipeline.config import PipelineError
+
+    shape = (350, 2, 1536, 192)
+    values = 350 * 2 * 1536 * 192
+    monkeypatch.setattr(products, "available_memory", lambda: 5 * values)
+    products.check_per_time_memory(["calh5", "hdf5"], shape, constant=True)
+    with pytest.raises(PipelineError, match=r"per-time calh5 .* needs about"):
+        products.check_per_time_memory(["calh5", "hdf5"], shape, constant=False)
+    with pytest.raises(PipelineError, match="per-time calfits"):
+        products.check_per_time_memory(["calfits"], shape, constant=True)
+    products.check_per_time_memory(["hdf5", "png"], shape, constant=False)
 
 
 @pytest.fixture(scope="module")
@@ -157,11 +229,20 @@ def _blocks(path: Path, inflate: bool, **kwargs):
     ]
 
 
-def test_blocks_of_a_gzip_file_equal_hdf5s(night_file):
+def test_blocks_of_a_gzip_file_equal_hdf5s(night_file, monkeypatch):
     """A night file as benchmarks/night.py writes it (gzip 1 with shuffle): every block
     the same, with and without selections that cut chunks."""
     with h5py.File(night_file) as f:
         assert InflatingReader(f["Data/visdata"]).active
+    filled = []
+    real_fill = InflatingReader.fill
+
+    def counting_fill(self, *args):
+        done = real_fill(self, *args)
+        filled.append((self.name, done))
+        return done
+
+    monkeypatch.setattr(InflatingReader, "fill", counting_fill)
     for kwargs in ({}, {"freq_range": (120e6, 170e6), "pols": ["nn"], "block_size": 3}):
         for (d1, f1, n1), (d2, f2, n2) in zip(
             _blocks(night_file, True, **kwargs), _blocks(night_file, False, **kwargs), strict=True
@@ -169,6 +250,7 @@ def test_blocks_of_a_gzip_file_equal_hdf5s(night_file):
             assert d1.tobytes() == d2.tobytes()
             np.testing.assert_array_equal(f1, f2)
             np.testing.assert_array_equal(n1, n2)
+    assert ("/Data/visdata", True) in filled and all(done for _, done in filled)
 
 
 @pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
