@@ -88,7 +88,17 @@ def _compact(values: np.ndarray) -> np.ndarray | float:
     """Return ``values`` as one number, float32 or float64, whichever holds them exactly.
 
     One number only when every value has the same bits (a ``-0.0`` among zeros is kept).
+    A C-contiguous float64 array is tested in one compiled pass
+    (:mod:`autocal.pipeline.compact_kernel`), others as numpy arrays, with the same result.
     """
+    if values.dtype == np.float64 and values.flags.c_contiguous and values.size:
+        from autocal.pipeline.compact_kernel import compact_pass  # numba
+
+        small = np.empty(values.shape, np.float32)
+        same, exact = compact_pass(values, small)
+        if same and np.isfinite(values.flat[0]):
+            return float(values.flat[0])
+        return small if exact else values.copy()
     bits = values.view(np.uint64) if values.dtype == np.float64 else None
     if bits is not None and np.all(bits == bits.flat[0]) and np.isfinite(values.flat[0]):
         return float(values.flat[0])

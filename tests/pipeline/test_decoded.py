@@ -114,6 +114,51 @@ def test_compact_forms_hold_the_values_exactly() -> None:
         np.testing.assert_array_equal(back.view(np.uint64), value.view(np.uint64))
 
 
+def _compact_numpy(values: np.ndarray) -> np.ndarray | float:
+    """The numpy form of the compact test (independent of the compiled pass)."""
+    bits = values.view(np.uint64)
+    if np.all(bits == bits.flat[0]) and np.isfinite(values.flat[0]):
+        return float(values.flat[0])
+    with np.errstate(over="ignore"):
+        small = values.astype(np.float32)
+    return small if np.array_equal(small, values, equal_nan=True) else values.copy()
+
+
+@pytest.mark.parametrize("threads", ["1", "2"])
+def test_the_compiled_compact_pass_equals_numpys(monkeypatch, threads) -> None:
+    """Across ranges of the threaded pass: a value that differs, or is not a float32, in
+    the last range; NaNs, infinities, signed zeros, values beyond float32's range or
+    precision."""
+    monkeypatch.setenv("AUTOCAL_FIT_THREADS", threads)
+    n = (1 << 20) * 2 + 5
+    rng = np.random.default_rng(1)
+    cases = {
+        "constant": np.full(n, 3.0),
+        "constant NaN": np.full(n, np.nan),
+        "constant inf": np.full(n, np.inf),
+        "float32 values": rng.normal(size=n).astype(np.float32).astype(np.float64),
+    }
+    last = n - 3
+    for name, value in [("one other", 3.5), ("-0.0", -0.0), ("NaN", np.nan), ("inf", np.inf)]:
+        x = np.full(n, 0.0 if name == "-0.0" else 3.0)
+        x[last] = value
+        cases[f"constant but {name}"] = x
+    for name, value in [("double", 0.1), ("huge", 1e300), ("tiny", 1e-320)]:
+        x = cases["float32 values"].copy()
+        x[last] = value
+        cases[f"float32 but {name}"] = x
+    with_nan = cases["float32 values"].copy()
+    with_nan[::7] = np.nan
+    cases["float32 with NaNs"] = with_nan
+    for name, values in cases.items():
+        got, want = decoded._compact(values), _compact_numpy(values)
+        if isinstance(want, float):
+            assert isinstance(got, float) and got == want, name
+        else:
+            assert isinstance(got, np.ndarray) and got.dtype == want.dtype, name
+            np.testing.assert_array_equal(got.ravel(), want, err_msg=name)
+
+
 def test_budget_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
     """The budget is read in GB; 0 turns the cache off; nonsense is refused with advice."""
     monkeypatch.delenv(decoded.BUDGET_ENV, raising=False)
