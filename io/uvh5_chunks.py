@@ -14,6 +14,7 @@ from __future__ import annotations
 import io
 import itertools
 import logging
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -166,6 +167,26 @@ def _fill_slab(
     dset.read_direct(arr, source_sel=index)
 
 
+def slab_chunks(
+    shape: tuple[int, ...], chunks: tuple[int, ...], lo: int, hi: int, chans: slice, pols: slice
+) -> tuple[list[tuple[int, int]], Iterator[tuple[int, ...]]]:
+    """Return a slab's ``(start, stop)`` per data set axis and the offsets of its chunks.
+
+    The slab is rows ``lo:hi``, ``chans`` and ``pols`` of a ``(Nblt, Nfreq, Npol)`` data
+    set, or of the legacy ``(Nblt, 1, Nfreq, Npol)`` one (its spectral-window axis whole).
+    """
+    c0, c1, _ = chans.indices(shape[-2])
+    p0, p1, _ = pols.indices(shape[-1])
+    ranges = [(lo, hi), (c0, c1), (p0, p1)]
+    if len(shape) == 4:
+        ranges.insert(1, (0, 1))
+    grids = [
+        range(start - start % size, stop, size)
+        for (start, stop), size in zip(ranges, chunks, strict=True)
+    ]
+    return ranges, itertools.product(*grids)
+
+
 class Buffers:
     """Named arrays reused from block to block (grown when a block needs more)."""
 
@@ -229,18 +250,9 @@ class RepeatedChunks:
         if not self.active:
             return False
         dset = self.dset
-        c0, c1, _ = chans.indices(self.shape[-2])
-        p0, p1, _ = pols.indices(self.shape[-1])
-        # (start, stop) per data set axis; the legacy 4-d layout has a spectral-window axis
-        ranges = [(lo, hi), (c0, c1), (p0, p1)]
-        if self.ndim == 4:
-            ranges.insert(1, (0, 1))
-        grids = [
-            range(start - start % size, stop, size)
-            for (start, stop), size in zip(ranges, self.chunks, strict=True)
-        ]
+        ranges, offsets = slab_chunks(self.shape, self.chunks, lo, hi, chans, pols)
         copies = []
-        for offset in itertools.product(*grids):
+        for offset in offsets:
             try:
                 mask, stored = self.dsid.read_direct_chunk(offset)
             except (KeyError, OSError, RuntimeError, ValueError, MemoryError):  # not stored

@@ -19,7 +19,6 @@ the data set to HDF5 (which then reports a chunk that is really corrupt).
 
 from __future__ import annotations
 
-import itertools
 import logging
 import os
 import threading
@@ -30,6 +29,8 @@ from typing import Any
 
 import h5py
 import numpy as np
+
+from autocal.io.uvh5_chunks import slab_chunks
 
 logger = logging.getLogger(__name__)
 
@@ -154,17 +155,9 @@ class InflatingReader:
         """
         if not self.active:
             return False
-        c0, c1, _ = chans.indices(self.shape[-2])
-        p0, p1, _ = pols.indices(self.shape[-1])
-        ranges = [(lo, hi), (c0, c1), (p0, p1)]
-        if self.ndim == 4:
-            ranges.insert(1, (0, 1))
-        grids = [
-            range(start - start % size, stop, size)
-            for (start, stop), size in zip(ranges, self.chunks, strict=True)
-        ]
+        ranges, offsets = slab_chunks(self.shape, self.chunks, lo, hi, chans, pols)
         tasks = []
-        for offset in itertools.product(*grids):
+        for offset in offsets:
             try:
                 mask, stored = self.dsid.read_direct_chunk(offset)
             except (KeyError, OSError, RuntimeError, ValueError, MemoryError) as err:
