@@ -1,9 +1,9 @@
 """Benchmark: what each stage of ``autocal calibrate`` costs on one whole HERA file.
 
 One file of the HERA-size night (350 antennas x 2 pols x 1536 channels x 192 integrations,
-``python benchmarks/night.py generate --ntimes 192``), Tsky cached, three fresh processes
-side by side, interleaved over ``--repeats`` rounds (one unmeasured round first: page
-cache, numba's cache):
+``python benchmarks/night.py generate --ntimes 192``), Tsky cached, the floor and five
+calls as fresh processes side by side, interleaved over ``--repeats`` rounds (one
+unmeasured round first: page cache, numba's cache):
 
 * the streamed decode floor (issue 25): h5py decoding the visibilities in the reader's
   blocks plus one numpy pass (``benchmarks/readers.py``'s ``floor``), in a fresh process;
@@ -58,7 +58,7 @@ def _floor_argv(path: str) -> list[str]:
 
 
 def main() -> None:
-    """Run the three calls interleaved and write the report."""
+    """Run the floor and the calls interleaved and write the report."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--file", required=True, help="one night file (uvh5)")
     parser.add_argument("--repeats", type=int, default=2)

@@ -102,7 +102,8 @@ def _compact(values: np.ndarray) -> np.ndarray | float:
     bits = values.view(np.uint64) if values.dtype == np.float64 else None
     if bits is not None and np.all(bits == bits.flat[0]) and np.isfinite(values.flat[0]):
         return float(values.flat[0])
-    small = values.astype(np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):  # as the compiled pass: no warning
+        small = values.astype(np.float32)
     if np.array_equal(small, values, equal_nan=True):
         return small
     return values.copy()

@@ -117,7 +117,7 @@ def test_the_calh5_reads_back_as_pyuvdatas_own_writer_writes_it(
 ):
     """autocal writes the calh5 an antenna at a time; pyuvdata's ``UVCal.write_calh5`` of
     the same object (materialised) reads back equal, header and arrays, and each 4-D
-    dataset has pyuvdata's type and filter with one antenna per chunk."""
+    dataset has pyuvdata's type, one antenna per chunk, deflated."""
     from dataclasses import replace
 
     from pyuvdata import UVCal
@@ -153,9 +153,37 @@ def test_the_calh5_reads_back_as_pyuvdatas_own_writer_writes_it(
         )
         for name in f["Data"]:
             mine, ref = f["Data"][name], g["Data"][name]
-            assert (mine.dtype, mine.compression) == (ref.dtype, ref.compression), name
-            if mine.ndim == 4:
+            assert mine.dtype == ref.dtype, name
+            if mine.ndim == 4:  # one antenna per chunk, deflated (readable without plugins)
                 assert mine.chunks == (1, *mine.shape[1:]), name
+                assert mine.compression == "gzip", name
+
+
+def test_chunks_cut_in_time_and_the_padded_edge_read_back(tmp_path, monkeypatch):
+    """Chunks smaller than an antenna's integrations (the last one padded), compressed on
+    one thread and on two: the arrays read back as pyuvdata's writer writes them."""
+    from pyuvdata import UVCal
+
+    import autocal.io.calsol_write as calsol_write
+    from autocal.io.calsol_uvcal import solution_to_uvcal
+
+    sol = fitted_solution(order=1, residuals=False)
+    uvc = solution_to_uvcal(sol, shared_times=True)
+    per_time = uvc.Nfreqs * uvc.Njones * 8
+    monkeypatch.setattr(calsol_write, "MAX_CHUNK_BYTES", 5 * per_time)  # 5 integrations
+    assert uvc.Ntimes % 5 != 0
+    theirs = tmp_path / "pyuvdata.calh5"
+    uvc.write_calh5(str(theirs))
+    ref = UVCal.from_file(str(theirs))
+    for threads in ("1", "2"):
+        monkeypatch.setenv("AUTOCAL_FIT_THREADS", threads)
+        ours = tmp_path / f"ours{threads}.calh5"
+        calsol_write._write_calh5_file(uvc, ours)
+        with h5py.File(ours) as f:
+            assert f["Data/gains"].chunks[2] == 5
+        back = UVCal.from_file(str(ours))
+        for name in ("gain_array", "flag_array", "quality_array", "total_quality_array"):
+            np.testing.assert_array_equal(getattr(back, name), getattr(ref, name), err_msg=name)
 
 
 def test_the_antenna_fill_copies_any_layout():
@@ -201,10 +229,15 @@ def test_refuses_overwrite_and_writes_atomically(tmp_path, monkeypatch):
         write_calfits(sol, path)
     assert path.read_bytes() == before
 
-    def broken(self, *args, **kwargs):
-        raise OSError("disk full")  # the header and a dataset are in the file by now
+    import autocal.io.calsol_write as calsol_write
 
-    monkeypatch.setattr(h5py.Dataset, "write_direct", broken)
+    real_chunks = calsol_write._deflated_chunks
+
+    def broken(*args, **kwargs):
+        yield next(real_chunks(*args, **kwargs))  # the header and a chunk are in the file
+        raise OSError("disk full")
+
+    monkeypatch.setattr(calsol_write, "_deflated_chunks", broken)
     with pytest.raises(OSError, match="disk full"):
         write_calh5(make_solution(flagged=(1,)), path, overwrite=True)
     assert path.read_bytes() == before  # untouched

@@ -150,13 +150,19 @@ def test_the_compiled_compact_pass_equals_numpys(monkeypatch, threads) -> None:
     with_nan = cases["float32 values"].copy()
     with_nan[::7] = np.nan
     cases["float32 with NaNs"] = with_nan
+    payload = np.full(n, np.nan)
+    payload.view(np.uint64)[last] |= 0x55  # a NaN with another payload
+    cases["NaNs of two payloads"] = payload
+    cases["smaller than a range"] = cases["float32 values"][:1000].copy()
+    cases["-0.0 first"] = np.where(np.arange(n) == 0, -0.0, 0.0)
     for name, values in cases.items():
         got, want = decoded._compact(values), _compact_numpy(values)
         if isinstance(want, float):
             assert isinstance(got, float) and got == want, name
-        else:
+        else:  # bit for bit (NaN payloads, signed zeros)
             assert isinstance(got, np.ndarray) and got.dtype == want.dtype, name
-            np.testing.assert_array_equal(got.ravel(), want, err_msg=name)
+            uint = np.uint32 if want.dtype == np.float32 else np.uint64
+            np.testing.assert_array_equal(got.view(uint), want.view(uint), err_msg=name)
 
 
 def test_budget_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
