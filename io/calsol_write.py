@@ -133,11 +133,11 @@ def _deflated_chunks(
     try:
         from isal import isal_zlib
 
-        def deflate(raw: bytes) -> bytes:
+        def deflate(raw: np.ndarray) -> bytes:
             return isal_zlib.compress(raw, 0)
     except ImportError:  # pragma: no cover - isal is a dependency
 
-        def deflate(raw: bytes) -> bytes:
+        def deflate(raw: np.ndarray) -> bytes:
             return zlib.compress(raw, DEFLATE_LEVEL)
 
     nant, _, ntime, _ = src.shape
@@ -156,7 +156,7 @@ def _deflated_chunks(
                 whole = np.zeros((buffer.shape[0], step, buffer.shape[2]), dtype)
                 whole[:, : part.shape[1]] = part
                 part = whole
-            out.append(((ant, 0, t0, 0), deflate(np.ascontiguousarray(part).tobytes())))
+            out.append(((ant, 0, t0, 0), deflate(np.ascontiguousarray(part))))
         return out
 
     with ThreadPoolExecutor(max(1, default_threads())) as pool:

@@ -20,11 +20,7 @@ the data set to HDF5 (which then reports a chunk that is really corrupt).
 from __future__ import annotations
 
 import logging
-import os
-import threading
 import zlib
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor, wait
 from typing import Any
 
 import h5py
@@ -41,48 +37,6 @@ except ImportError:  # pragma: no cover - isal is a dependency; zlib is the fall
 
 #: The HDF5 filters this module undoes: shuffle, then deflate (their order on writing).
 SHUFFLE, DEFLATE = h5py.h5z.FILTER_SHUFFLE, h5py.h5z.FILTER_DEFLATE
-
-_pool_lock = threading.Lock()
-_pool: tuple[int, ThreadPoolExecutor] | None = None  # (pid, pool)
-
-
-def _threads() -> int:
-    from autocal.fit.sums import default_threads  # AUTOCAL_FIT_THREADS / OMP_NUM_THREADS
-
-    return default_threads()
-
-
-def _forget_pool_in_child() -> None:
-    global _pool, _pool_lock
-    _pool, _pool_lock = None, threading.Lock()  # a forked child has none of its threads
-
-
-os.register_at_fork(after_in_child=_forget_pool_in_child)
-
-
-def _map(run: Callable[[Any], None], tasks: list[Any]) -> None:
-    """Run ``run`` over ``tasks`` on the process's decoding threads (inline with one).
-
-    Every task has finished when this returns or raises (the first task's error), so no
-    thread writes into the caller's arrays afterwards.
-    """
-    global _pool
-    nthreads = _threads()
-    if nthreads <= 1 or len(tasks) <= 1:
-        for task in tasks:
-            run(task)
-        return
-    with _pool_lock:  # one pool per process
-        if _pool is None or _pool[0] != os.getpid():
-            _pool = (
-                os.getpid(),
-                ThreadPoolExecutor(nthreads, thread_name_prefix="autocal-inflate"),
-            )
-        pool = _pool[1]
-    futures = [pool.submit(run, task) for task in tasks]
-    wait(futures)
-    for future in futures:
-        future.result()  # raises the first task's error
 
 
 def _pipeline(dset: Any) -> tuple[int, ...] | None:
@@ -167,8 +121,14 @@ class InflatingReader:
             if mask != 0:
                 return self._to_hdf5(f"chunk {offset} is stored with filter mask {mask}")
             tasks.append((offset, stored))
-        try:
-            _map(lambda task: self._decode_into(out, ranges, *task), tasks)
+        from autocal.fit.threads import in_threads  # AUTOCAL_FIT_THREADS threads
+
+        def decode(lo: int, hi: int) -> None:
+            for task in tasks[lo:hi]:
+                self._decode_into(out, ranges, *task)
+
+        try:  # every range has finished when in_threads returns or raises
+            in_threads(decode, len(tasks))
         except _InflateError as err:  # e.g. an edge chunk stored unfiltered: HDF5 knows
             return self._to_hdf5(str(err))
         return True
