@@ -120,6 +120,16 @@ class BlockSums:
             total += part
         return cls([base_sums(b, model) for b in blocks], model, edges, lsts, total)
 
+    def antennas(self, lo: int, hi: int) -> BlockSums:
+        """Return the block sums of antennas ``lo`` to ``hi - 1`` (views of these arrays)."""
+        return BlockSums(
+            [b.antennas(lo, hi) for b in self.blocks],
+            self.model,
+            self.edges,
+            self.lsts,
+            self.extended.antennas(lo, hi),
+        )
+
     def fitted_total(self) -> NormalSums:
         """Return the fitted model's sums over all blocks (the ordinary fit)."""
         return base_sums(self.extended, self.model)

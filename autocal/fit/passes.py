@@ -23,7 +23,7 @@ from autocal.core.observation import Observation
 from autocal.fit.blocks import accumulate_blocks, block_edges, extended_model, sums_nbytes
 from autocal.fit.defaults import DEFAULT_INFLATE_ERRORS, DEFAULT_PASSES, Passes
 from autocal.fit.model import FitError, FitModel, check_tsky, design, mean_vectors, weights_for
-from autocal.fit.priors import add_trxr_prior
+from autocal.fit.priors import PriorTerm
 from autocal.fit.solution import Solution
 from autocal.fit.solve import FLAG_REASONS, solve_sums
 from autocal.fit.sums import NormalSums, accumulate
@@ -319,11 +319,7 @@ def _prior_function(
         ptrxr, psigma = trxr_prior.at(obs.freqs, antennas=obs.antennas, pols=obs.pols)
     else:
         ptrxr, psigma = trxr_prior
-
-    def prior_fn(part: NormalSums, pvg: np.ndarray, pvn: np.ndarray) -> NormalSums:
-        return add_trxr_prior(part, pvg, pvn, ptrxr, psigma, scale_covariance=scale)
-
-    return prior_fn
+    return PriorTerm(ptrxr, psigma, scale)
 
 
 def _solve(

@@ -556,6 +556,45 @@ def add_trxr_prior(
     )
 
 
+@dataclass(frozen=True, eq=False)
+class PriorTerm:
+    """A receiver prior ready to add to normal sums: ``term(sums, vg, vn) -> sums``.
+
+    The function :func:`~autocal.fit.total_uncertainty.total_uncertainty` and the solve
+    apply to every set of sums (:func:`add_trxr_prior` with these values).
+
+    Attributes
+    ----------
+    trxr, sigma
+        Prior mean and 1-sigma in K, broadcastable to ``(Nant, Npol, Nfreq)``.
+    scale_covariance
+        The covariance scaling of the solve (see :func:`add_trxr_prior`).
+    """
+
+    trxr: np.ndarray
+    sigma: np.ndarray
+    scale_covariance: bool | str = False
+
+    def __repr__(self) -> str:
+        """Return one line; arrays as type and shape (:func:`~autocal.core.reprs.compact_repr`)."""
+        return compact_repr(self)
+
+    def __call__(self, sums: NormalSums, vg: np.ndarray, vn: np.ndarray) -> NormalSums:
+        """Return ``sums`` with the prior added (:func:`add_trxr_prior`)."""
+        return add_trxr_prior(
+            sums, vg, vn, self.trxr, self.sigma, scale_covariance=self.scale_covariance
+        )
+
+    def antennas(self, lo: int, hi: int) -> PriorTerm:
+        """Return the prior of antennas ``lo`` to ``hi - 1`` (a value shared by all is kept)."""
+
+        def part(value: np.ndarray) -> np.ndarray:
+            value = np.asarray(value, dtype=float)
+            return value[lo:hi] if value.ndim == 3 and value.shape[0] != 1 else value
+
+        return PriorTerm(part(self.trxr), part(self.sigma), self.scale_covariance)
+
+
 def prior_value(text: str) -> float | str:
     """Return a ``--trxr-prior`` value: a number in K as a float, else the path as given."""
     try:

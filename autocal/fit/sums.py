@@ -67,6 +67,21 @@ class NormalSums:
             np.zeros(lead, np.int64),
         )
 
+    def antennas(self, lo: int, hi: int) -> NormalSums:
+        """Return the sums of antennas ``lo`` to ``hi - 1`` (views of these arrays)."""
+        sl = slice(lo, hi)
+        return NormalSums(
+            self.model,
+            self.ata[sl],
+            self.aty[sl],
+            self.yty[sl],
+            self.count[sl],
+            self.nflagged[sl],
+            self.lst_min,
+            self.lst_max,
+            dict(self.info),
+        )
+
     def __iadd__(self, other: NormalSums) -> NormalSums:
         """Add ``other`` into these sums in place (the same values as ``self + other``)."""
         if self.model != other.model or self.ata.shape != other.ata.shape:

@@ -11,6 +11,7 @@ a ``multiprocessing`` pool, aborts), and its thread count would ignore
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
@@ -18,6 +19,8 @@ from autocal.fit.sums import default_threads
 
 #: Ranges per thread: a few, so that uneven ranges still share out evenly.
 RANGES_PER_THREAD = 4
+
+_worker = threading.local()  # ``busy`` while a thread runs a range of in_threads
 
 
 def in_threads(run: Callable[[int, int], None], n: int, threads: int | None = None) -> None:
@@ -30,15 +33,24 @@ def in_threads(run: Callable[[int, int], None], n: int, threads: int | None = No
     n
         Number of items.
     threads
-        Threads (default :func:`~autocal.fit.sums.default_threads`).
+        Threads (default :func:`~autocal.fit.sums.default_threads`). Called from a range
+        of an outer call, ``run`` is called at once for all items in the calling thread.
     """
     nthreads = default_threads() if threads is None else max(1, int(threads))
     if n <= 0:
         return
-    if nthreads == 1:
-        run(0, n)
+    if nthreads == 1 or getattr(_worker, "busy", False):
+        run(0, n)  # inside a range of an outer call: its threads already fill the cores
         return
     nranges = min(n, nthreads * RANGES_PER_THREAD)
     edges = [n * i // nranges for i in range(nranges + 1)]
+
+    def one(i: int) -> None:
+        _worker.busy = True
+        try:
+            run(edges[i], edges[i + 1])
+        finally:
+            _worker.busy = False
+
     with ThreadPoolExecutor(min(nthreads, nranges)) as pool:
-        list(pool.map(lambda i: run(edges[i], edges[i + 1]), range(nranges)))
+        list(pool.map(one, range(nranges)))

@@ -113,7 +113,8 @@ from autocal.fit.separation import (
     sky_contrast,
 )
 from autocal.fit.solve import solve_sums
-from autocal.fit.sums import NormalSums
+from autocal.fit.sums import NormalSums, antenna_blocks
+from autocal.fit.threads import in_threads
 
 logger = logging.getLogger(__name__)
 
@@ -267,8 +268,16 @@ def total_uncertainty(
     *,
     scale_covariance: bool | Literal["inflate"] = "inflate",
     prior: Any = None,
+    threads: int | None = None,
 ) -> TotalUncertainty:
     """Compute the total uncertainty of a solution from its block sums.
+
+    Every quantity is per antenna-pol and channel but for the profile's grid of receiver
+    temperatures (:func:`~autocal.fit.separation.profile_grid`, from all channels), so the
+    antennas are done in parts of about :data:`PART_SYSTEMS` channels on threads
+    (:func:`autocal.fit.threads.in_threads`): the numpy steps run side by side, and the
+    temporaries are a part's, not the observation's (a HERA file's were ~0.7 GB). The
+    values are those of one part, bit for bit (``tests/fit/test_total_uncertainty.py``).
 
     Parameters
     ----------
@@ -284,6 +293,11 @@ def total_uncertainty(
         Optional callable ``prior(sums, vg, vn) -> sums`` adding a receiver prior's
         pseudo-observation to a set of sums, ``vg`` and ``vn`` the vectors that give the
         time-averaged ``G`` and ``n`` from the parameters (applied to every refit alike).
+        One with an ``antennas(lo, hi)`` method giving the prior of antennas ``lo`` to
+        ``hi - 1`` (:class:`autocal.fit.priors.PriorTerm`) lets the antennas be done in
+        parts; any other is applied to all antennas at once.
+    threads
+        Threads for the parts (default :func:`~autocal.fit.sums.default_threads`).
 
     Returns
     -------
@@ -294,57 +308,130 @@ def total_uncertainty(
     lsts = blocks.lsts
     vg, vn = mean_vectors(model, lsts)
     evg, evn = mean_vectors(extended_model(model), lsts)
-    refits = _Refits(scale_covariance, prior, vg, vn, evg, evn)
-    fitted = blocks.fitted_total()
+    lead = solved["chi2"].shape
+    grid = profile_grid(_project(solved["coeffs"], None, vg, vn)[0])
+    per_antenna = max(1, int(np.prod(lead[1:])))
+    parts = antenna_blocks(lead[0], PART_SYSTEMS // per_antenna)
+    if prior is not None and not hasattr(prior, "antennas"):
+        parts = [(0, lead[0])]
+    out = _Parts.empty(lead, grid.size)
+    unsolvable = np.zeros(len(parts), np.int64)
+
+    def run(i0: int, i1: int) -> None:
+        for i in range(i0, i1):
+            lo, hi = parts[i]
+            whole = (lo, hi) == (0, lead[0])
+            part_prior = prior if prior is None or whole else prior.antennas(lo, hi)
+            refits = _Refits(scale_covariance, part_prior, vg, vn, evg, evn)
+            sub = {k: v[lo:hi] if _per_channel(v, lead) else v for k, v in solved.items()}
+            unsolvable[i] = _total_part(
+                blocks if whole else blocks.antennas(lo, hi), sub, refits, grid, out, lo, hi
+            )
+
+    in_threads(run, len(parts), threads)
     notes: list[str] = []
-
-    theta0, c0 = refits.project(solved)
-    lead = theta0.shape[:-1]
-    nblk = blocks.nblocks
-    c0_ok = np.all(np.isfinite(c0), axis=(-2, -1))
-
-    # delete-a-block jackknife of the fitted model, and its two halves
-    fjk = np.full(lead, np.nan)
-    halves = np.full((2, *lead), np.nan)
-    if nblk >= MIN_BLOCKS:
-        fjk = _jackknife_factor(blocks, fitted, solved, refits, c0_ok)
-        halves = _half_estimates(blocks, refits)
-    else:
+    if blocks.nblocks < MIN_BLOCKS:
         notes.append(
             f"no jackknife: {len(lsts)} integrations make fewer than {MIN_BLOCKS} blocks of two "
             "or more (or their sums would not fit in memory); the total has no term for "
             "residuals correlated in time"
         )
-
-    # the model with one more time order (exact: the blocks hold its sums)
-    drift = _drift_model(blocks, solved, refits, theta0, c0, c0_ok, notes)
-    w1, theta1, c1, good = drift.weight, drift.theta, drift.cov, drift.good
-
-    ctot = _total_covariance(fjk, drift, theta0, c0, c0_ok)
-    bad = ~c0_ok
-    base_total = fitted
-    contrast = sky_contrast(base_total, model, theta0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        corr = c0[..., 0, 1] / np.sqrt(c0[..., 0, 0] * c0[..., 1, 1])
-    sens = drift_sensitivity(blocks.total(), model, theta0, vg)
-    grid = profile_grid(theta0)
-    profile = profile_gain(base_total, model, vg, grid)
+    if unsolvable.sum():
+        notes.append(
+            f"{int(unsolvable.sum())} solved channels could not take one more time order "
+            "(too few samples or a singular system): no drift term there"
+        )
     return TotalUncertainty(
-        cov=ctot,
-        jackknife_factor=fjk,
-        drift_weight=np.where(bad, np.nan, w1),
-        G_drift=np.where(bad | ~good, np.nan, theta1[..., 0]),
-        n_drift=np.where(bad | ~good, np.nan, theta1[..., 1]),
-        sigma_G_drift=np.where(bad | ~good, np.nan, np.sqrt(np.abs(c1[..., 0, 0]))),
-        G_halves=halves,
-        sky_contrast=np.where(bad, np.nan, contrast),
-        corr_G_n=np.where(bad, np.nan, corr),
-        drift_sensitivity=np.where(bad, np.nan, sens),
+        **{name: getattr(out, name) for name in _Parts.__dataclass_fields__},
         profile_trxr=grid,
-        profile_G=profile,
-        nblocks=nblk,
+        nblocks=blocks.nblocks,
         notes=tuple(notes),
     )
+
+
+#: Channels (antennas x pols x frequencies) per part of :func:`total_uncertainty`.
+PART_SYSTEMS = 1 << 16
+
+
+def _per_channel(value: Any, lead: tuple[int, ...]) -> bool:
+    """Whether ``value`` is an array with the ``(Nant, Npol, Nfreq)`` leading axes."""
+    return isinstance(value, np.ndarray) and value.shape[: len(lead)] == lead
+
+
+@dataclass(frozen=True, eq=False)
+class _Parts:
+    """The per-channel arrays of a :class:`TotalUncertainty`, filled part by part."""
+
+    cov: np.ndarray
+    jackknife_factor: np.ndarray
+    drift_weight: np.ndarray
+    G_drift: np.ndarray
+    n_drift: np.ndarray
+    sigma_G_drift: np.ndarray  # noqa: N815 - the physics symbol
+    G_halves: np.ndarray
+    sky_contrast: np.ndarray
+    corr_G_n: np.ndarray  # noqa: N815 - the physics symbol
+    drift_sensitivity: np.ndarray
+    profile_G: np.ndarray  # noqa: N815 - the physics symbol
+
+    @classmethod
+    def empty(cls, lead: tuple[int, ...], ngrid: int) -> _Parts:
+        """Return NaN arrays for ``lead = (Nant, Npol, Nfreq)`` and ``ngrid`` profile points."""
+        nant, npol, nfreq = lead
+
+        def nan(*shape: int) -> np.ndarray:
+            return np.full(shape, np.nan)
+
+        return cls(
+            nan(*lead, 2, 2),
+            *(nan(*lead) for _ in range(5)),
+            nan(2, *lead),
+            *(nan(*lead) for _ in range(3)),
+            nan(nant, npol, ngrid, nfreq),
+        )
+
+
+def _total_part(
+    blocks: BlockSums,
+    solved: dict[str, np.ndarray],
+    refits: _Refits,
+    grid: np.ndarray,
+    out: _Parts,
+    lo: int,
+    hi: int,
+) -> int:
+    """Fill antennas ``lo`` to ``hi - 1`` of ``out`` (:func:`total_uncertainty` of them).
+
+    Returns the number of solved channels that could not take one more time order.
+    """
+    model = blocks.model
+    fitted = blocks.fitted_total()
+    theta0, c0 = refits.project(solved)
+    c0_ok = np.all(np.isfinite(c0), axis=(-2, -1))
+    sl = slice(lo, hi)
+    # delete-a-block jackknife of the fitted model, and its two halves
+    fjk = np.full(c0_ok.shape, np.nan)
+    if blocks.nblocks >= MIN_BLOCKS:
+        fjk = _jackknife_factor(blocks, fitted, solved, refits, c0_ok)
+        out.G_halves[:, sl] = _half_estimates(blocks, refits)
+    out.jackknife_factor[sl] = fjk
+    # the model with one more time order (exact: the blocks hold its sums)
+    drift = _drift_model(blocks, solved, refits, theta0, c0, c0_ok)
+    w1, theta1, c1, good = drift.weight, drift.theta, drift.cov, drift.good
+    out.cov[sl] = _total_covariance(fjk, drift, theta0, c0, c0_ok)
+    bad = ~c0_ok
+    out.drift_weight[sl] = np.where(bad, np.nan, w1)
+    out.G_drift[sl] = np.where(bad | ~good, np.nan, theta1[..., 0])
+    out.n_drift[sl] = np.where(bad | ~good, np.nan, theta1[..., 1])
+    out.sigma_G_drift[sl] = np.where(bad | ~good, np.nan, np.sqrt(np.abs(c1[..., 0, 0])))
+    out.sky_contrast[sl] = np.where(bad, np.nan, sky_contrast(fitted, model, theta0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        corr = c0[..., 0, 1] / np.sqrt(c0[..., 0, 0] * c0[..., 1, 1])
+    out.corr_G_n[sl] = np.where(bad, np.nan, corr)
+    sens = drift_sensitivity(blocks.total(), model, theta0, refits.vg)
+    out.drift_sensitivity[sl] = np.where(bad, np.nan, sens)
+    out.profile_G[sl] = profile_gain(fitted, model, refits.vg, grid)
+    return int((~good & c0_ok).sum())
 
 
 def _jackknife_factor(
@@ -445,12 +532,8 @@ def _drift_model(
     theta0: np.ndarray,
     c0: np.ndarray,
     c0_ok: np.ndarray,
-    notes: list[str],
 ) -> _Drift:
-    """Fit the model with one more time order and weigh it against the fitted one (BIC).
-
-    Appends to ``notes`` when solved channels cannot take the extra order.
-    """
+    """Fit the model with one more time order and weigh it against the fitted one (BIC)."""
     model, total = blocks.model, blocks.total()
     scale_covariance, prior = refits.scale_covariance, refits.prior
     ext_sums = total if prior is None else prior(total, refits.evg, refits.evn)
@@ -477,11 +560,6 @@ def _drift_model(
     stat = np.where(good, stat, 0.0)
     joint = np.where(good.any(axis=-1), stat.sum(axis=-1), -np.inf)[..., None]
     w1 = np.maximum(_logistic(stat / 2.0), _logistic(joint / 2.0))
-    if not good[c0_ok].all():
-        notes.append(
-            f"{int((~good & c0_ok).sum())} solved channels could not take one more time order "
-            "(too few samples or a singular system): no drift term there"
-        )
     return _Drift(
         weight=np.where(good, w1, 0.0),
         theta=np.where(good[..., None], theta1, theta0),

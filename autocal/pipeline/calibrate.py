@@ -38,7 +38,7 @@ from autocal.core.reprs import compact_repr
 from autocal.core.stopping import checkpoint, stop_when
 from autocal.fit.model import FitModel, mean_vectors
 from autocal.fit.passes import covariance_scaling
-from autocal.fit.priors import TrxrPrior, add_trxr_prior, parse_trxr_prior
+from autocal.fit.priors import PriorTerm, TrxrPrior, parse_trxr_prior
 from autocal.fit.separation import separation_summary
 from autocal.fit.solution import Solution
 from autocal.fit.solve import solve_sums
@@ -345,12 +345,7 @@ def _prior_term(
     """Return the function that adds the receiver prior to normal sums (``None``: no prior)."""
     if prior is None:
         return None
-    ptrxr, psigma = prior.at(source.freqs, antennas=run.antennas, pols=pols)
-
-    def prior_fn(part: NormalSums, pvg: np.ndarray, pvn: np.ndarray) -> NormalSums:
-        return add_trxr_prior(part, pvg, pvn, ptrxr, psigma, scale_covariance=scaling)
-
-    return prior_fn
+    return PriorTerm(*prior.at(source.freqs, antennas=run.antennas, pols=pols), scaling)
 
 
 def _solve(

@@ -142,3 +142,54 @@ def test_a_short_span_jackknife_factor_keeps_its_digits() -> None:
     assert np.isfinite(factors[0]).sum() >= 5
     for other in factors[1:]:
         np.testing.assert_allclose(other, factors[0], rtol=1e-4)
+
+
+@pytest.mark.parametrize("with_prior", [False, True])
+def test_antennas_done_in_parts_on_threads_give_the_same_bits(
+    monkeypatch: pytest.MonkeyPatch, with_prior: bool
+) -> None:
+    """The total uncertainty of 7 antennas done in parts of one to three antennas, on one
+    and two threads, equals the one done whole bit for bit: every array, the profile's grid
+    (from all channels) and the notes (an antenna whose gain cannot drift: counted once)."""
+    import autocal.fit.total_uncertainty as tu
+    from autocal.fit.priors import PriorTerm
+
+    rng = np.random.default_rng(5)
+    nant, npol, nt = 7, 2, 64
+    lsts = np.linspace(1.0, 9.0, nt)
+    tsky = 250.0 * (1 + 0.5 * np.sin(lsts / 3.0))[:, None] * (FREQS / 150e6)[None, :] ** -2.5
+    gains = rng.uniform(0.5, 2.0, (nant, npol, 1, 1))
+    trxr = rng.uniform(100.0, 300.0, (nant, npol, 1, NF))
+    drift = (
+        1.0
+        + 0.02
+        * np.linspace(-1, 1, nt)[None, None, :, None]
+        * (rng.random(nant) < 0.5)[:, None, None, None]
+    )
+    data = noisy(gains * drift * (tsky[None, None] + trxr), rng, bt=1e5)
+    data[3, 1, :, :5] = 0.0  # channels that solve to nothing
+    flags = np.zeros(data.shape, bool)
+    flags[5, 0, 4:, 7] = True  # four samples: the fit solves, one more order does not
+    model = FitModel.for_lsts(lsts)
+    blocks = accumulate_blocks(
+        model, data, tsky, lsts, block_edges(nt, 8), flags=flags, bandwidth_time=1e5
+    )
+    prior = None
+    if with_prior:
+        prior = PriorTerm(trxr[:, :, 0], np.full((nant, npol, NF), 20.0), "inflate")
+    sums = blocks.fitted_total()
+    solved = solve_sums(
+        sums if prior is None else prior(sums, *tu.mean_vectors(model, lsts)),
+        scale_covariance="inflate",
+    )
+    monkeypatch.setattr(tu, "PART_SYSTEMS", 1 << 30)
+    whole = tu.total_uncertainty(blocks, solved, prior=prior, threads=1)
+    for per_part, threads in ((1, 1), (2, 2), (3, 2)):
+        monkeypatch.setattr(tu, "PART_SYSTEMS", per_part * npol * NF)
+        parts = tu.total_uncertainty(blocks, solved, prior=prior, threads=threads)
+        for name in tu._Parts.__dataclass_fields__:
+            np.testing.assert_array_equal(getattr(parts, name), getattr(whole, name), name)
+        np.testing.assert_array_equal(parts.profile_trxr, whole.profile_trxr)
+        assert parts.notes == whole.notes and parts.nblocks == whole.nblocks
+    assert any("could not take one more time order" in n for n in whole.notes)
+    assert np.isfinite(whole.cov).any() and np.isnan(whole.cov[3, 1, :5]).all()
