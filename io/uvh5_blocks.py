@@ -312,6 +312,10 @@ class _BlockReader:
             and np.array_equal(it, np.repeat(np.arange(nt), nant))
         )
         dtypes = {"data": np.float64, "flags": bool, "nsamples": np.float64}
+        uniform = _uniform(arrays.get("nsamples")) if regular else None
+        if uniform is not None:  # HERA's: one number, not a block-sized float64 array
+            arrays = {k: v for k, v in arrays.items() if k != "nsamples"}
+            del dtypes["nsamples"]
         if self.block_sets is None:
             block = {key: np.empty(shape, dt) for key, dt in dtypes.items()}
         else:
@@ -345,6 +349,8 @@ class _BlockReader:
         self.stats.blocks += 1
         self.stats.integrations += nt
         self.stats.samples += block["data"].size
+        if uniform is not None:
+            block["nsamples"] = uniform  # type: ignore[assignment]
         return Observation(
             **block,
             **self.common,
@@ -353,6 +359,20 @@ class _BlockReader:
             integration_time=tint,
             meta={**self.file_meta, "block": iblock, "nblocks": len(self.blocks)},
         )
+
+
+def _uniform(values: np.ndarray | None) -> float | None:
+    """Return the one value of ``values`` when all have the same bits, else ``None``.
+
+    Two passes without temporaries (the smallest and largest bit patterns); ``-0.0``
+    among zeros, or NaNs of other payloads, are not one value.
+    """
+    if values is None or not values.size or values.dtype.kind != "f":
+        return None
+    bits = values.view(f"u{values.dtype.itemsize}")
+    if bits.min() != bits.max():
+        return None
+    return float(values.flat[0])
 
 
 def _run_blocks(

@@ -160,8 +160,10 @@ class Observation:
             if self.nsamples is None
             else np.broadcast_to(np.asarray(self.nsamples, np.float64), data.shape)
         )
-        # min and max propagate NaN: one pass each, no temporaries (a block is 8 M samples)
-        if nsamples.size and not (nsamples.min() >= 0 and nsamples.max() < np.inf):
+        # min and max propagate NaN: one pass each, no temporaries (a block is 8 M samples);
+        # one value broadcast (a reader's uniform nsamples) is checked once
+        lone = nsamples.flat[:1] if nsamples.size and not any(nsamples.strides) else nsamples
+        if lone.size and not (lone.min() >= 0 and lone.max() < np.inf):
             raise ObservationError("nsamples must be finite and >= 0")
         names = tuple(self.antenna_names) or tuple(f"ant{a}" for a in antennas)
         if len(names) != nant:

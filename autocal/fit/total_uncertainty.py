@@ -93,6 +93,7 @@ from typing import Any, Literal
 
 import numpy as np
 from scipy.special import erfcx, log_ndtr
+from threadpoolctl import threadpool_limits
 
 from autocal.core.reprs import compact_repr
 from autocal.fit.blocks import (
@@ -328,7 +329,9 @@ def total_uncertainty(
                 blocks if whole else blocks.antennas(lo, hi), sub, refits, grid, out, lo, hi
             )
 
-    in_threads(run, len(parts), threads)
+    # the parts are the parallelism: BLAS's own threads would only spin beside them
+    with threadpool_limits(limits=1, user_api="blas"):
+        in_threads(run, len(parts), threads)
     notes: list[str] = []
     if blocks.nblocks < MIN_BLOCKS:
         notes.append(

@@ -91,6 +91,8 @@ def _compact(values: np.ndarray) -> np.ndarray | float:
     A C-contiguous float64 array is tested in one compiled pass
     (:mod:`autocal.pipeline.compact_kernel`), others as numpy arrays, with the same result.
     """
+    if values.size and not any(values.strides) and np.isfinite(values.flat[0]):
+        return float(values.flat[0])  # one value broadcast (a reader's uniform nsamples)
     if values.dtype == np.float64 and values.flags.c_contiguous and values.size:
         from autocal.pipeline.compact_kernel import compact_pass  # numba
 
@@ -133,7 +135,9 @@ class _Block:
         return Observation(
             data=_full(self.data, self.shape),
             flags=self.flags,
-            nsamples=_full(self.nsamples, self.shape),
+            nsamples=self.nsamples
+            if isinstance(self.nsamples, float)
+            else _full(self.nsamples, self.shape),
             **self.fields,
         )
 

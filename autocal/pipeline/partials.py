@@ -510,7 +510,7 @@ def bandwidth_time(chunk: Observation) -> np.ndarray:
     """
     tf = chunk.integration_time[:, None] * chunk.channel_width
     ns = chunk.nsamples
-    if ns.size and not np.any(ns != ns.flat[0]):
+    if ns.size and (not any(ns.strides) or not np.any(ns != ns.flat[0])):  # one value
         return tf * float(ns.flat[0])
     return ns * tf
 

@@ -8,6 +8,7 @@ import h5py
 import numpy as np
 import pytest
 
+from autocal.core.observation import ObservationError
 from autocal.io.uvh5 import read_uvh5, write_uvh5
 from autocal.io.uvh5_blocks import iter_uvh5_blocks
 from autocal.io.uvh5_chunks import ReadStats
@@ -200,3 +201,38 @@ def test_a_chunk_that_does_not_decode_is_a_clear_error(tmp_path, dataset, capsys
     argv = ["calibrate", str(path), "--beam", "dipole", "--nside", "16", "--out", str(out)]
     assert main(argv) == 2
     assert "corrupt or truncated" in capsys.readouterr().err and not out.exists()
+
+
+@pytest.mark.parametrize("prefetch", [True, False])
+def test_uniform_nsamples_are_one_value_and_others_every_bit(tmp_path, prefetch):
+    """A block whose stored nsamples all have the same bits gets them as one value
+    broadcast (no block-sized float64 array); a block with one other value, or a ``-0.0``
+    among zeros, gets every sample's value bit for bit, as h5py reads them."""
+    obs = synthetic_observation(ntime=6)
+    nsamples = np.ones(obs.shape)
+    nsamples[1, 0, 4, 2] = 0.5  # the third block (two integrations each) is not uniform
+    zeros = np.zeros(obs.shape)
+    zeros[0, 1, 1, 3] = -0.0
+    for name, values, uniform in (
+        ("mixed.uvh5", nsamples, [True, True, False]),
+        ("zeros.uvh5", zeros, [False, True, True]),
+    ):
+        path = tmp_path / name
+        with part_writer(obs, path, compression="gzip") as writer:
+            writer.write(0, obs.data, np.zeros(obs.shape, bool), values)
+        blocks = list(iter_uvh5_blocks(path, block_size=2, prefetch=prefetch))
+        assert [not any(b.nsamples.strides) for b in blocks] == uniform
+        got = np.concatenate([b.nsamples for b in blocks], axis=2)
+        np.testing.assert_array_equal(got.view(np.uint64), values.view(np.uint64))
+        np.testing.assert_array_equal(got, read_uvh5(path).nsamples)  # pyuvdata
+
+
+def test_a_uniform_negative_or_nan_nsamples_is_still_refused(tmp_path):
+    """One stored value broadcast is checked as the whole array was."""
+    obs = synthetic_observation(ntime=2)
+    for value in (-1.0, np.nan):
+        path = tmp_path / f"bad{value}.uvh5"
+        with part_writer(obs, path) as writer:
+            writer.write(0, obs.data, np.zeros(obs.shape, bool), np.full(obs.shape, value))
+        with pytest.raises(ObservationError, match="nsamples must be finite and >= 0"):
+            list(iter_uvh5_blocks(path))
