@@ -187,6 +187,21 @@ def slab_chunks(
     return ranges, itertools.product(*grids)
 
 
+def one_value(chunk: np.ndarray) -> np.ndarray | None:
+    """Return a chunk's one value (0-d) when all its values have the same bits, else ``None``."""
+    if not chunk.size or chunk.dtype.names:
+        return None
+    flat = np.ascontiguousarray(chunk).reshape(-1)
+    size = flat.dtype.itemsize
+    if size in (1, 2, 4, 8):  # two passes, no temporaries
+        bits = flat.view(f"u{size}")
+        same = bits.min() == bits.max()
+    else:  # e.g. complex128: compare every value's bytes with the first's
+        rows = flat.view(np.uint8).reshape(-1, size)
+        same = bool((rows == rows[0]).all())
+    return np.array(flat[0]) if same else None
+
+
 class Buffers:
     """Named arrays reused from block to block (grown when a block needs more)."""
 
@@ -236,6 +251,7 @@ class RepeatedChunks:
         self.dsid = dset.id
         self.active = self.chunks is not None and not dset.dtype.names
         self.decoded: dict[tuple[Any, ...], np.ndarray] = {}
+        self.constant: dict[tuple[Any, ...], np.ndarray | None] = {}  # a kept chunk's one value
         self.seen = 0
         self.reused = 0
 
@@ -272,14 +288,22 @@ class RepeatedChunks:
                 kept = sum(c.nbytes for c in self.decoded.values()) + chunk.nbytes
                 if len(self.decoded) < self.MAX_DISTINCT and kept <= self.MAX_BYTES:
                     self.decoded[key] = chunk
+                    self.constant[key] = one_value(chunk)
             self.seen += 1
             self.reused += reused
-            copies.append((offset, chunk, reused))
+            copies.append((offset, chunk, reused, self.constant.get(key)))
         if self.seen >= self.TRIAL_CHUNKS and 2 * self.reused < self.seen:
             logger.debug("%s: stored chunks rarely repeat; decoding all", self.name)
             self.active = False
             self.decoded.clear()
-        for offset, chunk, reused in copies:
+            self.constant.clear()
+        # every chunk one and the same value (raw HERA flags and nsamples): one contiguous
+        # fill of the slab instead of a strided copy per chunk
+        values = {None if c is None else c.tobytes() for *_, c in copies}
+        whole = copies[0][3] if len(values) == 1 and None not in values else None
+        if whole is not None:
+            out.fill(whole)
+        for offset, chunk, reused, _ in copies:
             part = [
                 (max(start, o), min(stop, o + n))
                 for (start, stop), o, n in zip(ranges, offset, chunk.shape, strict=True)
@@ -291,7 +315,8 @@ class RepeatedChunks:
             block = chunk[src]
             if self.ndim == 4:
                 block, dst = block[:, 0], [dst[0], *dst[2:]]
-            out[tuple(dst)] = block
+            if whole is None:
+                out[tuple(dst)] = block
             if reused:
                 stats.bytes_reused += block.nbytes
         return True

@@ -57,3 +57,23 @@ def test_repeated_chunks_give_exactly_a_plain_read(tmp_path, legacy):
             if not rep.fill(out, lo, hi, slice(0, 37), slice(0, 2), ReadStats()):
                 break
         assert not rep.active and not rep.decoded and rep.seen >= RepeatedChunks.TRIAL_CHUNKS
+
+
+def test_one_value_is_told_by_bits() -> None:
+    """A chunk's one value: same bits everywhere (a ``-0.0`` among zeros or another NaN
+    payload is not the same value), for 1-, 4-, 8- and 16-byte types."""
+    from autocal.io.uvh5_chunks import one_value
+
+    assert one_value(np.zeros((3, 4), bool)) == np.array(False)
+    assert one_value(np.full((2, 5), 3.5, np.float32)).dtype == np.float32
+    signed = np.zeros(6)
+    signed[4] = -0.0
+    assert one_value(signed) is None
+    payloads = np.full(4, np.nan).view(np.uint64)
+    payloads[1] += 1
+    assert one_value(payloads.view(np.float64)) is None
+    same = np.full((2, 3), 1 + 2j, np.complex128)
+    assert one_value(same) == 1 + 2j
+    same[1, 2] = 1 + 3j
+    assert one_value(same) is None
+    assert one_value(np.empty((0, 3))) is None
