@@ -329,6 +329,13 @@ class _BlockReader:
                 arr = arr[:, self.fidx]
             if not self.pidx_all:
                 arr = arr[:, :, self.pidx]
+            if arr.dtype.kind != "c" and arr.size and not any(arr.strides):
+                value = arr.flat[0]  # one value (repeated chunks): a fill, no copy
+                if regular:
+                    block[key].fill(value)
+                else:
+                    block[key][ia, :, it, :] = value
+                continue
             if arr.dtype.kind == "c":
                 arr = _auto_power(arr, self.same_feed)
             if regular:
@@ -369,6 +376,8 @@ def _uniform(values: np.ndarray | None) -> float | None:
     """
     if values is None or not values.size or values.dtype.kind != "f":
         return None
+    if not any(values.strides):  # one value broadcast (repeated chunks)
+        return float(values.flat[0])
     bits = values.view(f"u{values.dtype.itemsize}")
     if bits.min() != bits.max():
         return None

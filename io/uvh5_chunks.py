@@ -14,7 +14,7 @@ from __future__ import annotations
 import io
 import itertools
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -118,7 +118,8 @@ def read_rows(
     slab of consecutive rows is decoded into a reused array (``read_direct``; no fresh
     pages to fault in per block); the result is then only valid until the next read of
     this data set. With ``repeats`` such a slab is assembled from the data set's distinct
-    stored chunks, each decoded once (:class:`RepeatedChunks`), and with ``inflater`` its
+    stored chunks, each decoded once (:class:`RepeatedChunks`; all one value: that value
+    broadcast, a read-only array with zero strides), and with ``inflater`` its
     chunks are inflated on threads outside HDF5
     (:class:`~autocal.io.uvh5_inflate.InflatingReader`).
     """
@@ -133,12 +134,19 @@ def read_rows(
         nchan = len(range(*chans.indices(dset.shape[-2])))
         npol = len(range(*pols.indices(dset.shape[-1])))
         shape = (rows.size, nchan, npol)
-        arr = (
-            np.empty(shape, dset.dtype)
-            if buffers is None
-            else buffers.get(f"raw {dset.name}", shape, dset.dtype)
+        arr = _fill_slab(
+            dset,
+            lambda: (
+                np.empty(shape, dset.dtype)
+                if buffers is None
+                else buffers.get(f"raw {dset.name}", shape, dset.dtype)
+            ),
+            index,
+            (lo, hi, chans, pols),
+            stats,
+            repeats,
+            inflater,
         )
-        _fill_slab(dset, arr, index, (lo, hi, chans, pols), stats, repeats, inflater)
     else:
         arr = dset[index]
     if arr.dtype.names:  # the HERA correlator's compound type (fields r, i)
@@ -152,19 +160,26 @@ def read_rows(
 
 def _fill_slab(
     dset: Any,
-    arr: np.ndarray,
+    make: Callable[[], np.ndarray],
     index: tuple[Any, ...],
     where: tuple[int, int, slice, slice],
     stats: ReadStats,
     repeats: RepeatedChunks | None,
     inflater: InflatingReader | None,
-) -> None:
-    """Fill ``arr`` with a slab: repeated chunks copied, else inflated on threads, else HDF5."""
-    if repeats is not None and repeats.fill(arr, *where, stats):
-        return
-    if inflater is not None and inflater.fill(arr, *where):
-        return
-    dset.read_direct(arr, source_sel=index)
+) -> np.ndarray:
+    """Return a slab: repeated chunks, else inflated on threads, else decoded by HDF5.
+
+    Repeated chunks of one value give that value broadcast; the others fill the array
+    ``make()`` returns.
+    """
+    if repeats is not None:
+        arr = repeats.fill(make, *where, stats)
+        if arr is not None:
+            return arr
+    arr = make()
+    if inflater is None or not inflater.fill(arr, *where):
+        dset.read_direct(arr, source_sel=index)
+    return arr
 
 
 def slab_chunks(
@@ -256,15 +271,23 @@ class RepeatedChunks:
         self.reused = 0
 
     def fill(
-        self, out: np.ndarray, lo: int, hi: int, chans: slice, pols: slice, stats: ReadStats
-    ) -> bool:
-        """Fill ``out`` (rows ``lo:hi``, ``chans``, ``pols``) and return ``True``.
+        self,
+        make: Callable[[], np.ndarray],
+        lo: int,
+        hi: int,
+        chans: slice,
+        pols: slice,
+        stats: ReadStats,
+    ) -> np.ndarray | None:
+        """Return the slab (rows ``lo:hi``, ``chans``, ``pols``), or ``None``.
 
-        ``False`` (nothing to rely on in ``out``) when the data set is to be read
+        The slab is the array ``make()`` returns, filled; or, when every chunk it touches
+        is one and the same value (raw HERA flags and nsamples), that value broadcast to
+        the slab's shape (read-only, no memory). ``None`` when the data set is to be read
         normally.
         """
         if not self.active:
-            return False
+            return None
         dset = self.dset
         ranges, offsets = slab_chunks(self.shape, self.chunks, lo, hi, chans, pols)
         copies = []
@@ -275,7 +298,8 @@ class RepeatedChunks:
                 # (h5py raises MemoryError for a chunk never written): the fill value
                 self.active = False
                 self.decoded.clear()
-                return False
+                self.constant.clear()
+                return None
             extent = tuple(
                 min(o + size, n) - o
                 for o, size, n in zip(offset, self.chunks, self.shape, strict=True)
@@ -297,12 +321,14 @@ class RepeatedChunks:
             self.active = False
             self.decoded.clear()
             self.constant.clear()
-        # every chunk one and the same value (raw HERA flags and nsamples): one contiguous
-        # fill of the slab instead of a strided copy per chunk
+        # every chunk one and the same value: the value broadcast, no copy at all
         values = {None if c is None else c.tobytes() for *_, c in copies}
         whole = copies[0][3] if len(values) == 1 and None not in values else None
-        if whole is not None:
-            out.fill(whole)
+        if whole is None:
+            out = make()
+        else:
+            (r0, r1), (c0, c1), (p0, p1) = ranges[0], ranges[-2], ranges[-1]
+            out = np.broadcast_to(whole, (r1 - r0, c1 - c0, p1 - p0))
         for offset, chunk, reused, _ in copies:
             part = [
                 (max(start, o), min(stop, o + n))
@@ -319,4 +345,4 @@ class RepeatedChunks:
                 out[tuple(dst)] = block
             if reused:
                 stats.bytes_reused += block.nbytes
-        return True
+        return out

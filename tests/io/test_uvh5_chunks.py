@@ -31,6 +31,7 @@ def test_repeated_chunks_give_exactly_a_plain_read(tmp_path, legacy):
             dset = h5[name]
             rep = RepeatedChunks(dset)
             stats = ReadStats()
+            one_value = []
             for lo, hi, chans, pols in [
                 (0, 50, slice(0, 37), slice(0, 2)),
                 (3, 19, slice(5, 30), slice(1, 2)),
@@ -39,10 +40,17 @@ def test_repeated_chunks_give_exactly_a_plain_read(tmp_path, legacy):
                 out = np.full((hi - lo, chans.stop - chans.start, pols.stop - pols.start), -1.0)
                 out = out.astype(dset.dtype)
                 index = (slice(lo, hi), 0, chans, pols) if legacy else (slice(lo, hi), chans, pols)
-                if rep.fill(out, lo, hi, chans, pols, stats):
-                    np.testing.assert_array_equal(out, dset[index])
+                got = rep.fill(lambda out=out: out, lo, hi, chans, pols, stats)
+                if got is not None:
+                    np.testing.assert_array_equal(got, dset[index])
+                    assert got.shape == out.shape and got.dtype == dset.dtype
+                    one_value.append(not any(got.strides))  # else: it is ``out``
+                    assert one_value[-1] or got is out
                 else:
                     assert name in ("noisy", "gaps") and not rep.active
+            # all ones: broadcast; 'mixed' has its changed chunk in the first two slabs
+            want = {"same": [True] * 3, "mixed": [False, False, True]}
+            assert one_value == want.get(name, one_value)
             if name in ("same", "mixed"):
                 assert rep.active and rep.reused > rep.seen // 2 and stats.bytes_reused > 0
                 # full chunks, the short last row and channel chunks and their corner;
@@ -53,8 +61,8 @@ def test_repeated_chunks_give_exactly_a_plain_read(tmp_path, legacy):
         rep = RepeatedChunks(h5["noisy"])
         lo_hi = [(i, i + 7) for i in range(0, 49, 7)] * 3
         for lo, hi in lo_hi:
-            out = np.empty((hi - lo, 37, 2))
-            if not rep.fill(out, lo, hi, slice(0, 37), slice(0, 2), ReadStats()):
+            make = lambda: np.empty((hi - lo, 37, 2))  # noqa: E731, B023 - used at once
+            if rep.fill(make, lo, hi, slice(0, 37), slice(0, 2), ReadStats()) is None:
                 break
         assert not rep.active and not rep.decoded and rep.seen >= RepeatedChunks.TRIAL_CHUNKS
 
