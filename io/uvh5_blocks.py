@@ -27,7 +27,14 @@ import numpy as np
 from autocal.core.files import file_checksum
 from autocal.core.observation import Observation
 from autocal.errors import AutocalError
-from autocal.io.uvh5_chunks import Buffers, CountingFile, ReadStats, RepeatedChunks, read_rows
+from autocal.io.uvh5_chunks import (
+    Buffers,
+    CountingFile,
+    ReadStats,
+    RepeatedChunks,
+    one_value,
+    read_rows,
+)
 from autocal.io.uvh5_inflate import InflatingReader
 from autocal.io.uvh5_integrity import data_set_integrity, log_unchecked, read_error
 from autocal.io.uvh5_meta import (
@@ -147,7 +154,9 @@ def iter_uvh5_blocks(
     ------
     Observation
         One block: ``meta`` has ``source``, ``files``, ``sha256``, ``block`` and
-        ``nblocks``, ``x_orientation``, ``vis_units``.
+        ``nblocks``, ``x_orientation``, ``vis_units``. A block whose stored ``nsamples``
+        all have the same bits (raw HERA files) has them as that one value broadcast (a
+        read-only array with zero strides), not a block-sized array.
 
     Raises
     ------
@@ -371,17 +380,15 @@ class _BlockReader:
 def _uniform(values: np.ndarray | None) -> float | None:
     """Return the one value of ``values`` when all have the same bits, else ``None``.
 
-    Two passes without temporaries (the smallest and largest bit patterns); ``-0.0``
-    among zeros, or NaNs of other payloads, are not one value.
+    A broadcast (zero strides) is one value; otherwise :func:`~autocal.io.uvh5_chunks.one_value`
+    (``-0.0`` among zeros, or NaNs of other payloads, are not one value).
     """
     if values is None or not values.size or values.dtype.kind != "f":
         return None
     if not any(values.strides):  # one value broadcast (repeated chunks)
         return float(values.flat[0])
-    bits = values.view(f"u{values.dtype.itemsize}")
-    if bits.min() != bits.max():
-        return None
-    return float(values.flat[0])
+    one = one_value(values)
+    return None if one is None else float(one)
 
 
 def _run_blocks(

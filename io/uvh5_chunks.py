@@ -43,8 +43,9 @@ class ReadStats:
     bytes_decoded
         Bytes of the arrays the data sets were decoded into.
     bytes_reused
-        Of those, bytes copied from a stored chunk identical to one already decoded
-        instead of decoded again (uniform nsamples, unflagged data; see
+        Of those, bytes taken from a stored chunk identical to one already decoded
+        instead of decoded again: copied, or, when every chunk of a slab is one value,
+        not even copied (that value broadcast; uniform nsamples, unflagged data; see
         :class:`RepeatedChunks`).
     largest_array
         Bytes of the largest single array read from a data set (bounded by the block).

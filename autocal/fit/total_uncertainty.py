@@ -88,6 +88,7 @@ spectrum, a flux scale) are not covered: they belong to a systematics budget
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -114,7 +115,7 @@ from autocal.fit.separation import (
     sky_contrast,
 )
 from autocal.fit.solve import solve_sums
-from autocal.fit.sums import NormalSums, antenna_blocks
+from autocal.fit.sums import NormalSums, antenna_blocks, default_threads
 from autocal.fit.threads import in_threads
 
 logger = logging.getLogger(__name__)
@@ -276,9 +277,12 @@ def total_uncertainty(
     Every quantity is per antenna-pol and channel but for the profile's grid of receiver
     temperatures (:func:`~autocal.fit.separation.profile_grid`, from all channels), so the
     antennas are done in parts of about :data:`PART_SYSTEMS` channels on threads
-    (:func:`autocal.fit.threads.in_threads`): the numpy steps run side by side, and the
-    temporaries are a part's, not the observation's (a HERA file's were ~0.7 GB). The
-    values are those of one part, bit for bit (``tests/fit/test_total_uncertainty.py``).
+    (:func:`autocal.fit.threads.in_threads`, BLAS on one thread meanwhile): the numpy steps
+    run side by side, and the temporaries are a part's, not the observation's (a HERA
+    file's were ~0.7 GB). With fewer parts than threads (a few antennas, EDGES), or a prior
+    that cannot be cut by antenna, the whole is one part and its compiled kernels use the
+    threads. The values are those of one part, bit for bit
+    (``tests/fit/test_total_uncertainty.py``).
 
     Parameters
     ----------
@@ -311,10 +315,14 @@ def total_uncertainty(
     evg, evn = mean_vectors(extended_model(model), lsts)
     lead = solved["chi2"].shape
     grid = profile_grid(_project(solved["coeffs"], None, vg, vn)[0])
+    nthreads = default_threads() if threads is None else max(1, int(threads))
     per_antenna = max(1, int(np.prod(lead[1:])))
-    parts = antenna_blocks(lead[0], PART_SYSTEMS // per_antenna)
-    if prior is not None and not hasattr(prior, "antennas"):
-        parts = [(0, lead[0])]
+    # parts start at multiples of 4 antennas: BLAS's groups of rows line up with the whole's
+    per = -(-max(1, PART_SYSTEMS // per_antenna) // 4) * 4
+    parts = antenna_blocks(lead[0], per)
+    splittable = prior is None or callable(getattr(prior, "antennas", None))
+    if len(parts) < nthreads or not splittable:
+        parts = [(0, lead[0])]  # one part: its own kernels run on the threads
     out = _Parts.empty(lead, grid.size)
     unsolvable = np.zeros(len(parts), np.int64)
 
@@ -329,9 +337,11 @@ def total_uncertainty(
                 blocks if whole else blocks.antennas(lo, hi), sub, refits, grid, out, lo, hi
             )
 
-    # the parts are the parallelism: BLAS's own threads would only spin beside them
-    with threadpool_limits(limits=1, user_api="blas"):
-        in_threads(run, len(parts), threads)
+    if len(parts) == 1:
+        run(0, 1)
+    else:  # the parts are the parallelism: BLAS's own threads would only spin beside them
+        with _BLAS_LIMIT, threadpool_limits(limits=1, user_api="blas"):
+            in_threads(run, len(parts), nthreads)
     notes: list[str] = []
     if blocks.nblocks < MIN_BLOCKS:
         notes.append(
@@ -354,6 +364,9 @@ def total_uncertainty(
 
 #: Channels (antennas x pols x frequencies) per part of :func:`total_uncertainty`.
 PART_SYSTEMS = 1 << 16
+#: Held while BLAS is limited to one thread: the limit is process-wide, so two calls on
+#: different threads must not interleave their set and restore.
+_BLAS_LIMIT = threading.Lock()
 
 
 def _per_channel(value: Any, lead: tuple[int, ...]) -> bool:

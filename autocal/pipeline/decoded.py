@@ -17,7 +17,8 @@ integrations and metadata; only the payload bits of a NaN, a sample flagged as n
 may differ), so the flags and the solution do not depend on whether the
 cache was used (``tests/pipeline/test_decoded.py``). It holds 5 bytes per sample (1.03 GB
 for a whole HERA file of 350 antennas x 2 pols x 1536 channels x 192 integrations),
-against the 16 of the two float64 arrays the reader yields. Reads in reader processes or on
+against the 9 to 16 of the reader's float64 power and flags (and float64 sample counts
+when they are not one value). Reads in reader processes or on
 Dask never use it; nor does an observation larger than the budget (a night is streamed, file
 by file, as before).
 
@@ -87,7 +88,8 @@ def budget_bytes() -> int:
 def _compact(values: np.ndarray) -> np.ndarray | float:
     """Return ``values`` as one number, float32 or float64, whichever holds them exactly.
 
-    One number only when every value has the same bits (a ``-0.0`` among zeros is kept).
+    One number only when every value has the same bits (a ``-0.0`` among zeros is kept),
+    as a broadcast of one value (zero strides, the reader's uniform ``nsamples``) always is.
     A C-contiguous float64 array is tested in one compiled pass
     (:mod:`autocal.pipeline.compact_kernel`), others as numpy arrays, with the same result.
     """

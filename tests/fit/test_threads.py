@@ -38,3 +38,36 @@ def test_a_process_forked_after_the_kernels_can_run_them() -> None:
     child.start()
     child.join(120)
     assert child.exitcode == 0
+
+
+def test_a_call_inside_a_range_runs_inline_and_an_error_leaves_the_caller_unmarked() -> None:
+    """Nested calls run in the calling worker (no second pool on the same cores); a range
+    that raises reaches the caller, whose later calls still use a pool of threads."""
+    import threading
+
+    seen: list[set[str]] = []
+
+    def inner(lo: int, hi: int) -> None:
+        seen[-1].add(threading.current_thread().name)
+
+    def outer(lo: int, hi: int) -> None:
+        for _ in range(lo, hi):
+            seen.append({threading.current_thread().name})
+            in_threads(inner, 8, 2)
+
+    in_threads(outer, 4, 2)
+    assert len(seen) == 4 and all(len(names) == 1 for names in seen)  # inner: same thread
+
+    def failing(lo: int, hi: int) -> None:
+        raise RuntimeError("a range failed")
+
+    with pytest.raises(RuntimeError, match="a range failed"):
+        in_threads(failing, 4, 2)
+    names: set[str] = set()
+
+    def where(lo: int, hi: int) -> None:
+        names.add(threading.current_thread().name)
+        threading.Event().wait(0.01)
+
+    in_threads(where, 8, 2)  # from the main thread (never marked): a pool of two
+    assert threading.current_thread().name not in names and len(names) == 2

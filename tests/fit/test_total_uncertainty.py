@@ -144,28 +144,26 @@ def test_a_short_span_jackknife_factor_keeps_its_digits() -> None:
         np.testing.assert_allclose(other, factors[0], rtol=1e-4)
 
 
-@pytest.mark.parametrize("with_prior", [False, True])
+@pytest.mark.parametrize("prior_kind", [None, "per antenna", "shared"])
 def test_antennas_done_in_parts_on_threads_give_the_same_bits(
-    monkeypatch: pytest.MonkeyPatch, with_prior: bool
+    monkeypatch: pytest.MonkeyPatch, prior_kind: str | None
 ) -> None:
-    """The total uncertainty of 7 antennas done in parts of one to three antennas, on one
-    and two threads, equals the one done whole bit for bit: every array, the profile's grid
-    (from all channels) and the notes (an antenna whose gain cannot drift: counted once)."""
+    """The total uncertainty of 13 antennas done in parts of four or eight antennas, on
+    one and two threads, equals the one done whole bit for bit: every array, the profile's
+    grid (from all channels) and the notes (an antenna whose gain cannot drift: counted
+    once), with no prior, a prior per antenna (cut with the parts) and one shared by all.
+    Fewer parts than threads: one part."""
     import autocal.fit.total_uncertainty as tu
     from autocal.fit.priors import PriorTerm
 
     rng = np.random.default_rng(5)
-    nant, npol, nt = 7, 2, 64
+    nant, npol, nt = 13, 2, 64
     lsts = np.linspace(1.0, 9.0, nt)
     tsky = 250.0 * (1 + 0.5 * np.sin(lsts / 3.0))[:, None] * (FREQS / 150e6)[None, :] ** -2.5
     gains = rng.uniform(0.5, 2.0, (nant, npol, 1, 1))
     trxr = rng.uniform(100.0, 300.0, (nant, npol, 1, NF))
-    drift = (
-        1.0
-        + 0.02
-        * np.linspace(-1, 1, nt)[None, None, :, None]
-        * (rng.random(nant) < 0.5)[:, None, None, None]
-    )
+    drifting = (rng.random(nant) < 0.5)[:, None, None, None]
+    drift = 1.0 + 0.02 * np.linspace(-1, 1, nt)[None, None, :, None] * drifting
     data = noisy(gains * drift * (tsky[None, None] + trxr), rng, bt=1e5)
     data[3, 1, :, :5] = 0.0  # channels that solve to nothing
     flags = np.zeros(data.shape, bool)
@@ -175,21 +173,38 @@ def test_antennas_done_in_parts_on_threads_give_the_same_bits(
         model, data, tsky, lsts, block_edges(nt, 8), flags=flags, bandwidth_time=1e5
     )
     prior = None
-    if with_prior:
+    if prior_kind == "per antenna":
         prior = PriorTerm(trxr[:, :, 0], np.full((nant, npol, NF), 20.0), "inflate")
+    elif prior_kind == "shared":
+        prior = PriorTerm(np.full((1, npol, NF), 200.0), np.full(NF, 30.0), "inflate")
     sums = blocks.fitted_total()
     solved = solve_sums(
         sums if prior is None else prior(sums, *tu.mean_vectors(model, lsts)),
         scale_covariance="inflate",
     )
+    done: list[tuple[int, int]] = []
+    part = tu._total_part
+    monkeypatch.setattr(tu, "_total_part", lambda *a: done.append(a[-2:]) or part(*a))
     monkeypatch.setattr(tu, "PART_SYSTEMS", 1 << 30)
     whole = tu.total_uncertainty(blocks, solved, prior=prior, threads=1)
-    for per_part, threads in ((1, 1), (2, 2), (3, 2)):
-        monkeypatch.setattr(tu, "PART_SYSTEMS", per_part * npol * NF)
+    assert done == [(0, nant)]
+    for antennas, threads, want in (
+        (1, 1, [(0, 4), (4, 8), (8, 12), (12, 13)]),  # parts start at multiples of 4
+        (5, 2, [(0, 8), (8, 13)]),
+        (1, 8, [(0, nant)]),  # four parts for eight threads: one part
+    ):
+        monkeypatch.setattr(tu, "PART_SYSTEMS", antennas * npol * NF)
+        done.clear()
         parts = tu.total_uncertainty(blocks, solved, prior=prior, threads=threads)
+        assert sorted(done) == want
         for name in tu._Parts.__dataclass_fields__:
             np.testing.assert_array_equal(getattr(parts, name), getattr(whole, name), name)
         np.testing.assert_array_equal(parts.profile_trxr, whole.profile_trxr)
         assert parts.notes == whole.notes and parts.nblocks == whole.nblocks
+    if prior is not None:  # a prior that cannot be cut by antenna: one part
+        done.clear()
+        plain = tu.total_uncertainty(blocks, solved, prior=lambda *a: prior(*a), threads=1)
+        assert done == [(0, nant)]
+        np.testing.assert_array_equal(plain.cov, whole.cov)
     assert any("could not take one more time order" in n for n in whole.notes)
     assert np.isfinite(whole.cov).any() and np.isnan(whole.cov[3, 1, :5]).all()

@@ -236,3 +236,37 @@ def test_a_uniform_negative_or_nan_nsamples_is_still_refused(tmp_path):
             writer.write(0, obs.data, np.zeros(obs.shape, bool), np.full(obs.shape, value))
         with pytest.raises(ObservationError, match="nsamples must be finite and >= 0"):
             list(iter_uvh5_blocks(path))
+
+
+def test_one_value_chunks_fill_blocks_with_a_missing_row(tmp_path):
+    """A block that is not every antenna's row at every time (an antenna-time row
+    missing) takes one-value flags and nsamples through the scatter, as pyuvdata reads
+    them; the missing sample is flagged with no samples."""
+    from pyuvdata import UVData
+
+    obs = synthetic_observation(ntime=6)
+    path = tmp_path / "time.uvh5"
+    write_uvh5(obs, path)
+    uv = UVData.from_file(path)
+    uv.nsample_array[:] = 2.0
+    uv.flag_array[:] = False
+    keep = np.ones(uv.Nblts, bool)
+    keep[4] = False  # one antenna-time row missing (the second integration's)
+    uv.select(blt_inds=np.flatnonzero(keep))
+    odd = tmp_path / "missing.uvh5"
+    uv.write_uvh5(
+        str(odd), data_compression="gzip", flags_compression="gzip", nsample_compression="gzip"
+    )
+    stats = ReadStats()
+    blocks = list(iter_uvh5_blocks(odd, block_size=2, stats=stats))
+    assert stats.bytes_reused > 0  # the one-value chunks were used
+    assert [not any(b.nsamples.strides) for b in blocks] == [False, True, True]
+    whole = read_uvh5(odd)  # pyuvdata
+    for key in ("data", "flags", "nsamples"):
+        np.testing.assert_array_equal(
+            np.concatenate([getattr(b, key) for b in blocks], axis=2), getattr(whole, key)
+        )
+    nsamples = np.concatenate([b.nsamples for b in blocks], axis=2)
+    flags = np.concatenate([b.flags for b in blocks], axis=2)
+    assert (nsamples == 0).sum() == len(obs.pols) * obs.nfreq and flags[nsamples == 0].all()
+    assert set(np.unique(nsamples)) == {0.0, 2.0}
