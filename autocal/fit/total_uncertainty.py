@@ -89,7 +89,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any, Literal
 
 import numpy as np
@@ -323,7 +323,7 @@ def total_uncertainty(
     splittable = prior is None or callable(getattr(prior, "antennas", None))
     if len(parts) < nthreads or not splittable:
         parts = [(0, lead[0])]  # one part: its own kernels run on the threads
-    out = _Parts.empty(lead, grid.size)
+    out = _empty(lead, grid.size)
     unsolvable = np.zeros(len(parts), np.int64)
 
     def run(i0: int, i1: int) -> None:
@@ -355,7 +355,7 @@ def total_uncertainty(
             "(too few samples or a singular system): no drift term there"
         )
     return TotalUncertainty(
-        **{name: getattr(out, name) for name in _Parts.__dataclass_fields__},
+        **out,
         profile_trxr=grid,
         nblocks=blocks.nblocks,
         notes=tuple(notes),
@@ -374,37 +374,17 @@ def _per_channel(value: Any, lead: tuple[int, ...]) -> bool:
     return isinstance(value, np.ndarray) and value.shape[: len(lead)] == lead
 
 
-@dataclass(frozen=True, eq=False)
-class _Parts:
-    """The per-channel arrays of a :class:`TotalUncertainty`, filled part by part."""
+#: The arrays of a :class:`TotalUncertainty` that :func:`_total_part` fills, part by part.
+_PER_CHANNEL = tuple(
+    f.name for f in fields(TotalUncertainty) if f.name not in ("profile_trxr", "nblocks", "notes")
+)
 
-    cov: np.ndarray
-    jackknife_factor: np.ndarray
-    drift_weight: np.ndarray
-    G_drift: np.ndarray
-    n_drift: np.ndarray
-    sigma_G_drift: np.ndarray  # noqa: N815 - the physics symbol
-    G_halves: np.ndarray
-    sky_contrast: np.ndarray
-    corr_G_n: np.ndarray  # noqa: N815 - the physics symbol
-    drift_sensitivity: np.ndarray
-    profile_G: np.ndarray  # noqa: N815 - the physics symbol
 
-    @classmethod
-    def empty(cls, lead: tuple[int, ...], ngrid: int) -> _Parts:
-        """Return NaN arrays for ``lead = (Nant, Npol, Nfreq)`` and ``ngrid`` profile points."""
-        nant, npol, nfreq = lead
-
-        def nan(*shape: int) -> np.ndarray:
-            return np.full(shape, np.nan)
-
-        return cls(
-            nan(*lead, 2, 2),
-            *(nan(*lead) for _ in range(5)),
-            nan(2, *lead),
-            *(nan(*lead) for _ in range(3)),
-            nan(nant, npol, ngrid, nfreq),
-        )
+def _empty(lead: tuple[int, ...], ngrid: int) -> dict[str, np.ndarray]:
+    """Return NaN arrays for :data:`_PER_CHANNEL`, ``lead = (Nant, Npol, Nfreq)``."""
+    nant, npol, nfreq = lead
+    shapes = {"cov": (*lead, 2, 2), "G_halves": (2, *lead), "profile_G": (nant, npol, ngrid, nfreq)}
+    return {name: np.full(shapes.get(name, lead), np.nan) for name in _PER_CHANNEL}
 
 
 def _total_part(
@@ -412,7 +392,7 @@ def _total_part(
     solved: dict[str, np.ndarray],
     refits: _Refits,
     grid: np.ndarray,
-    out: _Parts,
+    out: dict[str, np.ndarray],
     lo: int,
     hi: int,
 ) -> int:
@@ -429,24 +409,24 @@ def _total_part(
     fjk = np.full(c0_ok.shape, np.nan)
     if blocks.nblocks >= MIN_BLOCKS:
         fjk = _jackknife_factor(blocks, fitted, solved, refits, c0_ok)
-        out.G_halves[:, sl] = _half_estimates(blocks, refits)
-    out.jackknife_factor[sl] = fjk
+        out["G_halves"][:, sl] = _half_estimates(blocks, refits)
+    out["jackknife_factor"][sl] = fjk
     # the model with one more time order (exact: the blocks hold its sums)
     drift = _drift_model(blocks, solved, refits, theta0, c0, c0_ok)
     w1, theta1, c1, good = drift.weight, drift.theta, drift.cov, drift.good
-    out.cov[sl] = _total_covariance(fjk, drift, theta0, c0, c0_ok)
+    out["cov"][sl] = _total_covariance(fjk, drift, theta0, c0, c0_ok)
     bad = ~c0_ok
-    out.drift_weight[sl] = np.where(bad, np.nan, w1)
-    out.G_drift[sl] = np.where(bad | ~good, np.nan, theta1[..., 0])
-    out.n_drift[sl] = np.where(bad | ~good, np.nan, theta1[..., 1])
-    out.sigma_G_drift[sl] = np.where(bad | ~good, np.nan, np.sqrt(np.abs(c1[..., 0, 0])))
-    out.sky_contrast[sl] = np.where(bad, np.nan, sky_contrast(fitted, model, theta0))
+    out["drift_weight"][sl] = np.where(bad, np.nan, w1)
+    out["G_drift"][sl] = np.where(bad | ~good, np.nan, theta1[..., 0])
+    out["n_drift"][sl] = np.where(bad | ~good, np.nan, theta1[..., 1])
+    out["sigma_G_drift"][sl] = np.where(bad | ~good, np.nan, np.sqrt(np.abs(c1[..., 0, 0])))
+    out["sky_contrast"][sl] = np.where(bad, np.nan, sky_contrast(fitted, model, theta0))
     with np.errstate(divide="ignore", invalid="ignore"):
         corr = c0[..., 0, 1] / np.sqrt(c0[..., 0, 0] * c0[..., 1, 1])
-    out.corr_G_n[sl] = np.where(bad, np.nan, corr)
+    out["corr_G_n"][sl] = np.where(bad, np.nan, corr)
     sens = drift_sensitivity(blocks.total(), model, theta0, refits.vg)
-    out.drift_sensitivity[sl] = np.where(bad, np.nan, sens)
-    out.profile_G[sl] = profile_gain(fitted, model, refits.vg, grid)
+    out["drift_sensitivity"][sl] = np.where(bad, np.nan, sens)
+    out["profile_G"][sl] = profile_gain(fitted, model, refits.vg, grid)
     return int((~good & c0_ok).sum())
 
 
