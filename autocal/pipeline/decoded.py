@@ -143,9 +143,40 @@ class _Block:
             **self.fields,
         )
 
+    def scan_chunk(self) -> ScanChunk:
+        """Return the block's power (as kept: float32 or float64) and flags, for a scan."""
+        data = self.data
+        if not isinstance(data, np.ndarray):
+            data = np.broadcast_to(np.float64(data), self.shape)
+        return ScanChunk(data, self.flags)
+
     @property
     def nbytes(self) -> int:
         return sum(int(getattr(a, "nbytes", 0)) for a in (self.data, self.flags, self.nsamples))
+
+
+@dataclass(frozen=True)
+class ScanChunk:
+    """A replayed block as the flagging's scans read it: its power and flags, no copy.
+
+    Attributes
+    ----------
+    data
+        ``(Nant, Npol, Ntime, Nfreq)`` the auto power as kept (float32 when that holds it
+        exactly, the reader's float64 values widened back give the same numbers), or one
+        value broadcast.
+    flags
+        ``(Nant, Npol, Ntime, Nfreq)`` the block's flags (its data's own and the
+        non-finite samples, as the reader yielded them).
+    """
+
+    data: np.ndarray
+    flags: np.ndarray
+
+    @property
+    def ntime(self) -> int:
+        """Integrations of the block."""
+        return int(self.data.shape[2])
 
 
 def _drain(queue: deque[_Block]) -> Iterator[_Block]:
@@ -195,12 +226,19 @@ class DecodedBlocks:
     last_read: bool = False
 
     def blocks(
-        self, key: tuple[Any, ...], read: Callable[[], Iterator[Observation]], stats: ReadStats
-    ) -> Iterator[Observation]:
+        self,
+        key: tuple[Any, ...],
+        read: Callable[[], Iterator[Observation]],
+        stats: ReadStats,
+        scan: bool = False,
+    ) -> Iterator[Observation | ScanChunk]:
         """Yield the read's blocks: replayed when kept, else read (and kept if they fit).
 
         After :meth:`final_read`, a kept read is replayed once, each block released as it
-        is yielded, and nothing new is kept.
+        is yielded, and nothing new is kept. With ``scan``, a replayed block is yielded as
+        a :class:`ScanChunk` (its power as kept, not widened to a new float64 array, and
+        no :class:`~autocal.core.observation.Observation` built): what the flagging's
+        scans read.
         """
         kept = self.reads.pop(key, None) if self.last_read else self.reads.get(key)
         if kept is not None:
@@ -214,7 +252,7 @@ class DecodedBlocks:
                         self.used -= block.nbytes
                     self.replayed += 1
                     stats.blocks_from_memory += 1
-                    yield block.observation()
+                    yield block.scan_chunk() if scan else block.observation()
             finally:  # left early on the last read: the rest is freed too
                 self.used -= sum(b.nbytes for b in queue or ())
             return
@@ -274,8 +312,14 @@ def keep_decoded(expected_bytes: int) -> Iterator[DecodedBlocks | None]:
 
 
 def cached_blocks(
-    key: tuple[Any, ...], read: Callable[[], Iterator[Observation]], stats: ReadStats
-) -> Iterator[Observation]:
-    """Return the read's blocks through the active cache, or ``read()`` without one."""
+    key: tuple[Any, ...],
+    read: Callable[[], Iterator[Observation]],
+    stats: ReadStats,
+    scan: bool = False,
+) -> Iterator[Observation | ScanChunk]:
+    """Return the read's blocks through the active cache, or ``read()`` without one.
+
+    With ``scan``, replayed blocks are :class:`ScanChunk` (:meth:`DecodedBlocks.blocks`).
+    """
     cache = _ACTIVE.get()
-    return read() if cache is None else cache.blocks(key, read, stats)
+    return read() if cache is None else cache.blocks(key, read, stats, scan)

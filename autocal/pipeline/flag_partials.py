@@ -98,7 +98,7 @@ def scan_file(spec: ScanSpec, task: FileTask) -> FileScan:
 def _file_blocks(spec: ScanSpec, task: FileTask, stats: ReadStats) -> Iterator[Any]:
     """Yield a file's blocks ``(offset in the file, data, flags)``, each used up in turn."""
     offset = 0
-    for chunk in read_chunks(spec.selection, spec.block_size, task, stats):
+    for chunk in read_chunks(spec.selection, spec.block_size, task, stats, scan=True):
         yield offset, chunk.data, chunk.flags
         offset += chunk.ntime
         del chunk

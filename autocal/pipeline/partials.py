@@ -26,7 +26,7 @@ from autocal.fit.sums import NormalSums, accumulate
 from autocal.io.uvh5_blocks import iter_uvh5_blocks
 from autocal.io.uvh5_chunks import ReadStats
 from autocal.pipeline.config import PipelineError
-from autocal.pipeline.decoded import cached_blocks
+from autocal.pipeline.decoded import ScanChunk, cached_blocks
 from autocal.pipeline.rfi import RfiMask
 
 #: Whether the block reader runs ahead of its caller in background threads
@@ -205,11 +205,14 @@ def read_chunks(
     block_size: int | None,
     task: FileTask,
     stats: ReadStats | None = None,
-) -> Iterator[Observation]:
+    scan: bool = False,
+) -> Iterator[Observation | ScanChunk]:
     """Return a task's data: its file block by block, or its in-memory observation at once.
 
     Inside :func:`autocal.pipeline.decoded.keep_decoded`, a file read before with the same
-    selection and block size is replayed from memory.
+    selection and block size is replayed from memory (with ``scan``, as
+    :class:`~autocal.pipeline.decoded.ScanChunk`: power and flags only, what the flagging's
+    scans read; every block has ``data``, ``flags`` and ``ntime``).
 
     Parameters
     ----------
@@ -240,7 +243,7 @@ def read_chunks(
         )
 
     key = (str(getattr(task.file, "path", task.file)), _canonical(selection), block_size)
-    return cached_blocks(key, read, stats)
+    return cached_blocks(key, read, stats, scan)
 
 
 def _canonical(selection: dict[str, Any]) -> str:

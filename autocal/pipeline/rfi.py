@@ -485,12 +485,7 @@ class LevelScan:
 
         self._start(data.shape[:2] + data.shape[3:])
         assert self.total is not None and self.count is not None
-        level_sums(
-            np.ascontiguousarray(data, dtype=np.float64),
-            np.ascontiguousarray(flags, dtype=bool),
-            self.total,
-            self.count,
-        )
+        level_sums(data, flags, self.total, self.count)
 
     def _start(self, shape: tuple[int, ...]) -> None:
         """Allocate the zero sums of ``(Nant, Npol, Nfreq)`` spectra (once)."""
@@ -657,7 +652,9 @@ class RfiScan:
         edge_samples = int(edge.sum()) * ntime
         channel_samples = int(channel.sum()) * ntime
         scattered = int(np.where(edge | channel, 0, self.sums.hits).sum())
-        time_samples = int((integrations[..., None] & ~(edge | channel)[:, :, None, :]).sum())
+        # integrations flagged whole x channels not flagged already, per antenna-pol
+        kept_channels = np.count_nonzero(~(edge | channel), axis=-1)
+        time_samples = int((np.count_nonzero(integrations, axis=-1) * kept_channels).sum())
         samples = {
             "band_edge": edge_samples,
             "rfi_frequency": channel_samples + scattered,

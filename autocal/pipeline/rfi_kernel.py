@@ -119,6 +119,7 @@ def spectrum_hits(
     nant, npol, ntime, nfreq = data.shape
     block = max(1, min(int(block), nfreq))
     lo, weight = trend_grid(nfreq, block)
+    runs = np.flatnonzero(np.diff(lo, prepend=-1, append=-1)).astype(np.int64)
     out = np.zeros(data.shape, dtype=np.bool_)
     scan = BlockScan(
         np.full((nant, npol, ntime), np.nan),
@@ -127,13 +128,12 @@ def spectrum_hits(
     )
     acc = ScanSums.zeros((nant, npol, nfreq)) if sums is None else sums
     args = (
-        np.ascontiguousarray(data, dtype=np.float64),
+        power_array(data),
         np.ascontiguousarray(flags, dtype=np.bool_),
         np.ascontiguousarray(inverse_level, dtype=np.float64),
         block,
         _network(block),
-        lo,
-        weight,
+        (lo, weight, runs),
         (float(nsig), float(nsig_adjacent), float(median_chi2)),
         out,
         (scan.band, scan.usable, scan.hit),
@@ -143,13 +143,25 @@ def spectrum_hits(
     return out, scan
 
 
+def power_array(data: np.ndarray) -> np.ndarray:
+    """Return ``data`` C-contiguous as float32 or float64 (as it is when it already is).
+
+    The kernels widen each value to float64 before any arithmetic, so float32 power (the
+    decoded blocks' compact form, :class:`autocal.pipeline.decoded.ScanChunk`) gives the
+    same flags and sums as the same values in float64, without a widened copy.
+    """
+    if data.dtype in (np.float32, np.float64):
+        return np.ascontiguousarray(data)
+    return np.ascontiguousarray(data, dtype=np.float64)
+
+
 def level_sums(data: np.ndarray, flags: np.ndarray, total: np.ndarray, count: np.ndarray) -> None:
     """Add each channel's usable samples (finite, positive, unflagged) and their number.
 
     ``data``, ``flags`` ``(Nant, Npol, Ntime, Nfreq)``; ``total``, ``count`` ``(Nant, Npol,
     Nfreq)``, in place; antenna-pols on threads (:func:`autocal.fit.threads.in_threads`).
     """
-    data = np.ascontiguousarray(data, dtype=np.float64)
+    data = power_array(data)
     flags = np.ascontiguousarray(flags, dtype=np.bool_)
     in_threads(
         lambda lo, hi: _level_sums(data, flags, total, count, lo, hi),
@@ -164,12 +176,16 @@ def _level_sums(data, flags, total, count, ap0, ap1):  # type: ignore[no-untyped
     for ap in range(ap0, ap1):
         a = ap // npol
         p = ap % npol
+        row_total = total[a, p]
+        row_count = count[a, p]
         for t in range(ntime):
-            for j in range(nfreq):
-                x = data[a, p, t, j]
-                if (not flags[a, p, t, j]) and x > 0.0 and x < np.inf:
-                    total[a, p, j] += x
-                    count[a, p, j] += 1
+            row = data[a, p, t]
+            flag_row = flags[a, p, t]
+            for j in range(nfreq):  # without branches: a value widened to float64 first
+                x = np.float64(row[j])
+                ok = (x > 0.0) & (x < np.inf) & (not flag_row[j])
+                row_total[j] += x if ok else 0.0
+                row_count[j] += ok
 
 
 def _network(block: int) -> np.ndarray:
@@ -204,44 +220,37 @@ def sorting_network(n: int) -> np.ndarray:
 
 
 @numba.njit(cache=True)
-def _beyond(d: float, width: float, nsig: float, absolute: bool) -> bool:
-    """Return whether the residual ``d`` is more than ``nsig`` widths (``|z|`` if absolute)."""
-    if width > 0.0:
-        z = d / width
-    elif d == 0.0:
-        z = 0.0
-    else:
-        z = np.inf if d > 0.0 else -np.inf
-    return (abs(z) if absolute else z) > nsig
-
-
-@numba.njit(cache=True)
 def _block_medians(ratio, usable, block, network):  # type: ignore[no-untyped-def]
     """Return the median of each ``block`` channels' usable samples, and which had any.
 
-    The blocks are laid side by side (``(block, Nblock)``, unusable samples +inf) and
-    sorted together by the comparator ``network``; the inner loop over blocks vectorises.
+    Each block's usable samples are packed at the top of its column of a ``(size, Nblock)``
+    buffer (padded with +inf to ``size``, the network's power of two) and all columns are
+    sorted together by the comparator ``network``: each comparator is one pass of min / max
+    over two rows, which vectorises.
     """
     nfreq = ratio.size
     nblock = (nfreq + block - 1) // block
     size = 1
     while size < block:
         size *= 2
-    buf = np.full((size, nblock), np.inf)
-    count = np.zeros(nblock, dtype=np.int64)
-    for j in range(nfreq):
-        if usable[j]:
-            b = j // block
-            buf[j - b * block, b] = ratio[j]
-            count[b] += 1
+    buf = np.empty((size, nblock))
+    count = np.empty(nblock, dtype=np.int64)
+    for b in range(nblock):
+        m = 0
+        for j in range(b * block, min(b * block + block, nfreq)):  # packed, no branch
+            buf[m, b] = ratio[j]
+            m += usable[j]
+        for i in range(m, size):
+            buf[i, b] = np.inf
+        count[b] = m
     for c in range(network.shape[0]):
-        i0 = network[c, 0]
-        i1 = network[c, 1]
+        low = buf[network[c, 0]]  # rows as 1-d views: the compiler sees two streams
+        high = buf[network[c, 1]]
         for b in range(nblock):
-            x = buf[i0, b]
-            y = buf[i1, b]
-            buf[i0, b] = x if x < y else y
-            buf[i1, b] = y if x < y else x
+            x = low[b]
+            y = high[b]
+            low[b] = min(x, y)
+            high[b] = max(x, y)
     med = np.empty(nblock)
     for b in range(nblock):
         m = count[b]
@@ -253,37 +262,51 @@ def _block_medians(ratio, usable, block, network):  # type: ignore[no-untyped-de
 def _kth_nonnegative(values, k, hist, scratch):  # type: ignore[no-untyped-def]
     """Return the ``k``-th smallest (0-based) of finite non-negative ``values``.
 
-    A radix select on the IEEE bits (which order non-negative doubles as integers): the
-    exponent, then the next 11 mantissa bits, then a sort of the few values left; three
-    linear passes instead of quickselect's data-dependent branches.
+    A radix select on the IEEE bits (which order non-negative doubles as integers): a
+    histogram of the exponents that occur, then of the next 8 mantissa bits of the values
+    with the chosen exponent (packed into ``scratch`` first), then a sort of the few values
+    left. Linear passes without data-dependent branches, instead of quickselect's.
     """
     bits = values.view(np.int64)  # sign bit 0: non-negative doubles order as integers
     n = values.size
-    hist[:] = 0
+    lo = bits[0] >> 52
+    hi = lo
     for i in range(n):
-        hist[bits[i] >> 52] += 1
+        e = bits[i] >> 52
+        lo = min(lo, e)
+        hi = max(hi, e)
+    hist[: hi - lo + 1] = 0
+    for i in range(n):
+        hist[(bits[i] >> 52) - lo] += 1
     acc = 0
     top = 0
     while acc + hist[top] <= k:
         acc += hist[top]
         top += 1
     k -= acc
-    hist[:] = 0
-    for i in range(n):  # without a branch: values of other exponents count in a spare slot
-        hist[((bits[i] >> 41) & 2047) if (bits[i] >> 52) == top else 2048] += 1
+    top += lo
+    m = 0
+    for i in range(n):  # the values with that exponent, packed without a branch
+        scratch[m] = values[i]
+        m += (bits[i] >> 52) == top
+    sub = scratch[:m]
+    sub_bits = sub.view(np.int64)
+    hist[:256] = 0
+    for i in range(m):
+        hist[(sub_bits[i] >> 44) & 255] += 1
     acc = 0
     mid = 0
     while acc + hist[mid] <= k:
         acc += hist[mid]
         mid += 1
     k -= acc
-    key = (top << 11) | mid
-    m = 0
-    for i in range(n):
-        if (bits[i] >> 41) == key:
-            scratch[m] = values[i]
-            m += 1
-    return np.sort(scratch[:m])[k]
+    c = 0
+    for i in range(m):  # packed again in place (c <= i)
+        v = sub[i]
+        keep = ((sub_bits[i] >> 44) & 255) == mid
+        sub[c] = v
+        c += keep
+    return np.sort(sub[:c])[k]
 
 
 @numba.njit(cache=True)
@@ -293,13 +316,19 @@ def _median_nonnegative(values, hist, scratch):  # type: ignore[no-untyped-def]
     lo = _kth_nonnegative(values, (n - 1) // 2, hist, scratch)
     if n % 2 == 1:
         return lo
+    # the upper middle: the least value above lo, on the bits (an integer min vectorises)
+    bits = values.view(np.int64)
+    lo_bits = np.array([lo]).view(np.int64)[0]
+    none = np.iinfo(np.int64).max
     below = 0  # values <= lo: if more than n // 2, the upper middle equals lo too
-    above = np.inf
-    for i in range(n):  # branch-free: the comparisons are coin flips
-        v = values[i]
-        below += v <= lo
-        above = min(above, v if v > lo else np.inf)
-    return lo if below > n // 2 else 0.5 * (lo + above)
+    above = none
+    for i in range(n):
+        b = bits[i]
+        below += b <= lo_bits
+        above = min(above, b if b > lo_bits else none)
+    if below > n // 2:
+        return lo
+    return 0.5 * (lo + np.array([above]).view(np.float64)[0])
 
 
 @numba.njit(cache=True)
@@ -318,19 +347,25 @@ def _filled(med, have):  # type: ignore[no-untyped-def]
 
 
 @numba.njit(cache=True)
-def _trend(med, lo, weight):  # type: ignore[no-untyped-def]
-    """Return the block medians interpolated (and extrapolated) linearly per channel."""
-    out = np.empty(lo.size)
-    for j in range(lo.size):
-        i = lo[j]
-        out[j] = med[i] * (1.0 - weight[j]) + med[min(i + 1, med.size - 1)] * weight[j]
-    return out
+def _subtract_trend(out, values, med, lo, weight, runs):  # type: ignore[no-untyped-def]
+    """Set ``out`` to ``values`` minus the block medians interpolated linearly per channel.
+
+    ``out`` may be ``values`` (in place). Channel ``j``'s trend is ``med[lo[j]] (1 -
+    weight[j]) + med[lo[j] + 1] weight[j]`` (:func:`autocal.pipeline.rfi.trend_grid`);
+    ``runs`` are the channels where ``lo`` changes (and ``Nfreq``), so the two medians of
+    a run are read once and its channels' loop vectorises.
+    """
+    last = med.size - 1
+    for r in range(runs.size - 1):
+        i = lo[runs[r]]
+        left = med[i]
+        right = med[min(i + 1, last)]
+        for j in range(runs[r], runs[r + 1]):
+            out[j] = values[j] - (left * (1.0 - weight[j]) + right * weight[j])
 
 
 @numba.njit(cache=True, nogil=True)
-def _kernel(
-    data, flags, inv, block, network, lo, weight, sig, out, per_time, per_channel, ap0, ap1
-):  # type: ignore[no-untyped-def]
+def _kernel(data, flags, inv, block, network, grid, sig, out, per_time, per_channel, ap0, ap1):  # type: ignore[no-untyped-def]
     """Flag every spectrum of ``data`` into ``out`` (see :func:`spectrum_hits`).
 
     Antenna-pols ``ap0`` to ``ap1 - 1``: threads take whole antenna-pols, so each one's
@@ -345,20 +380,31 @@ def _kernel(
         p = ap % npol
         ratio = np.empty(nfreq)
         usable = np.zeros(nfreq, dtype=np.bool_)
-        squares = np.empty(nfreq)
-        scratch = np.empty(nfreq)
-        hist = np.empty(2049, dtype=np.int32)
+        work = (  # resid, squares, scratch, histogram, index: reused spectrum after spectrum
+            np.empty(nfreq),
+            np.empty(nfreq),
+            np.empty(nfreq),
+            np.empty(2049, dtype=np.int32),
+            np.empty(nfreq, dtype=np.int64),
+        )
+        inv_row = inv[a, p]
+        usable_sum = f_usable[a, p]
+        hit_sum = f_hits[a, p]
+        clean_total = c_total[a, p]
+        clean_count = c_count[a, p]
         for t in range(ntime):
+            row = data[a, p, t]
+            flag_row = flags[a, p, t]
             count = 0
-            for j in range(nfreq):
-                r = data[a, p, t, j] * inv[a, p, j]
-                ok = (not flags[a, p, t, j]) and r > 0.0 and r < np.inf
+            for j in range(nfreq):  # without branches: the ratio of an unusable one is unread
+                r = row[j] * inv_row[j]
+                ok = (r > 0.0) & (r < np.inf) & (not flag_row[j])
                 usable[j] = ok
-                if ok:
-                    ratio[j] = r
-                    count += 1
-                    f_usable[a, p, j] += 1
+                ratio[j] = r
+                count += ok
+                usable_sum[j] += ok
             n_usable[a, p, t] = count
+            hit_row = out[a, p, t]
             if count >= 3:
                 band[a, p, t] = _flag_spectrum(
                     ratio,
@@ -366,61 +412,78 @@ def _kernel(
                     count,
                     block,
                     network,
-                    lo,
-                    weight,
+                    grid,
                     nsig,
                     nadj,
                     chi2,
-                    out[a, p, t],
-                    squares,
-                    scratch,
-                    hist,
+                    hit_row,
+                    work,
                 )
             hits = 0
             for j in range(nfreq):
-                if out[a, p, t, j]:
-                    hits += 1
-                    f_hits[a, p, j] += 1
-                elif usable[j]:
-                    c_total[a, p, j] += data[a, p, t, j]
-                    c_count[a, p, j] += 1
+                h = hit_row[j]
+                clean = usable[j] and not h
+                hits += h
+                hit_sum[j] += h
+                clean_total[j] += row[j] if clean else 0.0
+                clean_count[j] += clean
             n_hit[a, p, t] = hits
 
 
 @numba.njit(cache=True)
 def _flag_spectrum(
-    ratio, usable, count, block, network, lo, weight, nsig, nadj, chi2, out, squares, scratch, hist
+    ratio,
+    usable,
+    count,
+    block,
+    network,
+    grid,
+    nsig,
+    nadj,
+    chi2,
+    out,
+    work,
 ):  # type: ignore[no-untyped-def]
     """Flag one spectrum's ``ratio`` (to the time-mean spectrum) into ``out``.
 
     Returns the spectrum's band level: the median of its block medians.
     """
     nfreq = ratio.size
+    lo, weight, runs = grid
+    resid, squares, scratch, hist, index = work
     med, have = _block_medians(ratio, usable, block, network)
     level = np.median(med[have])
     # the trend, twice: block medians of a steep slope are as noisy as one sample, so
     # the medians of what the first trend leaves (flat within blocks) correct it
-    resid = ratio - _trend(_filled(med, have), lo, weight)
+    _subtract_trend(resid, ratio, _filled(med, have), lo, weight, runs)
     med2, _ = _block_medians(resid, usable, block, network)
-    resid -= _trend(_filled(med2, have), lo, weight)
+    _subtract_trend(resid, resid, _filled(med2, have), lo, weight, runs)
+    m = 0
+    for j in range(nfreq):  # the usable ones packed, without a branch
+        squares[m] = resid[j] * resid[j]
+        m += usable[j]
+    width = np.sqrt(_median_nonnegative(squares[:count], hist, scratch) / chi2)
+    # each residual in widths (+-inf for a zero width); the candidates (usable, |z| >
+    # nadj) packed into ``index``
+    z = scratch  # free again
     m = 0
     for j in range(nfreq):
-        if usable[j]:
-            squares[m] = resid[j] * resid[j]
-            m += 1
-    width = np.sqrt(_median_nonnegative(squares[:count], hist, scratch) / chi2)
-    # watershed: runs of |z| > nadj that hold a sample with z > nsig
-    j = 0
-    while j < nfreq:
-        if not (usable[j] and _beyond(resid[j], width, nadj, True)):
-            j += 1
-            continue
-        start = j
-        strong = False
-        while j < nfreq and usable[j] and _beyond(resid[j], width, nadj, True):
-            strong = strong or _beyond(resid[j], width, nsig, False)
-            j += 1
+        if width > 0.0:
+            z[j] = resid[j] / width
+        else:
+            z[j] = 0.0 if resid[j] == 0.0 else (np.inf if resid[j] > 0.0 else -np.inf)
+        index[m] = j
+        m += usable[j] & (abs(z[j]) > nadj)
+    # watershed: runs of adjacent candidates that hold a sample with z > nsig
+    i = 0
+    while i < m:
+        start = i
+        strong = z[index[i]] > nsig
+        while i + 1 < m and index[i + 1] == index[i] + 1:
+            i += 1
+            strong = strong or z[index[i]] > nsig
         if strong:
-            for k in range(start, j):
+            for k in range(index[start], index[i] + 1):
                 out[k] = True
+        i += 1
     return level

@@ -70,6 +70,14 @@ def test_replayed_blocks_are_the_blocks_read(data_root: Path) -> None:
     for want, got in zip(fresh, again, strict=True):
         for name, value in want.items():
             assert _equal(value, getattr(got, name)), name
+    # the flagging's scans replay power and flags only: the kept arrays, widened to the same
+    # values, no copy
+    scans = list(cache.blocks(("k",), read, stats, scan=True))
+    assert [type(c) for c in scans] == [decoded.ScanChunk] * len(fresh)
+    for want, got, block in zip(fresh, scans, cache.reads[("k",)], strict=True):
+        assert got.data is block.data and got.flags is block.flags
+        assert np.array_equal(got.data.astype(np.float64), want["data"], equal_nan=True)
+        assert np.array_equal(got.flags, want["flags"]) and got.ntime == want["data"].shape[2]
     # float32 power (the stored complex64's real part), one number for uniform nsamples
     kept = cache.reads[("k",)][0]
     assert kept.data.dtype == np.float32 and isinstance(kept.nsamples, float)
@@ -112,6 +120,11 @@ def test_compact_forms_hold_the_values_exactly() -> None:
         back = decoded._full(decoded._compact(value), value.shape)
         assert back.dtype == np.float64
         np.testing.assert_array_equal(back.view(np.uint64), value.view(np.uint64))
+    # a block of one power value is scanned as that value broadcast
+    flags = np.zeros((1, 1, 2, 3), bool)
+    block = decoded._Block(7.5, flags, 1.0, flags.shape, {})
+    chunk = block.scan_chunk()
+    assert chunk.data.shape == flags.shape and (chunk.data == 7.5).all() and chunk.ntime == 2
 
 
 def _compact_numpy(values: np.ndarray) -> np.ndarray | float:

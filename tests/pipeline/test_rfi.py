@@ -122,6 +122,10 @@ def test_injected_spikes_and_a_burst_are_found_and_block_size_does_not_matter() 
     assert whole.integrations[0, 0].tolist() == [t == 25 for t in range(40)]
     assert whole.counts["rfi_integrations"] == 1
     assert whole.counts["samples"]["band_edge"] == int(whole.band_edge.sum()) * 40
+    # flagged whole in time: the burst's samples not already flagged in frequency, counted
+    # sample by sample from the mask
+    later = whole.integrations[..., None] & ~(whole.band_edge | whole.channels)[:, :, None, :]
+    assert whole.counts["samples"]["rfi_time"] == int(later.sum()) == int(inband.sum())
 
 
 def test_the_scans_kept_hits_are_the_flags_the_kernel_gives_again(monkeypatch) -> None:

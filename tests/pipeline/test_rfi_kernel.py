@@ -93,6 +93,24 @@ def test_the_kernel_gives_the_reference_flags_and_band_levels(nfreq: int, seed: 
     np.testing.assert_allclose(sums.clean_total, np.where(clean, data, 0).sum(axis=2), rtol=1e-12)
 
 
+def test_float32_power_gives_the_flags_and_sums_of_the_same_values_in_float64() -> None:
+    """The flagging's replayed blocks hand the kernels float32 power
+    (``autocal.pipeline.decoded.ScanChunk``): each value is widened before any arithmetic,
+    so the hits, band levels and every sum are those of the float64 array, bit for bit."""
+    data, flags, level = _awkward(1000, 4)
+    single = data.astype(np.float32)
+    results = []
+    for power in (single, single.astype(np.float64)):
+        sums = ScanSums.zeros((3, 2, 1000))
+        hits, scan = frequency_flags(power, flags, level, sums)
+        total, count = np.zeros((3, 2, 1000)), np.zeros((3, 2, 1000), np.int64)
+        level_sums(power, flags, total, count)
+        results.append((hits, scan.band, scan.usable, scan.hit, total, count, *vars(sums).values()))
+    assert results[0][0].any()
+    for got, want in zip(*results, strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
 def test_the_level_sums_add_finite_positive_unflagged_samples() -> None:
     data, flags, _ = _awkward(100, 5)
     total, count = np.zeros((3, 2, 100)), np.zeros((3, 2, 100), np.int64)
