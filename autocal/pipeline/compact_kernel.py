@@ -56,9 +56,7 @@ def _kernel(flat, bits, out, same, exact, r0, r1):  # type: ignore[no-untyped-de
             v = flat[i]
             s = np.float32(v)
             out[i] = s
-            if bits[i] != first:
-                all_same = False
-            if np.float64(s) != v and v == v:  # a NaN's float32 is a NaN
-                all_exact = False
+            all_same &= bits[i] == first  # without branches: the loop vectorises
+            all_exact &= (np.float64(s) == v) | (v != v)  # a NaN's float32 is a NaN
         same[r] = all_same
         exact[r] = all_exact
