@@ -108,14 +108,32 @@ def robust_zscores(values: np.ndarray, half_width: int) -> np.ndarray:
     k = max(1, min(int(half_width), (n - 1) // 2))
     if n < 3:
         return np.zeros_like(values)
-    footprint = np.ones((1,) * (values.ndim - 1) + (2 * k + 1,), dtype=bool)
-    footprint[..., k] = False
-    smooth = median_filter(values, footprint=footprint, mode="reflect")
+    smooth = _neighbour_medians(values, k)
     resid = values - smooth
-    width = np.sqrt(median_filter(resid**2, footprint=footprint, mode="reflect") / MEDIAN_CHI2_1)
+    width = np.sqrt(_neighbour_medians(resid**2, k) / MEDIAN_CHI2_1)
     with np.errstate(divide="ignore", invalid="ignore"):
         z = resid / width
     return np.where(width > 0, z, np.where(resid == 0, 0.0, np.inf))
+
+
+def _neighbour_medians(values: np.ndarray, k: int) -> np.ndarray:
+    """Return the median of the ``k`` neighbours each side along the last axis (reflected).
+
+    scipy's median filter, the rows shared out over threads (it releases the GIL; each row
+    is filtered on its own, so the result is the same).
+    """
+    from autocal.fit.threads import in_threads
+
+    footprint = np.ones((1, 2 * k + 1), dtype=bool)
+    footprint[0, k] = False
+    rows = values.reshape(-1, values.shape[-1])
+    out = np.empty_like(rows)
+
+    def part(lo: int, hi: int) -> None:
+        out[lo:hi] = median_filter(rows[lo:hi], footprint=footprint, mode="reflect")
+
+    in_threads(part, rows.shape[0])
+    return out.reshape(values.shape)
 
 
 def watershed(z: np.ndarray, nsig: float, nsig_adjacent: float) -> np.ndarray:

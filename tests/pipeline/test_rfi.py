@@ -57,6 +57,20 @@ def test_robust_zscores_have_unit_width_on_white_noise() -> None:
     assert np.mean(np.abs(z) > 5) < 1e-3
 
 
+@pytest.mark.parametrize("threads", ["1", "3"])
+def test_robust_zscores_on_threads_are_scipys_filter_of_the_whole(monkeypatch, threads) -> None:
+    """Rows shared out over threads give what one median filter of the whole array gives."""
+    from scipy.ndimage import median_filter
+
+    monkeypatch.setenv("AUTOCAL_FIT_THREADS", threads)
+    values = np.random.default_rng(3).random((5, 2, 40))
+    footprint = np.ones((1, 1, 17), bool)
+    footprint[..., 8] = False
+    resid = values - median_filter(values, footprint=footprint, mode="reflect")
+    width = np.sqrt(median_filter(resid**2, footprint=footprint, mode="reflect") / 0.456)
+    np.testing.assert_array_equal(robust_zscores(values, 8), resid / width)
+
+
 def test_watershed_grows_only_runs_touching_a_strong_sample() -> None:
     z = np.array([[0, 3, 7, -3, 0, 3, 3, 0, 6, 0, -8]], float)
     got = watershed(z, 5.0, 2.0)
