@@ -132,14 +132,20 @@ class _Block:
         }
         return cls(_compact(obs.data), obs.flags.copy(), _compact(obs.nsamples), obs.shape, rest)
 
-    def observation(self) -> Observation:
-        """Return the block as the reader yielded it."""
+    def observation(self, buffers: dict[str, np.ndarray] | None = None) -> Observation:
+        """Return the block as the reader yielded it.
+
+        With ``buffers``, its float64 arrays are written into the ones there of its shape
+        (made on first use): a read that replays block after block reuses them, as the
+        reader reuses its own (``reuse_buffers``), instead of mapping fresh memory (page
+        faults and zeroing) for every block.
+        """
         return Observation(
-            data=_full(self.data, self.shape),
+            data=_full(self.data, self.shape, buffers, "data"),
             flags=self.flags,
             nsamples=self.nsamples
             if isinstance(self.nsamples, float)
-            else _full(self.nsamples, self.shape),
+            else _full(self.nsamples, self.shape, buffers, "nsamples"),
             **self.fields,
         )
 
@@ -194,10 +200,23 @@ def _owned(value: Any) -> Any:
     return value
 
 
-def _full(value: np.ndarray | float, shape: tuple[int, ...]) -> np.ndarray:
-    if isinstance(value, np.ndarray):
-        return value.astype(np.float64)
-    return np.full(shape, value)
+def _full(
+    value: np.ndarray | float,
+    shape: tuple[int, ...],
+    buffers: dict[str, np.ndarray] | None = None,
+    name: str = "",
+) -> np.ndarray:
+    """Return a kept array (or one value) as a float64 array of ``shape``.
+
+    Into ``buffers[name]`` when it is given (made, or made again for another shape).
+    """
+    if buffers is None:
+        return value.astype(np.float64) if isinstance(value, np.ndarray) else np.full(shape, value)
+    out = buffers.get(name)
+    if out is None or out.shape != shape:
+        out = buffers[name] = np.empty(shape)
+    np.copyto(out, value)
+    return out
 
 
 @dataclass
@@ -235,7 +254,9 @@ class DecodedBlocks:
         """Yield the read's blocks: replayed when kept, else read (and kept if they fit).
 
         After :meth:`final_read`, a kept read is replayed once, each block released as it
-        is yielded, and nothing new is kept. With ``scan``, a replayed block is yielded as
+        is yielded, and nothing new is kept. A replayed block's float64 arrays are reused
+        for the next block (each block is used up before the next is asked for, as with
+        the reader's reused buffers). With ``scan``, a replayed block is yielded as
         a :class:`ScanChunk` (its power as kept, not widened to a new float64 array, and
         no :class:`~autocal.core.observation.Observation` built): what the flagging's
         scans read.
@@ -246,13 +267,14 @@ class DecodedBlocks:
             queue = deque(kept) if self.last_read else None
             if queue is not None:
                 kept.clear()  # the queue holds the only references
+            buffers: dict[str, np.ndarray] = {}  # reused block after block
             try:
                 for block in kept if queue is None else _drain(queue):
                     if queue is not None:
                         self.used -= block.nbytes
                     self.replayed += 1
                     stats.blocks_from_memory += 1
-                    yield block.scan_chunk() if scan else block.observation()
+                    yield block.scan_chunk() if scan else block.observation(buffers)
             finally:  # left early on the last read: the rest is freed too
                 self.used -= sum(b.nbytes for b in queue or ())
             return

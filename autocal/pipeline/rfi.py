@@ -172,7 +172,11 @@ def _quiet_nan() -> Iterator[None]:
 
 
 def frequency_flags(
-    data: np.ndarray, flags: np.ndarray, level: np.ndarray, sums: ScanSums | None = None
+    data: np.ndarray,
+    flags: np.ndarray,
+    level: np.ndarray,
+    sums: ScanSums | None = None,
+    level_inverse: np.ndarray | None = None,
 ) -> tuple[np.ndarray, BlockScan]:
     """Flag RFI along frequency in each spectrum of a block.
 
@@ -198,6 +202,8 @@ def frequency_flags(
         ``(Nant, Npol, Nfreq)`` time-mean auto-correlations (:class:`LevelScan`).
     sums
         Per-channel sums over integrations to add the block to (the scan's), or ``None``.
+    level_inverse
+        ``_inverse(level)`` when the caller keeps it for its blocks, else ``None``.
 
     Returns
     -------
@@ -210,7 +216,8 @@ def frequency_flags(
     """
     from autocal.pipeline.rfi_kernel import spectrum_hits  # numba: only when flagging
 
-    level_inverse = _inverse(level)
+    if level_inverse is None:
+        level_inverse = _inverse(level)
     return spectrum_hits(
         data, flags, level_inverse, BLOCK, NSIG, NSIG_ADJACENT, MEDIAN_CHI2_1, sums
     )
@@ -559,6 +566,7 @@ class RfiScan:
     prior_flagged: int = 0
     kept: dict[tuple[int, tuple[int, ...]], np.ndarray] = field(default_factory=dict)
     nkept: int = 0
+    level_inverse: np.ndarray | None = field(default=None, repr=False)
 
     def add(self, data: np.ndarray, flags: np.ndarray, offset: int) -> None:
         """Add one block ``(Nant, Npol, Ntime, Nfreq)`` starting at integration ``offset``."""
@@ -567,7 +575,9 @@ class RfiScan:
         assert self.band_median is not None
         assert self.hits_per_time is not None and self.usable_per_time is not None
         self.prior_flagged += int(np.count_nonzero(flags))
-        hits, scan = frequency_flags(data, flags, self.level, self.sums)
+        if self.level_inverse is None:  # once for all the blocks
+            self.level_inverse = _inverse(self.level)
+        hits, scan = frequency_flags(data, flags, self.level, self.sums, self.level_inverse)
         self._keep(hits, offset)
         window = slice(offset, offset + nt)
         self.band_median[:, :, window] = scan.band
