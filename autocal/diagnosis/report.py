@@ -74,9 +74,10 @@ class Diagnosis:
         ``unexplained["absorbed"]`` with their shares; neither named nor "detected".
     below_model_accuracy
         Effects seen through the data's structure that passed the test, are negligible for
-        the products and whose signal is below
-        :data:`~autocal.diagnosis.impact.FORWARD_MODEL_ACCURACY` of the data rms (the step's
-        ``signal_rms``): what autocal's own Tsky can be off by, which such a template fits
+        the products and whose signal is below the forward model's accuracy for the model
+        beam (:func:`~autocal.diagnosis.impact.forward_model_accuracy`, in
+        ``config["forward_model_accuracy"]``) of the data rms (the step's ``signal_rms``):
+        what autocal's own Tsky can be off by, which such a template fits
         as well as any instrument effect (clean days from an independent simulator had a
         gain drift "detected" at 3.6e-5-5.7e-5). Kept in the fit; neither named nor
         "detected".
@@ -221,7 +222,8 @@ def summary_text(diag: Diagnosis) -> str:
     if diag.below_model_accuracy:
         lines.append(
             "fitted, but below the forward model's accuracy (a signal under "
-            f"{FORWARD_MODEL_ACCURACY:g} of the data rms, which autocal's own Tsky can be off "
+            f"{diag.config.get('forward_model_accuracy', FORWARD_MODEL_ACCURACY):g} of the "
+            "data rms, which autocal's own Tsky can be off "
             "by; negligible for the products, not attributed): "
             + ", ".join(diag.below_model_accuracy)
         )

@@ -72,7 +72,7 @@ from autocal.diagnosis.extended_fit import ExtendedFit, fit_extended, radiometer
 from autocal.diagnosis.gap import ABSORBED_SHARE, describe_unexplained, gap_metrics
 from autocal.diagnosis.impact import (
     DATA_STRUCTURE_EFFECTS,
-    FORWARD_MODEL_ACCURACY,
+    forward_model_accuracy,
     product_impact,
     product_sigmas,
     signal_rms,
@@ -618,7 +618,9 @@ def _finish(ctx: SearchContext, state: SearchState) -> None:
     diag.final_fit = current
     diag.unexplained = describe_unexplained(current, state.obs, diag.final_gap)
     _absorb_into_remainder(diag)
-    _below_model_accuracy(diag, radiometer_total(state.obs))
+    floor = forward_model_accuracy(ctx.tpl.meta.get("tsky", {}).get("beam"))
+    diag.config["forward_model_accuracy"] = floor
+    _below_model_accuracy(diag, radiometer_total(state.obs), floor)
     diag.product_change = product_impact(
         ctx.base_fit,
         current,
@@ -687,12 +689,13 @@ def radiometer_total(obs: Observation) -> float:
     return total
 
 
-def _below_model_accuracy(diag: Diagnosis, radiometer: float) -> None:
+def _below_model_accuracy(diag: Diagnosis, radiometer: float, floor: float) -> None:
     """Move the negligible effects whose signal is below the forward model's accuracy.
 
     An effect seen through the data's structure (:data:`DATA_STRUCTURE_EFFECTS`) that is
     negligible for the products and whose Delta chi^2 corresponds to a signal below
-    :data:`FORWARD_MODEL_ACCURACY` of the data (:func:`signal_rms`) fits what autocal's
+    ``floor`` of the data (:func:`signal_rms`; the model beam's
+    :func:`~autocal.diagnosis.impact.forward_model_accuracy`) fits what autocal's
     own Tsky gets wrong as well as any instrument could: it goes to
     :attr:`~autocal.diagnosis.report.Diagnosis.below_model_accuracy` (its size under the
     step's ``signal_rms``), neither named nor "detected".
@@ -705,7 +708,7 @@ def _below_model_accuracy(diag: Diagnosis, radiometer: float) -> None:
             continue  # not the step whose effect the final model keeps
         size = signal_rms(float(st["delta"]), radiometer)
         st["signal_rms"] = size
-        if size < FORWARD_MODEL_ACCURACY:
+        if size < floor:
             diag.negligible.remove(name)
             diag.below_model_accuracy.append(name)
             st["below_model_accuracy"] = True

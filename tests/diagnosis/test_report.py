@@ -216,7 +216,11 @@ def test_negligible_effects_below_the_model_accuracy_are_not_detections() -> Non
     """A negligible effect of the data's structure whose signal is under the forward model's
     accuracy is reported as such; above it, or one seen through the prior, stays "detected,
     negligible"; a named effect is never moved."""
-    from autocal.diagnosis.impact import FORWARD_MODEL_ACCURACY, signal_rms
+    from autocal.diagnosis.impact import (
+        FORWARD_MODEL_ACCURACY,
+        forward_model_accuracy,
+        signal_rms,
+    )
     from autocal.diagnosis.stepwise import _below_model_accuracy
 
     radiometer = 1e6 * 15456  # dnu dt = 1e6 over a clean day of one feed
@@ -235,22 +239,38 @@ def test_negligible_effects_below_the_model_accuracy_are_not_detections() -> Non
             ("noise_drift", 0.1 * FORWARD_MODEL_ACCURACY),
         )
     ]
-    diag = Diagnosis(
-        steps=steps,
-        effects=["noise_drift"],
-        negligible=["gain_drift", "timing_offset", "ground_temperature"],
-        initial_gap=gap,
-        final_gap=gap,
-    )
-    _below_model_accuracy(diag, radiometer)
+
+    def diagnosis() -> Diagnosis:
+        return Diagnosis(
+            steps=[dict(st) for st in steps],
+            effects=["noise_drift"],
+            negligible=["gain_drift", "timing_offset", "ground_temperature"],
+            initial_gap=gap,
+            final_gap=gap,
+        )
+
+    diag = diagnosis()
+    _below_model_accuracy(diag, radiometer, forward_model_accuracy({"beam": "gaussian_dipole"}))
     assert diag.below_model_accuracy == ["gain_drift"]
     assert diag.negligible == ["timing_offset", "ground_temperature"]
     assert diag.effects == ["noise_drift"]
-    assert steps[0]["signal_rms"] == pytest.approx(0.4 * FORWARD_MODEL_ACCURACY)
+    assert diag.steps[0]["signal_rms"] == pytest.approx(0.4 * FORWARD_MODEL_ACCURACY)
     assert signal_rms(delta_for(2e-4), radiometer) == pytest.approx(2e-4)
     text = summary_text(diag)
     assert "below the forward model's accuracy" in text and "4.0e-05 of the data rms" in text
     assert diag.to_dict()["below_model_accuracy"] == ["gain_drift"]
+    # through a beam read from a HEALPix file the floor is coarser (measured in
+    # tests/diagnosis/test_model_accuracy.py): a 3e-4 timing offset is below it, and the
+    # summary states the floor the run used
+    floor = forward_model_accuracy({"beam": "uvbeam_healpix", "file": "HERA_NF.beamfits"})
+    assert floor > 3.0 * FORWARD_MODEL_ACCURACY
+    coarse = diagnosis()
+    coarse.config["forward_model_accuracy"] = floor
+    _below_model_accuracy(coarse, radiometer, floor)
+    assert coarse.below_model_accuracy == ["gain_drift", "timing_offset"]
+    assert coarse.negligible == ["ground_temperature"]
+    assert f"under {floor:g} of the data rms" in summary_text(coarse)
+    assert forward_model_accuracy(None) == FORWARD_MODEL_ACCURACY
 
 
 def test_timing_offsets_and_tilts_beyond_their_templates_are_refused() -> None:
