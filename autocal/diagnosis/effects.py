@@ -42,7 +42,7 @@ import numpy as np
 from numpy.polynomial import legendre
 
 from autocal.errors import AutocalError
-from autocal.fit.model import FitModel
+from autocal.fit.model import FitModel, unwrap_lsts
 from autocal.sky.beam_base import Beam, BeamEvaluator
 from autocal.sky.beam_names import get_beam
 from autocal.sky.models import T_CMB, TiltedSky, get_sky
@@ -220,7 +220,7 @@ def sky_templates(
     beam_width_step: float | None = 0.2,
     nu0: float | None = None,
     timing: bool = True,
-    tilt: bool = False,
+    tilt: bool | None = None,
 ) -> SkyTemplates:
     """Compute the model Tsky and its effect templates (one FFT Tsky pass per beam).
 
@@ -257,7 +257,8 @@ def sky_templates(
         With ``timing``, also the frame-tilt templates (Tsky's derivatives in the sky's
         tilt about the equatorial x and y axes: 4 more Tsky computations per beam, each
         preparing a turned sky); worth it over spans long enough to tell a tilt from a
-        time offset (the diagnosis asks for them over :data:`DIURNAL_MIN_SPAN_H`).
+        time offset. ``None`` (default): when the LSTs span at least
+        :data:`DIURNAL_MIN_SPAN_H`, as ``autocal diagnose`` and the service have them.
 
     Returns
     -------
@@ -266,6 +267,8 @@ def sky_templates(
     """
     freqs = np.asarray(freqs, np.float64)
     lsts = np.asarray(lsts, np.float64)
+    if tilt is None:
+        tilt = float(np.ptp(unwrap_lsts(lsts))) >= DIURNAL_MIN_SPAN_H if lsts.size else False
     parts: dict[str, list[np.ndarray]] = {
         k: [] for k in ("tot", "gal", "cmb", "gnd", "bw", "dt", "tilt")
     }

@@ -55,7 +55,6 @@ from autocal.diagnosis.reading import read_observation
 from autocal.diagnosis.report import Diagnosis
 from autocal.diagnosis.stepwise import diagnose
 from autocal.diagnosis.trials import ALPHA, BIC_THRESHOLD
-from autocal.fit.model import unwrap_lsts
 from autocal.fit.priors import parse_trxr_prior
 from autocal.io.uvh5_integrity import input_integrity
 from autocal.pipeline.config import check_prior_spec, check_ranges
@@ -402,8 +401,7 @@ def _templates(
         pols=beam_pols,
         tgnd=config.tgnd_k,
         nside=config.nside,
-        epoch=epoch,
-        tilt=float(np.ptp(unwrap_lsts(obs.lsts))) >= effects.DIURNAL_MIN_SPAN_H,
+        epoch=epoch,  # the frame tilts by the span (sky_templates' default)
     )
 
 
