@@ -36,6 +36,10 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from autocal.diagnosis.impact import (  # noqa: E402
+    FORWARD_MODEL_ACCURACY,
+    FORWARD_MODEL_ACCURACY_BY_BEAM,
+)
 from tests import independent_effects as ie  # noqa: E402
 
 
@@ -258,8 +262,10 @@ def markdown(result: dict[str, Any]) -> str:
         "- fitted but part of the unexplained remainder (negligible, < 10 % of its excess "
         "chi2; not counted as detected): "
         + (", ".join(f"{x['case']}: {x['absorbed']}" for x in s.get("absorbed", [])) or "none"),
-        "- fitted but below the forward model's accuracy (negligible, a signal under 1e-4 of the "
-        "data rms; not counted as detected): "
+        "- fitted but below the forward model's accuracy (negligible, a signal under the "
+        f"model beam's floor of the data rms, {FORWARD_MODEL_ACCURACY:g} for the dipole and "
+        f"{FORWARD_MODEL_ACCURACY_BY_BEAM['uvbeam_healpix']:g} for the HERA beam file; not "
+        "counted as detected): "
         + (
             ", ".join(f"{x['case']}: {x['effects']}" for x in s.get("below_model_accuracy", []))
             or "none"

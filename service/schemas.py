@@ -547,8 +547,9 @@ class DiagnosisResults(BaseModel):
     below_model_accuracy: list[str] = Field(
         default_factory=list,
         description="effects fitted but below the forward model's accuracy (negligible for "
-        "G and Trxr, a signal under 1e-4 of the data rms, given in the step's "
-        "details.signal_rms): not attributed",
+        "G and Trxr, a signal under the model beam's floor of the data rms, in "
+        "config.forward_model_accuracy: 1e-4 for an analytic beam, 7e-4 for a HEALPix beam "
+        "file; the signal in the step's details.signal_rms): not attributed",
     )
     indistinguishable: dict[str, Any] | None = Field(
         None,

@@ -267,8 +267,9 @@ def sky_templates(
     """
     freqs = np.asarray(freqs, np.float64)
     lsts = np.asarray(lsts, np.float64)
-    if tilt is None:
-        tilt = float(np.ptp(unwrap_lsts(lsts))) >= DIURNAL_MIN_SPAN_H if lsts.size else False
+    if tilt is None:  # by the span (to within rounding: 6 h of LSTs may come out 5.99...)
+        span = float(np.ptp(unwrap_lsts(lsts))) if lsts.size else 0.0
+        tilt = span >= DIURNAL_MIN_SPAN_H - 1e-9
     parts: dict[str, list[np.ndarray]] = {
         k: [] for k in ("tot", "gal", "cmb", "gnd", "bw", "dt", "tilt")
     }

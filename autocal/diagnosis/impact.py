@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from typing import Any
 
@@ -69,14 +69,15 @@ FORWARD_MODEL_ACCURACY = 1e-4
 FORWARD_MODEL_ACCURACY_BY_BEAM: dict[str, float] = {"uvbeam_healpix": 7e-4}
 
 
-def forward_model_accuracy(beam: Any) -> float:
+def forward_model_accuracy(beam: Mapping[str, Any] | None) -> float:
     """Return the forward model's accuracy (relative data rms) for a model beam.
 
     Parameters
     ----------
     beam
         The beam's description (``Beam.describe()``, as in the Tsky's ``meta["beam"]``),
-        or ``None``.
+        or ``None``. A beam made from another (perturbed, widened) is judged by its
+        ``base``.
 
     Returns
     -------
@@ -84,12 +85,16 @@ def forward_model_accuracy(beam: Any) -> float:
         :data:`FORWARD_MODEL_ACCURACY_BY_BEAM` of its kind, else
         :data:`FORWARD_MODEL_ACCURACY`.
     """
-    kind = beam.get("beam") if isinstance(beam, dict) else None
-    return FORWARD_MODEL_ACCURACY_BY_BEAM.get(str(kind), FORWARD_MODEL_ACCURACY)
+    while isinstance(beam, Mapping):
+        kind = str(beam.get("beam"))
+        if kind in FORWARD_MODEL_ACCURACY_BY_BEAM:
+            return FORWARD_MODEL_ACCURACY_BY_BEAM[kind]
+        beam = beam.get("base")
+    return FORWARD_MODEL_ACCURACY
 
 
 #: The entries seen through the data's structure in time and frequency, to which
-#: :data:`FORWARD_MODEL_ACCURACY` applies. The time-constant Tsky entries (``sky_offset``,
+#: :func:`forward_model_accuracy` applies. The time-constant Tsky entries (``sky_offset``,
 #: ``sky_scale``, ``sky_spectral_index``, ``ground_temperature``, ``missing_cmb``) are seen
 #: through the receiver prior, and ``cable_reflection`` in the bandpass: not these; nor the
 #: per-antenna entries, whose signal :func:`signal_rms` would dilute over every antenna-pol

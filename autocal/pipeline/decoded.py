@@ -154,14 +154,21 @@ class _Block:
         data = self.data
         if not isinstance(data, np.ndarray):
             data = np.broadcast_to(np.float64(data), self.shape)
-        return ScanChunk(data, self.flags)
+        return ScanChunk(_read_only(data), _read_only(self.flags))
 
     @property
     def nbytes(self) -> int:
         return sum(int(getattr(a, "nbytes", 0)) for a in (self.data, self.flags, self.nsamples))
 
 
-@dataclass(frozen=True)
+def _read_only(values: np.ndarray) -> np.ndarray:
+    """Return a read-only view (the kept arrays are replayed again, to the fit)."""
+    view = values.view()
+    view.flags.writeable = False
+    return view
+
+
+@dataclass(frozen=True, eq=False)
 class ScanChunk:
     """A replayed block as the flagging's scans read it: its power and flags, no copy.
 
@@ -170,10 +177,10 @@ class ScanChunk:
     data
         ``(Nant, Npol, Ntime, Nfreq)`` the auto power as kept (float32 when that holds it
         exactly, the reader's float64 values widened back give the same numbers), or one
-        value broadcast.
+        value broadcast; a read-only view.
     flags
         ``(Nant, Npol, Ntime, Nfreq)`` the block's flags (its data's own and the
-        non-finite samples, as the reader yielded them).
+        non-finite samples, as the reader yielded them); a read-only view.
     """
 
     data: np.ndarray
@@ -260,6 +267,17 @@ class DecodedBlocks:
         a :class:`ScanChunk` (its power as kept, not widened to a new float64 array, and
         no :class:`~autocal.core.observation.Observation` built): what the flagging's
         scans read.
+
+        Parameters
+        ----------
+        key
+            The read (file, selection, block size).
+        read
+            Reads the blocks from the file.
+        stats
+            Read counters to add to.
+        scan
+            Yield replayed blocks as :class:`ScanChunk`.
         """
         kept = self.reads.pop(key, None) if self.last_read else self.reads.get(key)
         if kept is not None:
@@ -341,7 +359,16 @@ def cached_blocks(
 ) -> Iterator[Observation | ScanChunk]:
     """Return the read's blocks through the active cache, or ``read()`` without one.
 
-    With ``scan``, replayed blocks are :class:`ScanChunk` (:meth:`DecodedBlocks.blocks`).
+    Parameters
+    ----------
+    key, read, stats, scan
+        As :meth:`DecodedBlocks.blocks` (with ``scan``, replayed blocks are
+        :class:`ScanChunk`).
+
+    Returns
+    -------
+    Iterator
+        The blocks.
     """
     cache = _ACTIVE.get()
     return read() if cache is None else cache.blocks(key, read, stats, scan)

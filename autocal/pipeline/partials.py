@@ -224,6 +224,15 @@ def read_chunks(
         The file.
     stats
         Read counters to add to.
+    scan
+        Replay kept blocks as :class:`~autocal.pipeline.decoded.ScanChunk` (the flagging's
+        scans), not as :class:`~autocal.core.observation.Observation`.
+
+    Returns
+    -------
+    Iterator
+        The blocks, each used up before the next is asked for (the reader's buffers and a
+        replay's float64 buffers are reused).
     """
     if task.observation is not None:
         obs = task.observation

@@ -14,10 +14,11 @@ never needs a night in memory:
    divided by one robust width per spectrum (relative radiometer noise is the same in
    every channel), block by block as the data are read (:func:`frequency_flags`, a
    compiled kernel). Where hera_qm slides a 17-channel median filter, which cost ~190 s
-   per pass over one 350-antenna HERA file (2 x 10^8 samples), the kernel takes ~3.4 s on
-   two cores, and its width, from the whole spectrum rather than 16 neighbours, is not
-   itself noisy: on real HERA autos it finds 99 % of +1 % spikes where the sliding filter
-   found 91 % (``python scripts/rfi_injection.py``);
+   per pass over one 350-antenna HERA file (2 x 10^8 samples), the kernel takes ~3.8 s of
+   CPU, ~1.9 s on two cores (a py-spy profile of ``autocal calibrate`` on the
+   HERA-size file, one-off), and its width, from the whole spectrum rather than 16
+   neighbours, is not itself noisy: on real HERA autos it finds 99 % of +1 % spikes where
+   the sliding filter found 91 % (``python scripts/rfi_injection.py``);
 2. **RFI in time**, per antenna-pol: each spectrum's level relative to the time-mean
    spectrum (the median of its block medians: one number per integration, kept for the
    whole observation) is median-filtered along time (:data:`KT` integrations each side)
@@ -203,7 +204,8 @@ def frequency_flags(
     sums
         Per-channel sums over integrations to add the block to (the scan's), or ``None``.
     level_inverse
-        ``_inverse(level)`` when the caller keeps it for its blocks, else ``None``.
+        ``1 / level`` where the level is positive and finite, NaN elsewhere, when the
+        caller keeps it for its blocks (:class:`RfiScan` does), else ``None`` (made here).
 
     Returns
     -------
@@ -554,6 +556,10 @@ class RfiScan:
         the samples the frequency flags keep (:class:`~autocal.pipeline.rfi_kernel.ScanSums`).
     sky
         ``(Npol, Ntime)`` the model sky's band level (:func:`band_sky`), or ``None``.
+
+    The inverse of ``level`` that the blocks' scans divide by is kept between blocks (made
+    again if ``level`` is replaced) and left out when the scan is pickled (a file's scan
+    travels back from reader processes and Dask workers).
     """
 
     ntime: int
@@ -566,7 +572,11 @@ class RfiScan:
     prior_flagged: int = 0
     kept: dict[tuple[int, tuple[int, ...]], np.ndarray] = field(default_factory=dict)
     nkept: int = 0
-    level_inverse: np.ndarray | None = field(default=None, repr=False)
+    _inverse: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False)
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Return the state to pickle: without the kept inverse level (derived from it)."""
+        return {**self.__dict__, "_inverse": None}
 
     def add(self, data: np.ndarray, flags: np.ndarray, offset: int) -> None:
         """Add one block ``(Nant, Npol, Ntime, Nfreq)`` starting at integration ``offset``."""
@@ -575,9 +585,9 @@ class RfiScan:
         assert self.band_median is not None
         assert self.hits_per_time is not None and self.usable_per_time is not None
         self.prior_flagged += int(np.count_nonzero(flags))
-        if self.level_inverse is None:  # once for all the blocks
-            self.level_inverse = _inverse(self.level)
-        hits, scan = frequency_flags(data, flags, self.level, self.sums, self.level_inverse)
+        if self._inverse is None or self._inverse[0] is not self.level:  # once for the blocks
+            self._inverse = (self.level, _inverse(self.level))
+        hits, scan = frequency_flags(data, flags, self.level, self.sums, self._inverse[1])
         self._keep(hits, offset)
         window = slice(offset, offset + nt)
         self.band_median[:, :, window] = scan.band

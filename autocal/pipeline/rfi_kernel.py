@@ -3,12 +3,15 @@
 :func:`spectrum_hits` does what :func:`autocal.pipeline.rfi.frequency_flags` describes
 (ratio to the time-mean spectrum, block-median trend, one robust width per spectrum,
 watershed) in one loop per spectrum, so a 350-antenna HERA file (2 x 10^8 samples) is
-flagged in a few seconds instead of the ~14 s the same steps take as numpy array passes (and
+flagged in ~3.8 s of CPU (~29 us a spectrum of 1536 channels; 7.5 s before the loops below
+were made to vectorise) instead of the ~14 s the same steps take as numpy array passes (and
 the ~190 s of a sliding median filter); antenna-pols run on threads
-(:func:`autocal.fit.threads.in_threads`). This module imports numba:
-:mod:`autocal.pipeline.rfi` imports it only when it flags (the command line never loads it).
-The machine code is cached on disk (numba's ``cache=True``: beside this module, or numba's
-per-user cache directory when that is not writable).
+(:func:`autocal.fit.threads.in_threads`). Its loops have no data-dependent branches where
+that lets them vectorise: the blocks sorted as rows of a buffer, the usable samples and the
+outlier candidates packed by a conditional increment, the trend read run by run. This module
+imports numba: :mod:`autocal.pipeline.rfi` imports it only when it flags (the command line
+never loads it). The machine code is cached on disk (numba's ``cache=True``: beside this
+module, or numba's per-user cache directory when that is not writable).
 """
 
 from __future__ import annotations
@@ -262,6 +265,9 @@ def _block_medians(ratio, usable, block, network):  # type: ignore[no-untyped-de
 def _kth_nonnegative(values, k, hist, scratch):  # type: ignore[no-untyped-def]
     """Return the ``k``-th smallest (0-based) of finite non-negative ``values``.
 
+    ``values`` must not hold negative numbers, ``-0.0`` or NaN (the kernel's squares never
+    do): their sign bit would put the exponent outside ``hist``'s range.
+
     A radix select on the IEEE bits (which order non-negative doubles as integers): a
     histogram of the exponents that occur, then of the next 8 mantissa bits of the values
     with the chosen exponent (packed into ``scratch`` first), then a sort of the few values
@@ -384,7 +390,7 @@ def _kernel(data, flags, inv, block, network, grid, sig, out, per_time, per_chan
             np.empty(nfreq),
             np.empty(nfreq),
             np.empty(nfreq),
-            np.empty(2049, dtype=np.int32),
+            np.empty(2049, dtype=np.int32),  # >= the 2048 exponents of a double
             np.empty(nfreq, dtype=np.int64),
         )
         inv_row = inv[a, p]

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from autocal.core.coords import night_epoch
+from autocal.diagnosis.impact import FORWARD_MODEL_ACCURACY, forward_model_accuracy
 from autocal.diagnosis.report import Diagnosis, summary_text
 from autocal.diagnosis.stepwise import diagnose
 from autocal.simulate.mock import gain_profile
@@ -41,6 +42,10 @@ def test_clean_names_nothing(setup, prior):
     obs, tpl = setup
     diag = diagnose(hidden(obs, tpl.total), tpl, trxr_prior=prior, trxr_prior_sigma=PRIOR_SIGMA)
     assert diag.effects == []
+    # the floor of "below the forward model's accuracy" is the templates' beam's (a dipole)
+    assert tpl.meta["tsky"]["beam"]["beam"] == "gaussian_dipole"
+    assert diag.config["forward_model_accuracy"] == forward_model_accuracy(tpl.meta["tsky"]["beam"])
+    assert diag.to_dict()["config"]["forward_model_accuracy"] == FORWARD_MODEL_ACCURACY
     assert diag.final_gap["reduced_chi2"] < 1.1
     if prior is None:  # time-constant / pure-scale Tsky effects are absorbed by (G, n)
         for name in ("sky_offset", "ground_temperature", "missing_cmb", "sky_scale"):

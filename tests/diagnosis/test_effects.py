@@ -37,11 +37,13 @@ def test_frame_tilt_templates_follow_the_span_unless_asked(tmp_cache) -> None:
     freqs = np.linspace(120e6, 180e6, 3)
     kw = {"pols": ("ee",), "nside": 16, "epoch": 2458116.0, "beam_width_step": None}
     day = np.linspace(0.0, 23.0, 24)
-    wrapped = np.mod(np.linspace(20.0, 20.0 + DIURNAL_MIN_SPAN_H, 8), 24.0)
+    wrapped = np.mod(np.linspace(20.0, 21.0 + DIURNAL_MIN_SPAN_H, 8), 24.0)
+    exactly = np.linspace(1.0, 1.0 + DIURNAL_MIN_SPAN_H, 8)  # its ptp rounds below 6 h
     short = np.linspace(2.0, 2.0 + 0.9 * DIURNAL_MIN_SPAN_H, 8)
     sky = "gsm2008"
     assert sky_templates(sky, "dipole", HERA, freqs, day, **kw).frame_tilt.shape == (2, 1, 24, 3)
     assert sky_templates(sky, "dipole", HERA, freqs, wrapped, **kw).frame_tilt is not None
+    assert sky_templates(sky, "dipole", HERA, freqs, exactly, **kw).frame_tilt is not None
     assert sky_templates(sky, "dipole", HERA, freqs, short, **kw).frame_tilt is None
     assert sky_templates(sky, "dipole", HERA, freqs, day, tilt=False, **kw).frame_tilt is None
     forced = sky_templates(sky, "dipole", HERA, freqs, short, tilt=True, **kw)

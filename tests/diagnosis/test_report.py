@@ -70,8 +70,9 @@ def _two_pols(tpl: SkyTemplates) -> SkyTemplates:
     for name in ("beam_dwidth", "lst_derivative"):
         if getattr(tpl, name) is not None:
             fields[name] = np.repeat(getattr(tpl, name), 2, axis=0)
-    if tpl.beam_width_poly is not None:
-        fields["beam_width_poly"] = np.repeat(tpl.beam_width_poly, 2, axis=1)
+    for name in ("beam_width_poly", "frame_tilt"):  # (K or 2, Npol, Ntime, Nfreq)
+        if getattr(tpl, name) is not None:
+            fields[name] = np.repeat(getattr(tpl, name), 2, axis=1)
     return dataclasses.replace(tpl, **fields)
 
 
@@ -271,6 +272,8 @@ def test_negligible_effects_below_the_model_accuracy_are_not_detections() -> Non
     assert coarse.negligible == ["ground_temperature"]
     assert f"under {floor:g} of the data rms" in summary_text(coarse)
     assert forward_model_accuracy(None) == FORWARD_MODEL_ACCURACY
+    widened = {"beam": "scaled", "factor": 1.1, "base": {"beam": "uvbeam_healpix"}}
+    assert forward_model_accuracy(widened) == floor  # judged by the beam it is made from
 
 
 def test_timing_offsets_and_tilts_beyond_their_templates_are_refused() -> None:

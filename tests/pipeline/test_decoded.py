@@ -75,12 +75,13 @@ def test_replayed_blocks_are_the_blocks_read(data_root: Path) -> None:
     assert first == again == len(fresh)
     # one float64 buffer for every full-size block, one more for a shorter last block
     assert len({id(a) for a in data_arrays}) <= 2 < len(fresh)
-    # the flagging's scans replay power and flags only: the kept arrays, widened to the same
-    # values, no copy
+    # the flagging's scans replay power and flags only: read-only views of the kept arrays,
+    # widened to the same values
     scans = list(cache.blocks(("k",), read, stats, scan=True))
     assert [type(c) for c in scans] == [decoded.ScanChunk] * len(fresh)
     for want, got, block in zip(fresh, scans, cache.reads[("k",)], strict=True):
-        assert got.data is block.data and got.flags is block.flags
+        assert got.data.base is block.data and got.flags.base is block.flags  # no copy
+        assert not got.data.flags.writeable and not got.flags.flags.writeable
         assert np.array_equal(got.data.astype(np.float64), want["data"], equal_nan=True)
         assert np.array_equal(got.flags, want["flags"]) and got.ntime == want["data"].shape[2]
     # float32 power (the stored complex64's real part), one number for uniform nsamples

@@ -142,6 +142,29 @@ def test_injected_spikes_and_a_burst_are_found_and_block_size_does_not_matter() 
     assert whole.counts["samples"]["rfi_time"] == int(later.sum()) == int(inband.sum())
 
 
+def test_the_scans_inverse_level_is_kept_between_blocks_not_pickled_nor_stale() -> None:
+    """The inverse level is made once for a scan's blocks, made again for a new level, and
+    not sent back with a file's scan from a reader process."""
+    import pickle
+
+    data = _bandpass()
+    flags = np.zeros(data.shape, bool)
+    levels = LevelScan()
+    levels.add(data, flags)
+    scan = RfiScan(40, levels.level())
+    scan.add(data[:, :, :20], flags[:, :, :20], 0)
+    kept = scan._inverse
+    scan.add(data[:, :, 20:], flags[:, :, 20:], 20)
+    assert kept is not None and scan._inverse is kept  # once for all the blocks
+    back = pickle.loads(pickle.dumps(scan))
+    assert back._inverse is None and np.array_equal(back.level, scan.level)
+    assert len(pickle.dumps(scan)) == len(pickle.dumps(back))  # the same state, no inverse
+    scan.level = 2 * scan.level
+    scan.add(data[:, :, :1], flags[:, :, :1], 0)
+    assert scan._inverse[0] is scan.level
+    np.testing.assert_array_equal(scan._inverse[1], 0.5 * kept[1])
+
+
 def test_the_scans_kept_hits_are_the_flags_the_kernel_gives_again(monkeypatch) -> None:
     """The fit's reads reuse the scan's frequency hits of each block; a block not kept (over
     the budget, another offset or shape, or a portable mask for Dask) is flagged again, with
