@@ -90,7 +90,11 @@ def test_wald_statistic_uses_the_full_covariance_block(setup):
             if getattr(tpl, name) is not None
         },
         lsts=tpl.lsts[keep],
-        beam_width_poly=None if tpl.beam_width_poly is None else tpl.beam_width_poly[:, :, keep],
+        **{  # (K or 2, Npol, Ntime, Nfreq)
+            name: getattr(tpl, name)[:, :, keep]
+            for name in ("beam_width_poly", "frame_tilt")
+            if getattr(tpl, name) is not None
+        },
     )
     drift = next(
         e
