@@ -377,7 +377,6 @@ def _kernel(data, flags, inv, block, network, grid, sig, out, per_time, per_chan
     Antenna-pols ``ap0`` to ``ap1 - 1``: threads take whole antenna-pols, so each one's
     per-channel sums have one writer.
     """
-    nsig, nadj, chi2 = sig
     band, n_usable, n_hit = per_time
     f_hits, f_usable, c_total, c_count = per_channel
     _, npol, ntime, nfreq = data.shape
@@ -413,17 +412,7 @@ def _kernel(data, flags, inv, block, network, grid, sig, out, per_time, per_chan
             hit_row = out[a, p, t]
             if count >= 3:
                 band[a, p, t] = _flag_spectrum(
-                    ratio,
-                    usable,
-                    count,
-                    block,
-                    network,
-                    grid,
-                    nsig,
-                    nadj,
-                    chi2,
-                    hit_row,
-                    work,
+                    ratio, usable, count, block, network, grid, sig, hit_row, work
                 )
             hits = 0
             for j in range(nfreq):
@@ -437,25 +426,14 @@ def _kernel(data, flags, inv, block, network, grid, sig, out, per_time, per_chan
 
 
 @numba.njit(cache=True)
-def _flag_spectrum(
-    ratio,
-    usable,
-    count,
-    block,
-    network,
-    grid,
-    nsig,
-    nadj,
-    chi2,
-    out,
-    work,
-):  # type: ignore[no-untyped-def]
+def _flag_spectrum(ratio, usable, count, block, network, grid, sig, out, work):  # type: ignore[no-untyped-def]
     """Flag one spectrum's ``ratio`` (to the time-mean spectrum) into ``out``.
 
     Returns the spectrum's band level: the median of its block medians.
     """
     nfreq = ratio.size
     lo, weight, runs = grid
+    nsig, nadj, chi2 = sig
     resid, squares, scratch, hist, index = work
     med, have = _block_medians(ratio, usable, block, network)
     level = np.median(med[have])
