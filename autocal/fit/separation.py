@@ -16,6 +16,7 @@ import numpy as np
 
 from autocal.fit.blocks import base_index
 from autocal.fit.centring import centre_rhs, sky_mean, uncentre
+from autocal.fit.finite import finite_trailing
 from autocal.fit.model import FitModel
 from autocal.fit.sums import NormalSums
 
@@ -65,7 +66,7 @@ def drift_sensitivity(
     new = np.array([nb, 2 * nb + 1])
     a = ext_sums.ata[..., idx[:, None], idx[None, :]]
     b = ext_sums.ata[..., idx[:, None], new[None, :]]
-    ok = np.all(np.isfinite(theta), axis=-1)
+    ok = finite_trailing(theta)
     rhs = b @ np.where(ok[..., None], theta, 0.0)[..., None] / 2.0  # (..., m, 1)
     eye = np.eye(a.shape[-1])
     # solved in the sky-centred frame, as the fit is (a short span's A is ill-conditioned)

@@ -42,6 +42,7 @@ from autocal.fit.centring import (
     uncentre,
     uncentre_cov,
 )
+from autocal.fit.finite import finite_trailing
 from autocal.fit.model import FitError
 from autocal.fit.sums import NormalSums
 
@@ -224,7 +225,7 @@ def _solve_block(
     diag = np.diagonal(centred, axis1=-2, axis2=-1)
     d = np.where(diag > 0, np.sqrt(np.where(diag > 0, diag, 1.0)), 1.0)
     scaled = centred / (d[..., :, None] * d[..., None, :])
-    ok = (reason == 0) & np.all(diag > 0, axis=-1) & np.all(np.isfinite(scaled), axis=(-2, -1))
+    ok = (reason == 0) & np.all(diag > 0, axis=-1) & finite_trailing(scaled, 2)
     reason[(reason == 0) & ~ok] = 2
     eye = np.eye(m)
     scaled = np.where(ok[..., None, None], scaled, eye)

@@ -105,6 +105,7 @@ from autocal.fit.blocks import (
     subtract_sums,
 )
 from autocal.fit.centring import centre, sky_mean
+from autocal.fit.finite import finite_trailing
 from autocal.fit.model import FitModel, mean_vectors
 from autocal.fit.separation import (
     WEAK_SENSITIVITY,
@@ -403,7 +404,7 @@ def _total_part(
     model = blocks.model
     fitted = blocks.fitted_total()
     theta0, c0 = refits.project(solved)
-    c0_ok = np.all(np.isfinite(c0), axis=(-2, -1))
+    c0_ok = finite_trailing(c0, 2)
     sl = slice(lo, hi)
     # delete-a-block jackknife of the fitted model, and its two halves
     fjk = np.full(c0_ok.shape, np.nan)
@@ -459,7 +460,7 @@ def _jackknife_factor(
 
     with np.errstate(invalid="ignore"):
         reps[..., 1] = minus_product_array(reps[..., 1], -c, reps[..., 0])
-    ok = np.all(np.isfinite(reps), axis=-1)  # (B, ...)
+    ok = finite_trailing(reps)  # (B, ...)
     nok = ok.sum(axis=0)
     # in place (the values of np.where(ok, reps, 0) and np.where(ok, reps - mean, 0); no
     # copies of the refits, 86 MB each for a HERA-size file)
@@ -479,7 +480,7 @@ def _jackknife_factor(
     einv = _inv2(np.where(np.isfinite(expected), expected, np.eye(2)))
     with np.errstate(divide="ignore", invalid="ignore"):
         fjk = np.einsum("...ij,...ji->...", einv, vjk) / 2.0 / scaling
-    good_e = np.all(np.isfinite(expected), axis=(-2, -1)) & (scaling > 0)
+    good_e = finite_trailing(expected, 2) & (scaling > 0)
     return np.where((nok >= MIN_BLOCKS) & c0_ok & good_e, fjk, np.nan)
 
 
@@ -549,8 +550,8 @@ def _drift_model(
     theta1, c1, logp1 = positive_gain(theta1, c1)
     logp0 = positive_gain(theta0, c0)[2]
     stat = stat + 2.0 * (logp1 - logp0)
-    good = np.isfinite(stat) & np.all(np.isfinite(theta1), axis=-1)
-    good &= np.all(np.isfinite(c1), axis=(-2, -1))
+    good = np.isfinite(stat) & finite_trailing(theta1)
+    good &= finite_trailing(c1, 2)
     # per channel, and for each antenna-pol as a whole (a drifting gain drifts at every
     # frequency; channels that cannot see it alone are told by the others)
     stat = np.where(good, stat, 0.0)
@@ -582,7 +583,7 @@ def _chi2_drop(
     embedded = np.zeros_like(ext_coeffs)
     embedded[..., base_index(model)] = coeffs
     dx = ext_coeffs - embedded
-    finite = np.all(np.isfinite(dx), axis=-1)
+    finite = finite_trailing(dx)
     return np.where(finite, quadratic_forms(np.where(finite[..., None], dx, 0.0), ext_ata), np.nan)
 
 
@@ -711,7 +712,7 @@ def expected_jackknife_numpy(
         for part in blocks.blocks:
             rest = centre(fitted.ata - part.ata + p, c)
             ab = centre(part.ata, c)
-            ok = np.all(np.isfinite(rest), axis=(-2, -1)) & (np.linalg.det(rest) != 0)
+            ok = finite_trailing(rest, 2) & (np.linalg.det(rest) != 0)
             inv = np.linalg.inv(np.where(ok[..., None, None], rest, eye))
             k = np.where(ok[..., None, None], inv, np.nan)
             y = proj @ k  # (..., 2, M)
