@@ -306,6 +306,19 @@ class _BlockReader:
         self.counted = self.raw.nread
         return arrays, rows
 
+    def _power_into(self, values: np.ndarray, out: np.ndarray) -> bool:
+        """Write a regular block's complex64 power into ``out`` in one compiled pass.
+
+        :func:`autocal.io.power_kernel.auto_power_into`; ``False`` (nothing to rely on in
+        ``out``) for other data types or when a same-feed value has an imaginary part:
+        :func:`_auto_power` does those.
+        """
+        if values.dtype != np.complex64 or not values.flags.c_contiguous:
+            return False
+        from autocal.io.power_kernel import auto_power_into  # numba
+
+        return auto_power_into(values, out, self.fidx, self.pidx, self.same_feed)
+
     def convert(self, iblock: int, stored: tuple[dict[str, np.ndarray], np.ndarray]) -> Observation:
         """Stage 2: the (Nant, Npol, Ntime, Nfreq) block as a checked Observation."""
         arrays, rows = stored
@@ -334,6 +347,8 @@ class _BlockReader:
             for key, fill in (("data", np.nan), ("flags", True), ("nsamples", 0.0)):
                 block[key].fill(fill)
         for key, arr in arrays.items():
+            if key == "data" and regular and self._power_into(arr, block["data"]):
+                continue
             if not self.fidx_all:
                 arr = arr[:, self.fidx]
             if not self.pidx_all:
