@@ -55,7 +55,6 @@ from autocal.pipeline.products import (
     SUMMARY_NAME,
     check_per_time_memory,
     comparison_summary,
-    import_product_modules,
     write_products,
 )
 from autocal.pipeline.quality import flag_quality
@@ -216,7 +215,6 @@ def _calibrate(
         shape = (nant, len(pols), source.freqs.size, source.lsts.size)
         constant = config.model == "constant" or config.order == 0
         check_per_time_memory(config.products, shape, constant=constant)
-        import_product_modules(config.products)  # in a thread, while the data are read
     epoch = night_epoch(source.jds, source.site.lon_deg)
     report(
         0.05, f"Tsky for {len(pols)} pol(s), {source.freqs.size} channels, {source.lsts.size} LSTs"

@@ -8,13 +8,10 @@ product set. :func:`write_solution_products` is also the writer of
 
 from __future__ import annotations
 
-import importlib
 import json
 import logging
 import os
 import shutil
-import sys
-import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -106,53 +103,6 @@ def check_per_time_memory(
             "calibration file per data file), or ask only for products=hdf5,png (every G(t) "
             "of the time model is in solution.h5)"
         )
-
-
-#: Modules the products import when they are written: product -> modules (in order).
-PRODUCT_MODULES: dict[str, tuple[str, ...]] = {
-    "calh5": ("autocal.io.calsol_write",),  # pyuvdata, astropy
-    "calfits": ("autocal.io.calsol_write",),
-    "png": ("matplotlib", "matplotlib.pyplot", "autocal.solution_plots"),
-}
-
-
-def import_product_modules(products: Sequence[str]) -> threading.Thread | None:
-    """Import the modules the products will need, in a thread started now.
-
-    The products import pyuvdata (calh5, calfits) and matplotlib (png) only when they are
-    written, so that a run that does not write them does not load them; imported by then,
-    they cost ~0.7 s of a HERA file's call (one-off runs). Imported in a thread from the
-    start of the run, they are ready when the products are written; a module that fails to
-    import is imported again by its product, which reports the error.
-
-    Parameters
-    ----------
-    products
-        The run's products.
-
-    Returns
-    -------
-    threading.Thread or None
-        The thread (a daemon), or ``None`` when nothing is left to import.
-    """
-    names = [m for p in products for m in PRODUCT_MODULES.get(p, ()) if m not in sys.modules]
-    if not names:
-        return None
-
-    def run() -> None:
-        for name in dict.fromkeys(names):
-            try:
-                if name == "matplotlib.pyplot":  # on the Agg backend, as the figures use it
-                    import matplotlib
-
-                    matplotlib.use("Agg")
-                importlib.import_module(name)
-            except Exception:  # the product's own import reports it
-                logger.debug("importing %s ahead of the products failed", name, exc_info=True)
-
-    thread = threading.Thread(target=run, name="autocal-imports", daemon=True)
-    thread.start()
-    return thread
 
 
 def write_solution_products(

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import logging
-import subprocess
-import sys
 import threading
 import time
 
@@ -74,24 +72,3 @@ def test_a_failure_in_either_part_leaves_no_product(tmp_path, monkeypatch, faili
         _small_run(tmp_path, ["hdf5", "png"])()
     assert drawn.is_set()  # the figures ended before the run did
     assert list(tmp_path.iterdir()) == []  # no product, no staging folder
-
-
-def test_the_product_modules_are_imported_ahead_only_for_their_products() -> None:
-    code = """
-import sys
-from autocal.pipeline.products import import_product_modules
-assert import_product_modules(["hdf5"]) is None
-assert "pyuvdata" not in sys.modules and "matplotlib" not in sys.modules
-thread = import_product_modules(["calh5", "hdf5", "png"])
-thread.join()
-import matplotlib
-assert "pyuvdata" in sys.modules and "autocal.solution_plots" in sys.modules
-assert matplotlib.get_backend().lower() == "agg"
-assert import_product_modules(["calh5", "png"]) is None  # nothing left to import
-print("ok")
-"""
-    done = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False
-    )
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.strip() == "ok"
