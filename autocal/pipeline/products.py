@@ -14,7 +14,6 @@ import os
 import shutil
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -263,39 +262,6 @@ def write_figures(
     plot_data_model(curves, path, title=title, total=total, core=core)
 
 
-def _write_files_and_figures(
-    solution: Solution,
-    run: PassesResult,
-    config: CalibrationConfig,
-    lsts: np.ndarray,
-    staging: Path,
-    stems: tuple[str, ...],
-) -> None:
-    """Write the solution files and, with ``png``, the figures beside them, at once.
-
-    The figures (matplotlib, one core) are drawn in a thread while this one writes the
-    solution files, whose compression runs in threads of its own (the calh5's chunks) or
-    in HDF5: 0.65 s less of a HERA file's ~4.6 s of default products (one-off runs). The
-    figures draw from the solution and the run's sums, which nothing changes meanwhile;
-    an error in either part is raised once both have ended.
-    """
-    files = [name for name in config.products if name != "png"]
-    if "png" not in config.products:
-        write_solution_products(solution, staging, files, stems=stems)
-        return
-
-    def draw() -> None:
-        write_solution_products(solution, staging, ["png"], stems=stems)
-        write_figures(solution, run, config, lsts, staging)
-
-    # leaving the block waits for the figures, also when the files failed: they end
-    # before the staging folder is removed
-    with ThreadPoolExecutor(1, thread_name_prefix="autocal-figures") as pool:
-        figures = pool.submit(draw)
-        write_solution_products(solution, staging, files, stems=stems)
-    figures.result()
-
-
 def write_products(
     config: CalibrationConfig,
     solution: Solution,
@@ -321,7 +287,9 @@ def write_products(
     names = {**PRODUCT_FILES, **FIGURE_FILES}
     try:
         stems = file_stems(config.inputs)
-        _write_files_and_figures(solution, run, config, lsts, staging, stems)
+        write_solution_products(solution, staging, config.products, stems=stems)
+        if "png" in config.products:
+            write_figures(solution, run, config, lsts, staging)
         if config.reference:
             from autocal.compare.comparison import compare
             from autocal.compare.report import write_comparison
