@@ -48,7 +48,8 @@ def auto_power_into(
     Raises
     ------
     ValueError
-        When the shapes do not match.
+        When ``values`` is not C-contiguous complex64, ``out`` not float64, the shapes do
+        not match or an index is out of range.
     """
     nant, npol, nt, nfreq = out.shape
     if (

@@ -270,3 +270,29 @@ def test_one_value_chunks_fill_blocks_with_a_missing_row(tmp_path):
     flags = np.concatenate([b.flags for b in blocks], axis=2)
     assert (nsamples == 0).sum() == len(obs.pols) * obs.nfreq and flags[nsamples == 0].all()
     assert set(np.unique(nsamples)) == {0.0, 2.0}
+
+
+@pytest.mark.parametrize("block_size", [2, None])
+def test_complex64_same_feed_imaginary_autos_are_their_modulus_as_pyuvdata_reads(
+    tmp_path, block_size
+):
+    """The compiled power (``autocal.io.power_kernel``) leaves a complex64 block with a
+    same-feed imaginary part to numpy's modulus; the other blocks it writes itself; every
+    value as pyuvdata reads the file (``fix_autos``)."""
+    from pyuvdata import UVData
+
+    obs = synthetic_observation(ntime=6)
+    write_uvh5(obs, tmp_path / "c16.uvh5")
+    path = tmp_path / "imag.uvh5"
+    UVData.from_file(tmp_path / "c16.uvh5").write_uvh5(str(path), data_write_dtype="c8")
+    with h5py.File(path, "r+") as h5:
+        vis = h5["Data/visdata"]
+        assert vis.dtype == np.complex64
+        values = vis[()]
+        values[3, 2, 0] += 3e5j  # a same-feed auto in the second integration
+        vis[...] = values
+    blocks = list(iter_uvh5_blocks(path, block_size=block_size))
+    got = np.concatenate([b.data for b in blocks], axis=2)
+    expected = read_uvh5(path).data
+    np.testing.assert_array_equal(got, expected)
+    assert np.count_nonzero(got != obs.data.astype(np.float32)) == 1  # its modulus
