@@ -27,7 +27,14 @@ def finite_trailing(values: np.ndarray, ndim: int = 1) -> np.ndarray:
     -------
     numpy.ndarray
         Boolean array of ``values.shape[:-ndim]``.
+
+    Raises
+    ------
+    ValueError
+        When ``ndim`` is not between 1 and ``values.ndim``.
     """
+    if not 1 <= ndim <= values.ndim:
+        raise ValueError(f"{ndim} trailing dimensions of a {values.ndim}-d array")
     lead = values.shape[: values.ndim - ndim]
     flat = values.reshape(*lead, int(np.prod(values.shape[values.ndim - ndim :])))
     if flat.shape[-1] == 0:

@@ -23,3 +23,8 @@ def test_finite_trailing_is_numpys_all_of_isfinite(shape: tuple[int, ...], ndim:
     np.testing.assert_array_equal(got, expected)
     if expected.size > 4:  # elements that pass and elements that fail: the test can tell
         assert expected.any() and not expected.all()
+
+
+def test_more_trailing_dimensions_than_the_array_has_are_refused() -> None:
+    with pytest.raises(ValueError, match="3 trailing dimensions of a 2-d array"):
+        finite_trailing(np.zeros((2, 2)), 3)
