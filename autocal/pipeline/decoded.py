@@ -8,15 +8,17 @@ keeps every block in a compact and lossless form and the later reads replay it:
 
 * the auto power as ``float32`` when every value is one (the autos are stored as
   ``complex64`` in UVH5, so their real part always is), else ``float64``;
-* the flags as they were yielded (the data's own flags and its non-finite samples);
+* the flags as they were yielded (the data's own flags and its non-finite samples), or
+  nothing when the block flags no sample (raw HERA files flag none);
 * ``nsamples`` as one number when uniform in the block (HERA's are), else ``float32`` or
   ``float64`` likewise.
 
 A replayed block is the block the reader yielded, bit for bit (same values, flags,
 integrations and metadata; only the payload bits of a NaN, a sample flagged as non-finite,
 may differ), so the flags and the solution do not depend on whether the
-cache was used (``tests/pipeline/test_decoded.py``). It holds 5 bytes per sample (1.03 GB
-for a whole HERA file of 350 antennas x 2 pols x 1536 channels x 192 integrations),
+cache was used (``tests/pipeline/test_decoded.py``). It holds at most 5 bytes per sample
+(1.03 GB for a whole HERA file of 350 antennas x 2 pols x 1536 channels x 192
+integrations; 4, 0.82 GB, when the file flags nothing),
 against the 9 to 16 of the reader's float64 power and flags (and float64 sample counts
 when they are not one value). Reads in reader processes or on
 Dask never use it; nor does an observation larger than the budget (a night is streamed, file
@@ -58,7 +60,7 @@ BUDGET_ENV = "AUTOCAL_DECODED_CACHE_GB"
 #: Default budget (GB): a whole HERA file (1.03 GB) with room for a smaller selection's
 #: overhead.
 DEFAULT_BUDGET_GB = 1.5
-#: Bytes a sample takes in the cache: float32 power and a flag.
+#: Bytes a sample takes in the cache at most: float32 power and a flag.
 BYTES_PER_SAMPLE = 5
 
 _BIG = ("data", "flags", "nsamples")
@@ -118,7 +120,7 @@ class _Block:
     """One block, compact: its big arrays and the rest of its fields."""
 
     data: np.ndarray | float
-    flags: np.ndarray
+    flags: np.ndarray | bool
     nsamples: np.ndarray | float
     shape: tuple[int, ...]
     fields: dict[str, Any]
@@ -130,7 +132,8 @@ class _Block:
             for f in dataclasses.fields(obs)
             if f.name not in _BIG
         }
-        return cls(_compact(obs.data), obs.flags.copy(), _compact(obs.nsamples), obs.shape, rest)
+        flags = obs.flags.copy() if obs.flags.any() else False  # raw files flag nothing
+        return cls(_compact(obs.data), flags, _compact(obs.nsamples), obs.shape, rest)
 
     def observation(self, buffers: dict[str, np.ndarray] | None = None) -> Observation:
         """Return the block as the reader yielded it.
@@ -142,19 +145,30 @@ class _Block:
         """
         return Observation(
             data=_full(self.data, self.shape, buffers, "data"),
-            flags=self.flags,
+            flags=self.flags if isinstance(self.flags, np.ndarray) else None,  # None: none
             nsamples=self.nsamples
             if isinstance(self.nsamples, float)
             else _full(self.nsamples, self.shape, buffers, "nsamples"),
             **self.fields,
         )
 
-    def scan_chunk(self) -> ScanChunk:
-        """Return the block's power (as kept: float32 or float64) and flags, for a scan."""
+    def scan_chunk(self, buffers: dict[str, np.ndarray] | None = None) -> ScanChunk:
+        """Return the block's power (as kept: float32 or float64) and flags, for a scan.
+
+        A block that flagged nothing gets an array of no flags, from ``buffers`` when given
+        (made once for the read's blocks of its shape).
+        """
         data = self.data
         if not isinstance(data, np.ndarray):
             data = np.broadcast_to(np.float64(data), self.shape)
-        return ScanChunk(_read_only(data), _read_only(self.flags))
+        flags = self.flags
+        if not isinstance(flags, np.ndarray):
+            flags = (buffers or {}).get("no_flags")
+            if flags is None or flags.shape != self.shape:
+                flags = np.zeros(self.shape, bool)
+                if buffers is not None:
+                    buffers["no_flags"] = flags
+        return ScanChunk(_read_only(data), _read_only(flags))
 
     @property
     def nbytes(self) -> int:
@@ -292,7 +306,7 @@ class DecodedBlocks:
                         self.used -= block.nbytes
                     self.replayed += 1
                     stats.blocks_from_memory += 1
-                    yield block.scan_chunk() if scan else block.observation(buffers)
+                    yield block.scan_chunk(buffers) if scan else block.observation(buffers)
             finally:  # left early on the last read: the rest is freed too
                 self.used -= sum(b.nbytes for b in queue or ())
             return
