@@ -16,9 +16,9 @@ keeps every block in a compact and lossless form and the later reads replay it:
 A replayed block is the block the reader yielded, bit for bit (same values, flags,
 integrations and metadata; only the payload bits of a NaN, a sample flagged as non-finite,
 may differ), so the flags and the solution do not depend on whether the
-cache was used (``tests/pipeline/test_decoded.py``). It holds at most 5 bytes per sample
-(1.03 GB for a whole HERA file of 350 antennas x 2 pols x 1536 channels x 192
-integrations; 4, 0.82 GB, when the file flags nothing),
+cache was used (``tests/pipeline/test_decoded.py``). For HERA data (float32 power, uniform
+``nsamples``) it holds 5 bytes per sample (1.03 GB for a whole HERA file of 350 antennas x 2
+pols x 1536 channels x 192 integrations; 4 bytes, 0.83 GB, when the file flags nothing),
 against the 9 to 16 of the reader's float64 power and flags (and float64 sample counts
 when they are not one value). Reads in reader processes or on
 Dask never use it; nor does an observation larger than the budget (a night is streamed, file
@@ -60,7 +60,8 @@ BUDGET_ENV = "AUTOCAL_DECODED_CACHE_GB"
 #: Default budget (GB): a whole HERA file (1.03 GB) with room for a smaller selection's
 #: overhead.
 DEFAULT_BUDGET_GB = 1.5
-#: Bytes a sample takes in the cache at most: float32 power and a flag.
+#: Bytes a sample takes in the cache for HERA data (float32 power and a flag): the estimate
+#: a read is kept on; a read that turns out larger is streamed, not kept.
 BYTES_PER_SAMPLE = 5
 
 _BIG = ("data", "flags", "nsamples")

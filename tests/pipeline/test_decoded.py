@@ -47,7 +47,7 @@ def _steady(doc: object) -> object:
 @pytest.mark.parametrize("file", [HERA_116[0], "hera/autos/zen.2458043.40141.xx.HH.XRAA.uvh5"])
 def test_replayed_blocks_are_the_blocks_read(data_root: Path, file: str) -> None:
     """Every field of every block replayed equals the reader's (reused buffers and all);
-    a file that flags nothing (JD 2458116) and one that flags 7 % of its samples."""
+    a file that flags nothing (JD 2458116) and one that flags 8 % of its autos."""
     path = data_root / file
 
     stats = ReadStats()
@@ -271,3 +271,32 @@ def test_the_last_read_releases_the_blocks_as_it_replays_them(data_root: Path) -
     decoded_before = stats.blocks
     assert len(list(cache.blocks(("k",), read, stats))) == len(first)  # decoded again
     assert stats.blocks == decoded_before + len(first) and cache.reads == {}
+
+
+def test_blocks_that_flag_nothing_beside_blocks_that_flag(tmp_path: Path) -> None:
+    """One read mixing a flagged block and unflagged ones: only the flagged block keeps an
+    array; the others replay no flags, the scans one zero array shared by same-shape blocks."""
+    from autocal.io.uvh5 import write_uvh5
+    from tests.io.test_uvh5 import synthetic_observation
+
+    obs = synthetic_observation(ntime=6)
+    flags = np.zeros(obs.shape, bool)
+    flags[1, 0, 0, 3] = True  # one sample of the first two-integration block
+    path = tmp_path / "mixed.uvh5"
+    write_uvh5(dataclasses.replace(obs, flags=flags), path)
+    stats = ReadStats()
+
+    def read() -> object:
+        return iter_uvh5_blocks(path, block_size=2, stats=stats)
+
+    want = [b.flags.copy() for b in iter_uvh5_blocks(path, block_size=2)]
+    cache = decoded.DecodedBlocks(budget=2**30)
+    assert sum(1 for _ in cache.blocks(("k",), read, stats)) == 3
+    kept = cache.reads[("k",)]
+    assert [isinstance(b.flags, np.ndarray) for b in kept] == [True, False, False]
+    scans = list(cache.blocks(("k",), read, stats, scan=True))
+    assert [np.array_equal(s.flags, w) for s, w in zip(scans, want, strict=True)] == [True] * 3
+    assert scans[1].flags.base is scans[2].flags.base is not None  # one zero array
+    replayed = [b.flags.copy() for b in cache.blocks(("k",), read, stats)]
+    assert all(np.array_equal(r, w) for r, w in zip(replayed, want, strict=True))
+    assert want[0].any() and not want[1].any() and not want[2].any()
