@@ -162,14 +162,17 @@ class _Block:
         data = self.data
         if not isinstance(data, np.ndarray):
             data = np.broadcast_to(np.float64(data), self.shape)
-        flags = self.flags
-        if not isinstance(flags, np.ndarray):
-            flags = (buffers or {}).get("no_flags")
-            if flags is None or flags.shape != self.shape:
-                flags = np.zeros(self.shape, bool)
-                if buffers is not None:
-                    buffers["no_flags"] = flags
+        flags = self.flags if isinstance(self.flags, np.ndarray) else self._no_flags(buffers)
         return ScanChunk(_read_only(data), _read_only(flags))
+
+    def _no_flags(self, buffers: dict[str, np.ndarray] | None) -> np.ndarray:
+        """Return an array of no flags of the block's shape (``buffers["no_flags"]``, reused)."""
+        zeros = (buffers or {}).get("no_flags")
+        if zeros is None or zeros.shape != self.shape:
+            zeros = np.zeros(self.shape, bool)
+            if buffers is not None:
+                buffers["no_flags"] = zeros
+        return zeros
 
     @property
     def nbytes(self) -> int:
