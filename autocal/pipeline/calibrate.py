@@ -68,6 +68,7 @@ from autocal.pipeline.sources import (
     open_source,
     tsky_per_pol,
 )
+from autocal.pipeline.stage_clock import StageClock
 from autocal.pipeline.systematics import alternative_solutions, block_trend
 
 logger = logging.getLogger(__name__)
@@ -202,11 +203,10 @@ def _calibrate(
     ``executor``: reader processes, Dask or ``None`` (this process).
     """
     report = _reporter(progress)
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
+    clock = StageClock()
     report(0.0, "scanning inputs")
     source = open_source(config) if observation is None else memory_source(observation, config)
-    timings["scan_s"] = time.perf_counter() - t0
+    clock.lap("scan_s", clock.started)
 
     pols = tuple(p.lower() for p in (config.pols or source.pols))
     prior = _read_prior(config, source, pols)  # read and checked before any work is done
@@ -219,20 +219,20 @@ def _calibrate(
     report(
         0.05, f"Tsky for {len(pols)} pol(s), {source.freqs.size} channels, {source.lsts.size} LSTs"
     )
-    t1 = time.perf_counter()
+    t1 = clock.now()
     tsky_all, tsky_meta = tsky_per_pol(config.sky, config, source, pols, epoch)
-    timings["tsky_s"] = time.perf_counter() - t1
+    clock.lap("tsky_s", t1)
 
     with _decoded_blocks(config, source, pols, executor) as decoded:  # reads after the first
-        t_flag = time.perf_counter()
+        t_flag = clock.now()
         mask, flagging = scan_flags(config, source, tsky_all, block_size, report, executor)
-        timings["flagging_s"] = time.perf_counter() - t_flag
+        clock.lap("flagging_s", t_flag)
         if decoded is not None and config.passes != 2:  # the fit's read is likely the last
             decoded.final_read()
         model = FitModel.for_lsts(
             source.lsts, config.model, 0 if config.model == "constant" else config.order
         )
-        t2 = time.perf_counter()
+        t2 = clock.now()
         run = sum_passes(
             config,
             source,
@@ -245,13 +245,13 @@ def _calibrate(
             block_size,
             mask,
         )
-        timings["fit_s"] = time.perf_counter() - t2
+        clock.lap("fit_s", t2)
 
     scaling = covariance_scaling(config.weights, config.inflate_errors)
     prior_fn = _prior_term(prior, source, run, pols, scaling)
-    t_solve = time.perf_counter()
+    t_solve = clock.now()
     solved, total = _solve(run, model, source, scaling, prior_fn, report)
-    timings["solve_s"] = time.perf_counter() - t_solve  # with the total uncertainty
+    clock.lap("solve_s", t_solve)  # with the total uncertainty
     mark_flag_reasons(solved, mask)
     provenance = _provenance(config, source, run, tsky_meta, epoch, total, prior)
     provenance["rfi_flagging"] = flagging
@@ -278,12 +278,12 @@ def _calibrate(
     # the block sums (0.8 GB for a HERA file) have given the total uncertainty and the
     # trend; the products need the waterfall only
     run = replace(run, blocks=None)
-    t3 = time.perf_counter()
+    t3 = clock.now()
     made: dict[str, dict[str, Any]] = {}
 
     def summary_of(staged: dict[str, str], products: dict[str, str]) -> dict[str, Any]:
-        timings["products_s"] = time.perf_counter() - t3
-        timings["total_s"] = time.perf_counter() - t0
+        clock.lap("products_s", t3)
+        clock.lap("total_s", clock.started)
         made["summary"] = {
             "solution": solution.describe(),
             "separation": separation_summary(solution),
@@ -293,7 +293,7 @@ def _calibrate(
             "config": config.model_dump(mode="json"),
             "provenance": provenance,
             "products": dict(products),
-            "timings_s": {k: round(v, 3) for k, v in timings.items()},
+            **clock.summary(),  # timings_s (wall) and cpu_s (this process's CPU)
             "execution": run.execution,
         }
         return made["summary"]
@@ -312,7 +312,7 @@ def _calibrate(
     logger.info("100% done")
     if progress is not None:
         progress(1.0, "done")
-    return CalibrationResult(solution, products, summary, timings)
+    return CalibrationResult(solution, products, summary, clock.wall)
 
 
 def _reporter(progress: Progress | None) -> Callable[[float, str], None]:

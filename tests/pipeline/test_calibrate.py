@@ -84,6 +84,9 @@ def test_streamed_pipeline_equals_in_memory_fit(night, tmp_path, model, order) -
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["solution"]["ntime"] == 72
     assert len(summary["provenance"]["inputs"]) == 3
+    stages = {"scan_s", "tsky_s", "flagging_s", "fit_s", "solve_s", "products_s", "total_s"}
+    assert set(summary["timings_s"]) == set(summary["cpu_s"]) == stages
+    assert summary["cpu_s"]["total_s"] >= summary["cpu_s"]["fit_s"] > 0
     for name in ("solution.png", "residuals.png"):
         assert (tmp_path / "out" / name).stat().st_size > 0
     if model == "legendre":
