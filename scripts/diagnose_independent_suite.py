@@ -228,7 +228,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"dnu dt = {st['dnu_dt']:g}). Exact = the named set equals the hidden set.",
         "",
         f"Generated {result['generated']} by `scripts/diagnose_independent_suite.py` "
-        f"({s['cases']} cases, {s['runtime_s']:.0f} s).",
+        f"({s['cases']} cases, {s['runtime_s']:.0f} s, suite seed "
+        f"{st.get('seed', ie.SUITE_SEED)}).",
         "",
         "## Summary",
         "",
@@ -262,10 +263,11 @@ def markdown(result: dict[str, Any]) -> str:
         "- fitted but part of the unexplained remainder (negligible, < 10 % of its excess "
         "chi2; not counted as detected): "
         + (", ".join(f"{x['case']}: {x['absorbed']}" for x in s.get("absorbed", [])) or "none"),
-        "- fitted but below the forward model's accuracy (negligible, a signal under the "
-        f"model beam's floor of the data rms, {FORWARD_MODEL_ACCURACY:g} for the dipole and "
-        f"{FORWARD_MODEL_ACCURACY_BY_BEAM['uvbeam_healpix']:g} for the HERA beam file; not "
-        "counted as detected): "
+        "- fitted but below the forward model's accuracy (a signal under the model beam's "
+        f"floor of the data rms, {FORWARD_MODEL_ACCURACY:g} for the dipole and "
+        f"{FORWARD_MODEL_ACCURACY_BY_BEAM['uvbeam_healpix']:g} for the HERA beam file; "
+        "negligible for the products, or a gain or noise drift or gain jitter whatever it "
+        "would change in them; not counted as detected): "
         + (
             ", ".join(f"{x['case']}: {x['effects']}" for x in s.get("below_model_accuracy", []))
             or "none"
@@ -401,8 +403,8 @@ def merge(paths: list[Path], out: Path) -> int:
     order = {c.name: i for i, c in enumerate(ie.suite_plan())}
     rows: dict[str, dict[str, Any]] = {}
     for run in runs:
-        for key in ("prior_sigma_k", "nside", "dnu_dt"):
-            if run["settings"][key] != runs[0]["settings"][key]:
+        for key in ("prior_sigma_k", "nside", "dnu_dt", "seed"):
+            if run["settings"].get(key) != runs[0]["settings"].get(key):
                 print(f"runs differ in {key}: not merged", file=sys.stderr)
                 return 2
         for row in run["cases"]:
@@ -451,6 +453,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--nside", type=int, default=64, help="template nside of the diagnosis")
     parser.add_argument(
+        "--seed",
+        type=int,
+        default=ie.SUITE_SEED,
+        help="suite seed: the cases' effect amplitudes and noise (default "
+        f"{ie.SUITE_SEED}, the suite's; another seed is a held-out realisation of the same plan)",
+    )
+    parser.add_argument(
         "--keep", action="store_true", help="keep data and diagnosis products in OUT/cases"
     )
     parser.add_argument("--list", action="store_true", help="list the cases and exit")
@@ -467,7 +476,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.merge:
         return merge(args.merge, args.out)
 
-    cases = select(ie.suite_plan(), args.only, args.cases)
+    cases = select(ie.suite_plan(args.seed), args.only, args.cases)
     if args.list:
         for c in cases:
             print(f"{c.name}: {c.span.name} {c.beam} {list(c.hidden) or 'clean'}")
@@ -506,6 +515,7 @@ def main(argv: list[str] | None = None) -> int:
             "prior": "true Trxr(nu) = 150 + 40 x + 20 x^2 K, x = (nu - 150 MHz) / 40 MHz, "
             "per-channel CSV, every case",
             "nside": args.nside,
+            "seed": args.seed,
             "dnu_dt": ie.DNU_DT,
             "spans": {k: v.__dict__ for k, v in ie.SPANS.items()},
             "selection": {"only": args.only, "cases": args.cases},

@@ -932,7 +932,11 @@ def run_case(
         "below_model_accuracy": list(doc.get("below_model_accuracy", [])),
         "indistinguishable": None
         if not doc.get("indistinguishable")
-        else {k: doc["indistinguishable"][k] for k in ("step", "candidates", "message")},
+        else {
+            k: doc["indistinguishable"][k]
+            for k in ("step", "candidates", "lead_sigma", "message")
+            if k in doc["indistinguishable"]
+        },
         **score_names(case.hidden, named, negligible, visible, matters),
         "unexplained": None
         if not unexplained

@@ -73,14 +73,15 @@ class Diagnosis:
         "detected" at 2 % of the remainder's excess each). Kept in the fit; listed under
         ``unexplained["absorbed"]`` with their shares; neither named nor "detected".
     below_model_accuracy
-        Effects seen through the data's structure that passed the test, are negligible for
-        the products and whose signal is below the forward model's accuracy for the model
-        beam (:func:`~autocal.diagnosis.impact.forward_model_accuracy`, in
+        Effects seen through the data's structure that passed the test and whose signal is
+        below the forward model's accuracy for the model beam
+        (:func:`~autocal.diagnosis.impact.forward_model_accuracy`, in
         ``config["forward_model_accuracy"]``) of the data rms (the step's ``signal_rms``):
         what autocal's own Tsky can be off by, which such a template fits
         as well as any instrument effect (clean days from an independent simulator had a
-        gain drift "detected" at 3.6e-5-5.7e-5). Kept in the fit; neither named nor
-        "detected".
+        gain drift "detected" at 3.6e-5-5.7e-5); negligible for the products, or a receiver
+        entry (:data:`~autocal.diagnosis.impact.RECEIVER_STRUCTURE_EFFECTS`) whatever it
+        would change in them. Kept in the fit; neither named nor "detected".
     indistinguishable
         ``None``, or the step at which the search stopped because an entry of the other
         domain (receiver against forward model, :func:`~autocal.diagnosis.rivals.domain`)
@@ -186,8 +187,8 @@ def summary_text(diag: Diagnosis) -> str:
             marks = " [negligible; part of the unexplained remainder]"
         if st.get("below_model_accuracy"):
             marks = (
-                f" [negligible; {st['signal_rms']:.1e} of the data rms, below the forward "
-                "model's accuracy]"
+                f" [{'negligible; ' if st.get('negligible') else ''}"
+                f"{st['signal_rms']:.1e} of the data rms, below the forward model's accuracy]"
             )
         if st.get("superseded_by"):
             marks += f" [superseded by {st['superseded_by']}]"
@@ -224,8 +225,11 @@ def summary_text(diag: Diagnosis) -> str:
             "fitted, but below the forward model's accuracy (a signal under "
             f"{diag.config.get('forward_model_accuracy', FORWARD_MODEL_ACCURACY):g} of the "
             "data rms, which autocal's own Tsky can be off "
-            "by; negligible for the products, not attributed): "
-            + ", ".join(diag.below_model_accuracy)
+            "by; not attributed, neither to the instrument nor to the model): "
+            + ", ".join(
+                name + ("" if _negligible_step(diag, name) else " (would move the products)")
+                for name in diag.below_model_accuracy
+            )
         )
     if diag.indistinguishable:
         lines.append(diag.indistinguishable["message"])
@@ -299,6 +303,14 @@ def _flagging_lines(diag: Diagnosis) -> list[str]:
                 "unflagged, not searched again"
             )
     return lines
+
+
+def _negligible_step(diag: Diagnosis, name: str) -> bool:
+    """Return whether the kept step of effect ``name`` was negligible for the products."""
+    for st in reversed(diag.steps):
+        if st["name"] == name and not st.get("dropped_in_backward_pass"):
+            return bool(st.get("negligible"))
+    return True
 
 
 def _impact_text(impact: dict[str, Any]) -> str:

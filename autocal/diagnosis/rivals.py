@@ -17,10 +17,14 @@ listed with it.
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any
+
+import numpy as np
 
 from autocal.diagnosis.consistency import check_trial
 from autocal.diagnosis.effects import Effect
+from autocal.diagnosis.extended_fit import ExtendedFit
 from autocal.diagnosis.impact import product_impact
 from autocal.diagnosis.search_state import SearchContext, SearchState
 from autocal.diagnosis.trials import ModelTrial, Trial
@@ -32,6 +36,13 @@ logger = logging.getLogger(__name__)
 #: On the independent simulator's suite the correct entries win by >= 9.1 and the two
 #: wrong ones that passed on clean data by 3.0 and 4.0 (docs/results/diagnose_independent).
 DECISIVE_MARGIN = 6.0
+
+#: How many standard deviations of its own noise the best's lead over an entry must be to
+#: be decisive (:func:`lead_sigma`): 2, Vuong's (1989, Econometrica 57, 307) test of two
+#: non-nested models at ~5 %. A lead of ``Delta BIC`` 7.9 between two entries that
+#: explained the same residual of a clean HERA-beam half hour (noise drift against a
+#: clock offset, each ~270) was 1.1 of its sigma: the data had not decided.
+LEAD_SIGMAS = 2.0
 
 #: Pairs of entries one of which is the other at fixed parameter values: ``missing_cmb``
 #: is ``sky_offset`` at ``T_offset = -+2.725 K`` (both ``f_above`` times a constant). The
@@ -76,11 +87,11 @@ def find_rivals(
     if not isinstance(best, ModelTrial):
         return []
     settings = ctx.settings
-    floor = best.statistic - DECISIVE_MARGIN
     out: list[ModelTrial] = []
     for trial in trials[trials.index(best) + 1 :]:
-        if trial.statistic < floor:
-            break
+        lead = best.statistic - trial.statistic
+        if lead > DECISIVE_MARGIN + LEAD_SIGMAS * _lead_sigma_bound(best, trial):
+            continue  # decisive whatever the two models' difference (the ranking's order)
         if not isinstance(trial, ModelTrial) or trial.effect.name == best.effect.name:
             continue
         if any(t.effect.name == trial.effect.name for t in out):
@@ -89,11 +100,85 @@ def find_rivals(
             continue
         if not trial.passes(settings.bic_threshold, settings.alpha):
             continue
+        if lead > DECISIVE_MARGIN and lead > LEAD_SIGMAS * lead_sigma(ctx, best, trial):
+            continue
         check = check_trial(ctx, state, trial)
         if check is not None and not check.consistent:
             continue
         out.append(trial)
     return out
+
+
+def _lead_sigma_bound(best: Trial, trial: Trial) -> float:
+    """Return an upper bound of :func:`lead_sigma` from the two statistics alone.
+
+    The two fits' changes of the model cannot differ by more than the sum of their sizes,
+    ``sqrt(Delta chi^2)`` each (whitened).
+    """
+    c = max(best.overdispersion, 1.0)
+    size = math.sqrt(max(best.delta_chi2, 0.0)) + math.sqrt(max(trial.delta_chi2, 0.0))
+    return 2.0 * size / math.sqrt(c)
+
+
+def lead_sigma(ctx: SearchContext, best: ModelTrial, trial: ModelTrial) -> float:
+    """Return the standard deviation, over the noise, of ``best``'s lead over ``trial``.
+
+    The two statistics are the same residual fitted by two models. With whitened data
+    ``r`` and the two fitted models ``m_a``, ``m_b``, the difference of their chi^2 is
+    ``|r - m_b|^2 - |r - m_a|^2``, whose variance over Gaussian noise is
+    ``4 |m_a - m_b|^2`` (Vuong 1989's variance of a log-likelihood ratio, summed over the
+    data and the receiver prior's rows); in the units of ``Delta BIC`` (``Delta chi^2 / c``)
+    its sigma is ``2 |m_a - m_b| / sqrt(c)``. Two entries that reduce to nearly the same
+    change of the model have a small sigma and a small lead is decisive between them; two
+    that explain the same residual by different changes have a large one.
+
+    Parameters
+    ----------
+    ctx
+        The search's context (the receiver prior's rows).
+    best, trial
+        Two time-domain trials of one step (same data and weights).
+
+    Returns
+    -------
+    float
+        The sigma of ``best.statistic - trial.statistic``.
+    """
+    a, b = best.fit, trial.fit
+    total = 0.0
+    for (sl, ma), (_, mb) in zip(a.model_chunks(), b.model_chunks(), strict=True):
+        w = _weights_of_both(a, b, sl)
+        with np.errstate(invalid="ignore", over="ignore"):
+            total += float(np.sum(np.where(w > 0, w * (ma - mb) ** 2, 0.0)))
+    total += _prior_rows(ctx, a, b)
+    c = max(best.overdispersion, 1.0)
+    return 2.0 * math.sqrt(total / c)
+
+
+def _weights_of_both(a: ExtendedFit, b: ExtendedFit, sl: slice) -> np.ndarray:
+    """Weights of antennas ``sl`` where both fits have a channel solution."""
+    assert a.source is not None and b.source is not None
+    w = a.source.weights_chunk(sl)
+    return np.where(b.source.chan_ok[sl][:, :, None, :], w, 0.0)
+
+
+def _prior_rows(ctx: SearchContext, a: ExtendedFit, b: ExtendedFit) -> float:
+    """``sum (prior residual of a - that of b)^2`` over the receiver prior's rows.
+
+    A row is ``(n - Trxr0 G) / (G_ref sigma)`` per channel
+    (:class:`~autocal.diagnosis.normal_equations.FitProblem`), so the difference is
+    ``((n_a - n_b) - Trxr0 (G_a - G_b)) / (G_ref sigma)``.
+    """
+    kw = ctx.prior_kw
+    if kw.get("trxr_prior") is None or kw.get("gain_ref") is None:
+        return 0.0
+    shape = a.G.shape
+    t0 = np.broadcast_to(np.asarray(kw["trxr_prior"], float), shape)
+    sig = np.broadcast_to(np.asarray(kw.get("trxr_prior_sigma", 1.0), float), shape)
+    ref = np.abs(np.broadcast_to(np.asarray(kw["gain_ref"], float), shape))
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        row = ((a.n - b.n) - t0 * (a.G - b.G)) / (ref * sig)
+    return float(np.sum(np.where(np.isfinite(row), row * row, 0.0)))
 
 
 def indistinguishable_record(
@@ -105,7 +190,9 @@ def indistinguishable_record(
     -------
     dict
         ``step`` (1-based), ``candidates`` (``{name: Delta BIC}``, best first),
-        ``margin`` (:data:`DECISIVE_MARGIN`), ``product_impact`` (``{name: what the
+        ``margin`` (:data:`DECISIVE_MARGIN`), ``lead_sigma`` (``{rival: sigma of the best's
+        lead over it}``, :func:`lead_sigma`), ``lead_sigmas`` (:data:`LEAD_SIGMAS`),
+        ``product_impact`` (``{name: what the
         products would change by with that entry}``,
         :func:`~autocal.diagnosis.impact.product_impact`) and ``message``.
     """
@@ -118,15 +205,24 @@ def indistinguishable_record(
     def moved(name: str, q: str) -> float:
         return float(impacts[name].get(q, {}).get("median_change_over_sigma") or 0.0)
 
+    noise = {r.effect.name: lead_sigma(ctx, best, r) for r in rivals}
     listed = ", ".join(
-        f"{t.effect.name} (Delta BIC {t.statistic:.1f}; G {moved(t.effect.name, 'G'):.2g}, "
-        f"Trxr {moved(t.effect.name, 'Trxr'):.2g} sigma)"
+        f"{t.effect.name} (Delta BIC {t.statistic:.1f}"
+        + (f", the lead's sigma {noise[t.effect.name]:.2g}" if t is not best else "")
+        + f"; G {moved(t.effect.name, 'G'):.2g}, Trxr {moved(t.effect.name, 'Trxr'):.2g} sigma)"
         for t in entries
+    )
+    leads = ", ".join(
+        f"{(best.statistic - r.statistic) / noise[r.effect.name]:.2g}"
+        if noise[r.effect.name] > 0
+        else "-"
+        for r in rivals
     )
     message = (
         f"step {step + 1}: indistinguishable: a residual the model lacks, which {listed} "
-        f"explain about equally (within Delta BIC {DECISIVE_MARGIN:g} of the best, a Bayes "
-        "factor below 20); the data cannot say whether the receiver or the forward model "
+        f"explain about equally (the best leads by less than Delta BIC {DECISIVE_MARGIN:g}, "
+        f"a Bayes factor of 20, or by less than {LEAD_SIGMAS:g} sigma of its own noise: "
+        f"{leads} sigma); the data cannot say whether the receiver or the forward model "
         "is at fault, so none is named (the products' median-channel change with each in "
         "total sigma). A longer span, other LSTs or more antennas would tell them apart."
     )
@@ -136,6 +232,8 @@ def indistinguishable_record(
         "candidates": {t.effect.name: float(t.statistic) for t in entries},
         "delta_chi2": {t.effect.name: float(t.delta_chi2) for t in entries},
         "margin": DECISIVE_MARGIN,
+        "lead_sigma": {name: float(v) for name, v in noise.items()},
+        "lead_sigmas": LEAD_SIGMAS,
         "product_impact": impacts,
         "message": message,
     }

@@ -72,6 +72,7 @@ from autocal.diagnosis.extended_fit import ExtendedFit, fit_extended, radiometer
 from autocal.diagnosis.gap import ABSORBED_SHARE, describe_unexplained, gap_metrics
 from autocal.diagnosis.impact import (
     DATA_STRUCTURE_EFFECTS,
+    RECEIVER_STRUCTURE_EFFECTS,
     forward_model_accuracy,
     product_impact,
     product_sigmas,
@@ -690,25 +691,32 @@ def radiometer_total(obs: Observation) -> float:
 
 
 def _below_model_accuracy(diag: Diagnosis, radiometer: float, floor: float) -> None:
-    """Move the negligible effects whose signal is below the forward model's accuracy.
+    """Move the effects whose signal is below the forward model's accuracy.
 
-    An effect seen through the data's structure (:data:`DATA_STRUCTURE_EFFECTS`) that is
-    negligible for the products and whose Delta chi^2 corresponds to a signal below
-    ``floor`` of the data (:func:`signal_rms`; the model beam's
-    :func:`~autocal.diagnosis.impact.forward_model_accuracy`) fits what autocal's
-    own Tsky gets wrong as well as any instrument could: it goes to
+    An effect seen through the data's structure (:data:`DATA_STRUCTURE_EFFECTS`) whose Delta
+    chi^2 corresponds to a signal below ``floor`` of the data (:func:`signal_rms`; the model
+    beam's :func:`~autocal.diagnosis.impact.forward_model_accuracy`) fits what autocal's own
+    Tsky gets wrong as well as any instrument could: it goes to
     :attr:`~autocal.diagnosis.report.Diagnosis.below_model_accuracy` (its size under the
-    step's ``signal_rms``), neither named nor "detected".
+    step's ``signal_rms``), neither named nor "detected", when it is negligible for the
+    products, and for the receiver's entries (:data:`RECEIVER_STRUCTURE_EFFECTS`) whatever
+    it would change in them (its step keeps that change, ``product_impact``).
     """
     for st in diag.steps:
         name = st["name"]
-        if name not in DATA_STRUCTURE_EFFECTS or name not in diag.negligible:
+        if name not in DATA_STRUCTURE_EFFECTS:
+            continue
+        if name in diag.negligible:
+            listed = diag.negligible
+        elif name in diag.effects and name in RECEIVER_STRUCTURE_EFFECTS:
+            listed = diag.effects  # not blamed on the instrument, whatever the products
+        else:
             continue
         if st.get("dropped_in_backward_pass") or st.get("superseded_by"):
             continue  # not the step whose effect the final model keeps
         size = signal_rms(float(st["delta"]), radiometer)
         st["signal_rms"] = size
         if size < floor:
-            diag.negligible.remove(name)
+            listed.remove(name)
             diag.below_model_accuracy.append(name)
             st["below_model_accuracy"] = True

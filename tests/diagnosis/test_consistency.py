@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -168,3 +169,51 @@ def test_the_relative_escape_is_closed_without_a_whole_band_value() -> None:
     short = Effect("timing_offset", "tsky", ("dt_s",), ("s",))
     with pytest.raises(ValueError, match="units"):
         _relative_difference(short, np.zeros(3), np.ones(3), ok)
+
+
+def _half(name: str, values: list[float], cov: np.ndarray) -> SimpleNamespace:
+    """A half-band fit's parameters and covariance block (what the comparison reads)."""
+    return SimpleNamespace(
+        params={name: np.array(values)},
+        sigmas={name: np.sqrt(np.diag(cov))},
+        covariances={name: cov},
+    )
+
+
+def test_the_whole_band_lies_where_the_halves_combine() -> None:
+    """Disjoint halves combine by their information: one parameter, a weighted mean; two
+    correlated ones, the matrix-weighted combination ((0.0095, 0.0005) here, where the
+    component-wise means would say (0.005, 0.005)). A whole band far from it is refused."""
+    from autocal.diagnosis.consistency import _whole_against_halves
+    from autocal.diagnosis.effects import Effect
+
+    offset = Effect("sky_offset", "tsky", ("T_offset",), ("K",))
+    ok = np.ones(1, bool)
+    halves = [
+        _half("sky_offset", [-4.1], np.eye(1) * 1.9**2),
+        _half("sky_offset", [-4.2], np.eye(1) * 0.9**2),
+    ]
+    w = np.array([1 / 1.9**2, 1 / 0.9**2])
+    mean = (w[0] * -4.1 + w[1] * -4.2) / w.sum()
+    combined, departure, outside = _whole_against_halves(offset, halves, np.array([mean]), ok, 1.0)
+    assert combined[0] == pytest.approx(mean) and departure < 1e-12 and not outside
+    # the beam-width case of the held-out suite: +23.5 K from halves of -4.1 and -4.2 K
+    combined, departure, outside = _whole_against_halves(offset, halves, np.array([23.5]), ok, 1.0)
+    assert outside and departure == pytest.approx((23.5 - mean) / 23.5)
+    # a small departure (under CONSISTENCY_RELATIVE of the whole) is not refused, however
+    # significant: a real effect next to a slightly wrong model
+    near = mean * 1.2
+    assert not _whole_against_halves(offset, halves, np.array([near]), ok, 1.0)[2]
+
+    drift = Effect("gain_drift", "gain", ("d_sin", "d_cos"), ("", ""))
+    lo_cov = np.array([[1.0, 0.9], [0.9, 1.0]]) * 1e-6
+    hi_cov = np.array([[1.0, -0.9], [-0.9, 1.0]]) * 1e-6
+    lo, hi = np.array([0.010, 0.000]), np.array([0.000, 0.010])
+    info = [np.linalg.inv(lo_cov), np.linalg.inv(hi_cov)]
+    joint = np.linalg.solve(info[0] + info[1], info[0] @ lo + info[1] @ hi)
+    halves = [_half("gain_drift", lo.tolist(), lo_cov), _half("gain_drift", hi.tolist(), hi_cov)]
+    both = np.ones(2, bool)
+    combined, departure, outside = _whole_against_halves(drift, halves, joint, both, 1.0)
+    np.testing.assert_allclose(combined, joint)
+    assert not outside and departure < 1e-9
+    assert _whole_against_halves(drift, halves, -joint, both, 1.0)[2]

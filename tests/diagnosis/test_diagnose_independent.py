@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 
 from autocal.diagnosis.catalogue import catalogue
-from autocal.diagnosis.rivals import DECISIVE_MARGIN, domain
+from autocal.diagnosis.rivals import DECISIVE_MARGIN, LEAD_SIGMAS, domain
 from autocal.fit.priors import parse_trxr_prior
 from autocal.io.uvh5 import read_uvh5
 from tests import independent_effects as ie
@@ -404,8 +404,88 @@ def test_clean_short_hera_is_not_blamed_on_the_receiver(rows: dict[str, dict]) -
     kinds = {e.name: domain(e) for e in catalogue(include_timing=True, ntime=174, nfeeds=1)}
     cands = ind["candidates"]
     assert {kinds[name] for name in cands} == {"receiver", "forward model"}
-    assert max(cands.values()) - min(cands.values()) <= DECISIVE_MARGIN
+    _assert_undecided(ind)
+
+
+def _assert_undecided(ind: dict) -> None:
+    """Every rival trails the best by less than the margin or twice its lead's sigma."""
+    cands = ind["candidates"]
+    best = max(cands.values())
+    for name, value in cands.items():
+        if value != best:
+            lead, sigma = best - value, ind["lead_sigma"][name]
+            assert lead <= DECISIVE_MARGIN or lead <= LEAD_SIGMAS * sigma, (name, lead, sigma)
     assert "none is named" in ind["message"]
+
+
+#: Cases of other realisations of the suite (``suite_plan(seed)``) that the suite's own
+#: seed did not show: each failed before the change its test names.
+HELD_OUT = (
+    # a noise drift led a clock offset by Delta BIC 7.9, 0.6 sigma of that lead's noise
+    ("clean_short_hera", 20261),
+    # a noise drift of 9e-5 of the data led every forward-model entry decisively
+    ("clean_short_hera", 20262),
+    # a sky offset, a clock offset with a 27-arcmin tilt, a diurnal gain drift and a gain
+    # jitter of rms 0.70 +- 1.5 took up what a stretched beam leaves of a wider FWHM
+    ("beam_width_fwhm_day", 20262),
+)
+
+
+@pytest.fixture(scope="module")
+def held_out(
+    tmp_path_factory: pytest.TempPathFactory, data_root: Path
+) -> dict[tuple[str, int], dict]:
+    """The held-out cases, simulated and diagnosed (~50 s)."""
+    folder = tmp_path_factory.mktemp("diagnose_held_out")
+    out = {}
+    for name, seed in HELD_OUT:
+        case = next(c for c in ie.suite_plan(seed) if c.name == name)
+        out[(name, seed)] = ie.run_case(case, folder / str(seed))
+    return out
+
+
+@pytest.mark.data
+@pytest.mark.slow
+def test_held_out_clean_hera_half_hour_names_nothing(held_out: dict) -> None:
+    """Another noise realisation of the clean HERA-beam half hour: a noise drift leads the
+    forward model's entries by more than the Delta BIC margin (7.9) but by less than two
+    sigma of its own noise (Vuong's test), so the step is undecided and nothing is named."""
+    row = held_out[("clean_short_hera", 20261)]
+    assert row["named"] == [] and row["negligible"] == [] and row["correct"]
+    ind = row["indistinguishable"]
+    assert ind is not None
+    _assert_undecided(ind)
+    cands = ind["candidates"]
+    assert max(cands.values()) - min(cands.values()) > DECISIVE_MARGIN  # the margin alone named it
+
+
+@pytest.mark.data
+@pytest.mark.slow
+def test_held_out_receiver_drift_below_the_model_accuracy_is_not_named(held_out: dict) -> None:
+    """A third realisation: the noise drift leads decisively, but its signal is under the
+    HERA beam file's forward-model accuracy (7e-4 of the data rms): not blamed on the
+    receiver, though it would move the products (reported with that change)."""
+    row = held_out[("clean_short_hera", 20262)]
+    assert row["named"] == [] and row["negligible"] == [] and row["correct"]
+    assert row["below_model_accuracy"] == ["noise_drift"]
+    step = row["steps"][0]
+    assert step["name"] == "noise_drift" and not step["negligible"]
+    assert step["signal_rms"] < 7e-4 and step["below_model_accuracy"]
+
+
+@pytest.mark.data
+@pytest.mark.slow
+def test_held_out_wider_fwhm_is_beam_width_and_an_unexplained_rest(held_out: dict) -> None:
+    """A wider FWHM in another realisation: beam_width alone and the rest unexplained. The
+    entries that took up the rest before are refused because the whole band's value lies
+    outside what the two halves combine to (a sky offset of +23.5 K from halves of -4.1
+    and -4.2 K before)."""
+    row = held_out[("beam_width_fwhm_day", 20262)]
+    assert row["named"] == ["beam_width"] and row["unexplained"] is not None
+    outside = [v for v in row["failed_candidates"].values() if "lies outside" in v]
+    assert outside, row["failed_candidates"]
+    step = row["steps"][0]["band_consistency"]
+    assert step["consistent"] and step["whole_departure"] < 0.01
 
 
 @pytest.mark.data

@@ -37,6 +37,11 @@ def trial(name: str, statistic: float, k: int = 1) -> ModelTrial:
     )
 
 
+#: The sigma of the best's lead over each entry that the ``search`` fixture's stand-in
+#: for :func:`rivals.lead_sigma` gives (0 when not listed: the margin alone decides).
+LEAD_SIGMA: dict[str, float] = {}
+
+
 @pytest.fixture
 def search(monkeypatch: pytest.MonkeyPatch) -> tuple[Any, Any, set[str]]:
     """A context and state; band_consistency says 'inconsistent' for names in the set."""
@@ -48,6 +53,10 @@ def search(monkeypatch: pytest.MonkeyPatch) -> tuple[Any, Any, set[str]]:
         return None  # no verdict
 
     monkeypatch.setattr(rivals, "check_trial", check)
+    LEAD_SIGMA.clear()
+    monkeypatch.setattr(
+        rivals, "lead_sigma", lambda ctx, best, trial: LEAD_SIGMA.get(trial.effect.name, 0.0)
+    )
     ctx = SimpleNamespace(
         settings=SimpleNamespace(bic_threshold=10.0, alpha=1e-4), tpl=None, prior_kw={}
     )
@@ -72,6 +81,32 @@ def test_rivals_are_the_passing_entries_within_the_margin(search: Any) -> None:
     # a best barely above the threshold: a rival below it does not pass the test
     weak = trial("noise_drift", 12.0)
     assert rivals.find_rivals(ctx, state, weak, [weak, trial("timing_offset", 9.0)]) == []
+
+
+def test_a_lead_within_twice_its_own_noise_is_no_decision(search: Any) -> None:
+    """Beyond the margin a lead decides only when it is more than LEAD_SIGMAS sigma of its
+    own noise (the two fits' difference, Vuong's test); an entry far behind is not even
+    asked for its sigma (the bound from the two Delta chi2 already rules it out)."""
+    ctx, state, _ = search
+    best = trial("noise_drift", 268.0, k=2)
+    LEAD_SIGMA.update({"timing_offset": 13.0, "gain_drift": 13.0, "sky_offset": 1.0})
+    trials = [
+        best,
+        trial("timing_offset", 260.0),  # 8 behind: 0.6 sigma
+        trial("gain_drift", 230.0, k=2),  # 38 behind: 2.9 sigma
+        trial("sky_offset", 255.0),  # 13 behind: 13 sigma
+    ]
+    got = rivals.find_rivals(ctx, state, best, trials)
+    assert [t.effect.name for t in got] == ["timing_offset"]
+    asked: list[str] = []
+    rivals_sigma = rivals.lead_sigma
+    try:
+        rivals.lead_sigma = lambda c, b, t: asked.append(t.effect.name) or 1e9  # type: ignore[assignment]
+        far = trial("sky_scale", 268.0 - 400.0)
+        assert rivals.find_rivals(ctx, state, best, [best, far]) == []
+        assert asked == []  # 2 (sqrt(Delta chi2) + sqrt(Delta chi2)) < 400: never fitted
+    finally:
+        rivals.lead_sigma = rivals_sigma
 
 
 def test_nested_inconsistent_and_earlier_trials_are_not_rivals(search: Any) -> None:
@@ -187,3 +222,62 @@ def test_the_search_stops_on_a_rival_of_the_other_domain_only(
     assert accepted == ["missing_cmb"] and diag.effects == ["missing_cmb"]
     assert diag.indistinguishable is None
     assert diag.steps[0]["close_alternatives"] == {"sky_scale": 97.0}
+
+
+def _fits(obs: Any, tpl: Any, truth: Any, seed: int, kw: dict[str, Any]) -> tuple[Any, Any]:
+    """A noise drift and a diurnal gain drift fitted to one noise realisation of ``truth``."""
+    import numpy as np
+
+    from autocal.diagnosis.extended_fit import fit_extended, radiometer_weights
+    from tests.diagnosis.simulated import hidden, s_of
+
+    trxr = (150 * (1 + 0.002 * s_of(obs.lsts)))[:, None] * np.ones(obs.nfreq)
+    data = hidden(obs, truth, trxr=trxr, seed=seed)
+    w = radiometer_weights(data, data.data)
+    cat = catalogue(ntime=obs.ntime)
+    noise = next(e for e in cat if e.name == "noise_drift" and e.order == 1)
+    gain = next(e for e in cat if e.name == "gain_drift" and e.basis == "diurnal")
+    return (
+        fit_extended(data, tpl, [noise], weights=w, **kw),
+        fit_extended(data, tpl, [gain], weights=w, **kw),
+    )
+
+
+@pytest.mark.slow
+def test_lead_sigma_is_the_noise_of_the_lead(setup: Any) -> None:
+    """The sigma of a lead is what the lead scatters by over noise realisations.
+
+    A small noise drift (0.2 % of Trxr over the day) fitted as a noise drift and as a
+    diurnal gain drift in 24 realisations of the radiometer noise: the standard deviation
+    of their chi2 difference matches ``lead_sigma`` (Vuong's 2 |m_a - m_b|) within the
+    sampling error of 24 draws, and ``lead_sigma`` equals the sum computed here from the
+    two fits' models, weights and prior rows.
+    """
+    import numpy as np
+
+    from autocal.diagnosis.extended_fit import radiometer_weights
+
+    obs, tpl = setup
+    kw = {"trxr_prior": 150.0, "trxr_prior_sigma": 1.0, "gain_ref": None}
+    base = _fits(obs, tpl, tpl.total, 0, {**kw, "gain_ref": None})[0]
+    kw["gain_ref"] = np.abs(base.G)
+    leads, sigmas = [], []
+    for seed in range(24):
+        a, b = _fits(obs, tpl, tpl.total, 100 + seed, kw)
+        ctx = SimpleNamespace(prior_kw=kw)
+        best = SimpleNamespace(fit=a, overdispersion=1.0)
+        other = SimpleNamespace(fit=b, overdispersion=1.0)
+        sigma = rivals.lead_sigma(ctx, best, other)
+        leads.append(b.chi2 - a.chi2)
+        sigmas.append(sigma)
+        if seed == 0:  # the same sum, written out
+            w = radiometer_weights(a.source.obs, a.source.obs.data)
+            w = np.where(a.source.chan_ok[:, :, None, :] & b.source.chan_ok[:, :, None, :], w, 0)
+            data_rows = float(np.sum(w * (a.model - b.model) ** 2))
+            t0, ref = 150.0, kw["gain_ref"]
+            prior_rows = float(np.sum((((a.n - b.n) - t0 * (a.G - b.G)) / ref) ** 2))
+            assert sigma == pytest.approx(2 * math.sqrt(data_rows + prior_rows), rel=1e-6)
+    spread = float(np.std(leads, ddof=1))
+    predicted = float(np.median(sigmas))
+    # the sample sd of 24 draws is within ~30 % of the truth at 2 sigma (chi distribution)
+    assert 0.6 * predicted < spread < 1.45 * predicted, (spread, predicted, np.mean(leads))
