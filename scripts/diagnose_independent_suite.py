@@ -266,8 +266,7 @@ def markdown(result: dict[str, Any]) -> str:
         "- fitted but below the forward model's accuracy (a signal under the model beam's "
         f"floor of the data rms, {FORWARD_MODEL_ACCURACY:g} for the dipole and "
         f"{FORWARD_MODEL_ACCURACY_BY_BEAM['uvbeam_healpix']:g} for the HERA beam file; "
-        "negligible for the products, or a gain or noise drift or gain jitter whatever it "
-        "would change in them; not counted as detected): "
+        "whatever it would change in the products; not counted as detected): "
         + (
             ", ".join(f"{x['case']}: {x['effects']}" for x in s.get("below_model_accuracy", []))
             or "none"

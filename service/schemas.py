@@ -549,9 +549,8 @@ class DiagnosisResults(BaseModel):
         description="effects fitted but below the forward model's accuracy (a signal under "
         "the model beam's floor of the data rms, in config.forward_model_accuracy: 1e-4 for "
         "an analytic beam, 7e-4 for a HEALPix beam file; the signal in the step's "
-        "details.signal_rms): not attributed. Negligible for G and Trxr, or a gain drift, "
-        "noise drift or gain jitter whatever it would change in them (the step's "
-        "product_impact): not blamed on the instrument",
+        "details.signal_rms): not attributed, whatever it would change in G and Trxr "
+        "(the step's product_impact)",
     )
     indistinguishable: dict[str, Any] | None = Field(
         None,

@@ -104,14 +104,6 @@ def forward_model_accuracy(beam: Mapping[str, Any] | None) -> float:
 DATA_STRUCTURE_EFFECTS = frozenset(
     {"gain_drift", "gain_jitter", "noise_drift", "beam_width", "timing_offset"}
 )
-#: The receiver's entries among :data:`DATA_STRUCTURE_EFFECTS`. Below the forward model's
-#: accuracy one of these is not put down to the instrument even when it would move the
-#: products: a signal the size of the forward model's own error cannot be told from it, and
-#: naming it blames the instrument for what may be the model (a noise drift of 9e-5 of the
-#: data led the forward model's entries on a clean half hour through the HERA beam file in
-#: a realisation of the independent suite the suite's own seed did not show). Forward-model
-#: entries below it are still named when they matter: they point at the model either way.
-RECEIVER_STRUCTURE_EFFECTS = frozenset({"gain_drift", "gain_jitter", "noise_drift"})
 
 
 def signal_rms(delta_chi2: float, radiometer_total: float) -> float:

@@ -79,9 +79,9 @@ class Diagnosis:
         ``config["forward_model_accuracy"]``) of the data rms (the step's ``signal_rms``):
         what autocal's own Tsky can be off by, which such a template fits
         as well as any instrument effect (clean days from an independent simulator had a
-        gain drift "detected" at 3.6e-5-5.7e-5); negligible for the products, or a receiver
-        entry (:data:`~autocal.diagnosis.impact.RECEIVER_STRUCTURE_EFFECTS`) whatever it
-        would change in them. Kept in the fit; neither named nor "detected".
+        gain drift "detected" at 3.6e-5-5.7e-5), whatever it would change in the products
+        (the summary says "would move the products" of those that would). Kept in the fit;
+        neither named nor "detected".
     indistinguishable
         ``None``, or the step at which the search stopped because an entry of the other
         domain (receiver against forward model, :func:`~autocal.diagnosis.rivals.domain`)
@@ -203,7 +203,8 @@ def summary_text(diag: Diagnosis) -> str:
         if st.get("close_alternatives"):
             lines.append(
                 "  nearly as good (Delta BIC within "
-                f"{diag.config.get('decisive_margin')} of it; the same domain): "
+                f"{diag.config.get('decisive_margin')} of it, or within twice the noise of "
+                "its lead; the same domain): "
                 + ", ".join(f"{n} ({v:.1f})" for n, v in st["close_alternatives"].items())
             )
         if st.get("product_impact"):

@@ -4,7 +4,10 @@ Over a short span many entries reduce to the same few smooth modes: half an hour
 drift scan, a receiver-noise drift, a clock offset and a sky-model error all add a nearly
 linear trend in time. :func:`find_rivals` returns the entries that pass the same tests and
 explain the residual within :data:`DECISIVE_MARGIN` of the best (``Delta BIC``, i.e.
-``2 ln`` of the Bayes factor between the two). The first question a diagnosis answers is
+``2 ln`` of the Bayes factor between the two), or within :data:`LEAD_SIGMAS` times the
+noise of the best's lead over them (:func:`lead_sigma`: a fixed margin is a coin toss when
+two large fits of one residual differ by less than their difference scatters). The first
+question a diagnosis answers is
 whether the receiver or the forward model of the sky is at fault (:func:`domain`): when a
 rival is of the other domain, naming the best would blame one at the toss of a coin, so the
 search stops and reports the step as indistinguishable
@@ -80,7 +83,8 @@ def find_rivals(
     list of ModelTrial
         Time-domain entries other than ``best`` (and not nested with it, :data:`NESTED`)
         that pass the same test, whose two band halves agree on their parameters, and
-        whose ``Delta BIC`` is within :data:`DECISIVE_MARGIN` of ``best``'s. Empty when
+        whose ``Delta BIC`` is within :data:`DECISIVE_MARGIN` of ``best``'s or within
+        :data:`LEAD_SIGMAS` :func:`lead_sigma` of it. Empty when
         ``best`` is a bandpass or per-antenna trial (ranked on other data: a reflection in
         the bandpass, one antenna against the others).
     """

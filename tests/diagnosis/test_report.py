@@ -216,8 +216,9 @@ def test_weak_negligible_effects_of_an_unexplained_remainder_are_not_detections(
 def test_negligible_effects_below_the_model_accuracy_are_not_detections() -> None:
     """A negligible effect of the data's structure whose signal is under the forward model's
     accuracy is reported as such; above it, or one seen through the prior, stays "detected,
-    negligible". A named receiver entry under it is not blamed on the instrument (reported
-    below the accuracy, "would move the products"); a named forward-model entry stays named."""
+    negligible". A named entry under it is not attributed either, whatever it would change in
+    the products (reported below the accuracy, "would move the products"); one above it stays
+    named."""
     from autocal.diagnosis.impact import (
         FORWARD_MODEL_ACCURACY,
         forward_model_accuracy,
@@ -239,7 +240,8 @@ def test_negligible_effects_below_the_model_accuracy_are_not_detections() -> Non
             ("timing_offset", 3.0 * FORWARD_MODEL_ACCURACY),
             ("ground_temperature", 0.4 * FORWARD_MODEL_ACCURACY),
             ("noise_drift", 0.1 * FORWARD_MODEL_ACCURACY),
-            ("beam_width", 0.1 * FORWARD_MODEL_ACCURACY),
+            ("beam_width", 0.3 * FORWARD_MODEL_ACCURACY),
+            ("gain_jitter", 2.0 * FORWARD_MODEL_ACCURACY),
         )
     ]
     for st in steps:
@@ -248,7 +250,7 @@ def test_negligible_effects_below_the_model_accuracy_are_not_detections() -> Non
     def diagnosis() -> Diagnosis:
         return Diagnosis(
             steps=[dict(st) for st in steps],
-            effects=["noise_drift", "beam_width"],
+            effects=["noise_drift", "beam_width", "gain_jitter"],
             negligible=["gain_drift", "timing_offset", "ground_temperature"],
             initial_gap=gap,
             final_gap=gap,
@@ -256,17 +258,18 @@ def test_negligible_effects_below_the_model_accuracy_are_not_detections() -> Non
 
     diag = diagnosis()
     _below_model_accuracy(diag, radiometer, forward_model_accuracy({"beam": "gaussian_dipole"}))
-    assert diag.below_model_accuracy == ["gain_drift", "noise_drift"]
+    assert diag.below_model_accuracy == ["gain_drift", "noise_drift", "beam_width"]
     assert diag.negligible == ["timing_offset", "ground_temperature"]
-    assert diag.effects == ["beam_width"]
+    assert diag.effects == ["gain_jitter"]
     assert diag.steps[0]["signal_rms"] == pytest.approx(0.4 * FORWARD_MODEL_ACCURACY)
     assert signal_rms(delta_for(2e-4), radiometer) == pytest.approx(2e-4)
     text = summary_text(diag)
     assert "below the forward model's accuracy" in text and "4.0e-05 of the data rms" in text
     assert "noise_drift (would move the products)" in text
+    assert "beam_width (would move the products)" in text
     assert "gain_drift (would" not in text
     assert "step 4: noise_drift [1.0e-05 of the data rms, below" in text  # not "negligible"
-    assert diag.to_dict()["below_model_accuracy"] == ["gain_drift", "noise_drift"]
+    assert diag.to_dict()["below_model_accuracy"] == ["gain_drift", "noise_drift", "beam_width"]
     # through a beam read from a HEALPix file the floor is coarser (measured in
     # tests/diagnosis/test_model_accuracy.py): a 3e-4 timing offset is below it, and the
     # summary states the floor the run used
@@ -275,7 +278,14 @@ def test_negligible_effects_below_the_model_accuracy_are_not_detections() -> Non
     coarse = diagnosis()
     coarse.config["forward_model_accuracy"] = floor
     _below_model_accuracy(coarse, radiometer, floor)
-    assert coarse.below_model_accuracy == ["gain_drift", "timing_offset", "noise_drift"]
+    assert coarse.below_model_accuracy == [
+        "gain_drift",
+        "timing_offset",
+        "noise_drift",
+        "beam_width",
+        "gain_jitter",  # 2e-4: above the dipole's floor, under this one
+    ]
+    assert coarse.effects == []
     assert coarse.negligible == ["ground_temperature"]
     assert f"under {floor:g} of the data rms" in summary_text(coarse)
     assert forward_model_accuracy(None) == FORWARD_MODEL_ACCURACY
