@@ -556,8 +556,9 @@ class DiagnosisResults(BaseModel):
         None,
         description="null, or the step at which the search stopped because an entry of the "
         "receiver and one of the forward model explain a residual within "
-        "config.decisive_margin of each other (Delta BIC): candidates {name: Delta BIC}, "
-        "each one's product_impact and a message; none of them is named",
+        "config.decisive_margin of each other (Delta BIC), or within config.lead_sigmas "
+        "sigma of the noise of the lead (lead_sigma per rival): candidates {name: Delta "
+        "BIC}, each one's product_impact and a message; none of them is named",
     )
     unexplained: dict[str, Any] | None = Field(
         None,

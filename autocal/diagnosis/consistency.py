@@ -93,7 +93,10 @@ class BandCheck:
     whole_departure
         How far the whole band's values lie from the halves' combination (their
         inverse-covariance weighted mean), over the whole band's values, unit by unit (the
-        largest; :func:`_whole_against_halves`).
+        largest; :func:`_whole_against_halves`); ``None`` when not computed.
+    refused_by
+        ``None`` when consistent, else the rule that refused: ``"halves"`` (the two halves
+        disagree) or ``"whole"`` (the whole band lies outside what they combine to).
     """
 
     consistent: bool
@@ -104,7 +107,15 @@ class BandCheck:
     relative_difference: float
     message: str
     partner: str | None = None
-    whole_departure: float = 0.0
+    whole_departure: float | None = None
+    refused_by: str | None = None
+
+    @property
+    def refusal(self) -> str:
+        """Return why the candidate was refused, in words (empty when consistent)."""
+        if self.refused_by == "whole":
+            return "the whole band's value lies outside what the two halves of the band combine to"
+        return "the two halves of the band disagree on its parameters" if self.refused_by else ""
 
     def to_dict(self) -> dict[str, Any]:
         """Return the verdict as a diagnosis step's ``band_consistency`` entry."""
@@ -118,6 +129,7 @@ class BandCheck:
             "message": self.message,
             "partner": self.partner,
             "whole_departure": self.whole_departure,
+            "refused_by": self.refused_by,
         }
 
 
@@ -261,13 +273,16 @@ def _compare_halves(
         else f"{k} values differ by {100 * rel:.0f} % rms of the whole band's"
     )
     message = f"{show}; chi2 {chi2:.3g} for {k}, p {pval:.2g}"
+    refused_by = None if consistent else "halves"
     combined, departure, outside = _whole_against_halves(eff, halves, whole, ok, chat)
     if outside:
+        refused_by = refused_by or "whole"
         consistent = False
         message += (
             f"; the whole band's {_show(whole[ok])} lies outside what the halves combine "
-            f"to, {_show(combined[ok])} ({100 * departure:.0f} % of it): the template fits "
-            "the difference between the halves, not an effect they share"
+            f"to, {_show(combined[ok])} (by {100 * departure:.0f} % of the whole band's "
+            "value): the template fits the difference between the halves, not an effect "
+            "they share"
         )
     return BandCheck(
         consistent=consistent,
@@ -285,6 +300,7 @@ def _compare_halves(
         relative_difference=rel,
         message=message,
         whole_departure=departure,
+        refused_by=refused_by,
     )
 
 
@@ -296,7 +312,7 @@ def _show(values: np.ndarray) -> str:
 
 def _whole_against_halves(
     eff: Effect, halves: list[ExtendedFit], whole: np.ndarray, ok: np.ndarray, chat: float
-) -> tuple[np.ndarray, float, bool]:
+) -> tuple[np.ndarray, float | None, bool]:
     """Compare the whole band's values with what the two halves' fits combine to.
 
     The halves are disjoint data, so for an effect they share the whole band's fit is,
@@ -307,15 +323,17 @@ def _whole_against_halves(
     across the band) instead gets a whole-band value far from it, even outside both (a sky
     offset of +23.5 K from halves of -4.1 and -4.2 K, left by a beam width fitted as a
     stretch when the beam's FWHM was wrong). Outside when the departure is significant
-    (chi-square over the combination's covariance and ``chat``, survival probability below
-    :data:`CONSISTENCY_ALPHA`: conservative, the two estimates share their data) and
+    (chi-square over the combination's covariance and ``chat``, its rank degrees of
+    freedom, survival probability below :data:`CONSISTENCY_ALPHA`: conservative, the two
+    estimates share their data) and
     larger than :data:`CONSISTENCY_RELATIVE` of the whole band's values, unit by unit
     (:func:`_relative_difference`).
 
     Returns
     -------
     tuple
-        The combination, the relative departure and whether the whole lies outside.
+        The combination, the relative departure (``None`` when it cannot be computed:
+        covariances not finite) and whether the whole lies outside.
     """
     covs = [_covariance(eff, h) for h in halves]
     idx = np.flatnonzero(ok)
@@ -326,13 +344,14 @@ def _whole_against_halves(
         values = [np.asarray(h.params[eff.name], float)[idx] for h in halves]
         combined[idx] = cov @ (infos[0] @ values[0] + infos[1] @ values[1])
     except (np.linalg.LinAlgError, ValueError):
-        return combined, 0.0, False
+        return combined, None, False
     diff = np.where(ok, whole - combined, 0.0)
     if not np.all(np.isfinite(diff)) or not np.all(np.isfinite(cov)):
-        return combined, 0.0, False
+        return combined, None, False
     departure = _relative_difference(eff, diff, whole, ok)
     chi2 = float(diff[idx] @ np.linalg.pinv(cov, hermitian=True) @ diff[idx]) / chat
-    pval = float(stats.chi2.sf(chi2, idx.size))
+    rank = int(np.linalg.matrix_rank(cov, hermitian=True)) if idx.size else 0
+    pval = float(stats.chi2.sf(chi2, max(rank, 1)))
     return combined, departure, bool(pval < CONSISTENCY_ALPHA and departure > CONSISTENCY_RELATIVE)
 
 

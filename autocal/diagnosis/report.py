@@ -86,8 +86,9 @@ class Diagnosis:
         ``None``, or the step at which the search stopped because an entry of the other
         domain (receiver against forward model, :func:`~autocal.diagnosis.rivals.domain`)
         that passes the same tests explains the residual about as well as the best
-        (``Delta BIC`` within :data:`~autocal.diagnosis.rivals.DECISIVE_MARGIN`): the
-        candidates
+        (``Delta BIC`` within :data:`~autocal.diagnosis.rivals.DECISIVE_MARGIN`, or within
+        :data:`~autocal.diagnosis.rivals.LEAD_SIGMAS` times the noise of the lead,
+        ``lead_sigma``): the candidates
         with their statistics, what each would change in the products, and a message
         (:func:`~autocal.diagnosis.rivals.indistinguishable_record`). None of them is
         named (half an hour through an independently evaluated HERA beam left a linear
@@ -203,8 +204,9 @@ def summary_text(diag: Diagnosis) -> str:
         if st.get("close_alternatives"):
             lines.append(
                 "  nearly as good (Delta BIC within "
-                f"{diag.config.get('decisive_margin')} of it, or within twice the noise of "
-                "its lead; the same domain): "
+                f"{diag.config.get('decisive_margin')} of it, or within "
+                f"{diag.config.get('lead_sigmas')} sigma of the noise of its "
+                "lead; the same domain): "
                 + ", ".join(f"{n} ({v:.1f})" for n, v in st["close_alternatives"].items())
             )
         if st.get("product_impact"):

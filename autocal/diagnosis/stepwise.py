@@ -89,6 +89,7 @@ from autocal.diagnosis.outliers import (
 from autocal.diagnosis.report import Diagnosis, residual_snapshot
 from autocal.diagnosis.rivals import (
     DECISIVE_MARGIN,
+    LEAD_SIGMAS,
     domain,
     find_rivals,
     indistinguishable_record,
@@ -303,6 +304,7 @@ def _search_config(
         "bic_threshold": settings.bic_threshold,
         "alpha": settings.alpha,
         "decisive_margin": DECISIVE_MARGIN,
+        "lead_sigmas": LEAD_SIGMAS,
         "trxr_prior_K": None if trxr_prior is None else _describe_values(trxr_prior),
         "trxr_prior_sigma_K": None if trxr_prior is None else _describe_values(trxr_prior_sigma),
         "smooth_bandpass_order": settings.smooth_order,
@@ -390,8 +392,9 @@ def _search_step(ctx: SearchContext, state: SearchState, step: int) -> bool:
             "name": first.effect.name,
             "statistic": float(first.statistic),
             "p_value": first.p_value(),
-            "reason": "significant, but the two halves of the band disagree on it "
-            "and on every other significant candidate (failed_candidates)",
+            "reason": "significant, but refused by the band's halves (they disagree on "
+            "its parameters, or its whole-band value lies outside what they combine to), "
+            "as was every other significant candidate (failed_candidates)",
             "candidates": report,
         }
         return False
@@ -406,10 +409,11 @@ def _search_step(ctx: SearchContext, state: SearchState, step: int) -> bool:
             "candidates": report,
         }
         return False
-    rivals = find_rivals(ctx, state, best, trials)
+    sigmas: dict[str, float] = {}  # the leads' sigmas find_rivals computed
+    rivals = find_rivals(ctx, state, best, trials, sigmas)
     if any(domain(r.effect) != domain(best.effect) for r in rivals):
         assert isinstance(best, ModelTrial)  # find_rivals returns none otherwise
-        diag.indistinguishable = indistinguishable_record(ctx, state, step, best, rivals)
+        diag.indistinguishable = indistinguishable_record(ctx, state, step, best, rivals, sigmas)
         return False
     accepted = accept(ctx, state, best, step)
     _record_step(diag, best, pval, accepted, check, report)
@@ -564,9 +568,8 @@ def _best_consistent(
             return trial, check
         state.fail(
             trial.effect.label,
-            f"Delta BIC {trial.statistic:.3g}, but the two halves of the band disagree on "
-            f"its parameters ({check.message}): its template absorbs structure of "
-            "another origin",
+            f"Delta BIC {trial.statistic:.3g}, but {check.refusal} ({check.message}): its "
+            "template absorbs structure of another origin",
         )
         logger.info("step %d: %s inconsistent across the band", step + 1, trial.effect.name)
         best = None

@@ -2,7 +2,8 @@
 
 The CPU time is this process's, over all its threads (``time.process_time``): the block
 reader's decoding threads and the fit's kernels are in it; reader processes
-(``--readers``) and Dask workers are not. Where CPU exceeds wall, the stage ran on more
+(``--readers``) and Dask workers in other processes are not (a local cluster's worker
+threads, ``processes=False``, are). Where CPU exceeds wall, the stage ran on more
 than one core; ``cpu / wall`` is the mean number of busy cores.
 """
 

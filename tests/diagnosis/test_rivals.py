@@ -83,10 +83,14 @@ def test_rivals_are_the_passing_entries_within_the_margin(search: Any) -> None:
     assert rivals.find_rivals(ctx, state, weak, [weak, trial("timing_offset", 9.0)]) == []
 
 
-def test_a_lead_within_twice_its_own_noise_is_no_decision(search: Any) -> None:
+def test_a_lead_within_twice_its_own_noise_is_no_decision(
+    search: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Beyond the margin a lead decides only when it is more than LEAD_SIGMAS sigma of its
-    own noise (the two fits' difference, Vuong's test); an entry far behind is not even
-    asked for its sigma (the bound from the two Delta chi2 already rules it out)."""
+    own noise (the two fits' difference, Vuong's test); the sigmas computed are handed
+    back; an entry far behind is not even asked for its sigma (the bound from the two
+    Delta chi2 already rules it out), but a fixed hypothesis, which has no such bound, is;
+    a sigma that cannot be computed (NaN) decides nothing."""
     ctx, state, _ = search
     best = trial("noise_drift", 268.0, k=2)
     LEAD_SIGMA.update({"timing_offset": 13.0, "gain_drift": 13.0, "sky_offset": 1.0})
@@ -96,17 +100,28 @@ def test_a_lead_within_twice_its_own_noise_is_no_decision(search: Any) -> None:
         trial("gain_drift", 230.0, k=2),  # 38 behind: 2.9 sigma
         trial("sky_offset", 255.0),  # 13 behind: 13 sigma
     ]
-    got = rivals.find_rivals(ctx, state, best, trials)
+    sigmas: dict[str, float] = {}
+    got = rivals.find_rivals(ctx, state, best, trials, sigmas)
     assert [t.effect.name for t in got] == ["timing_offset"]
+    assert sigmas == {"timing_offset": 13.0, "gain_drift": 13.0, "sky_offset": 1.0}
     asked: list[str] = []
-    rivals_sigma = rivals.lead_sigma
-    try:
-        rivals.lead_sigma = lambda c, b, t: asked.append(t.effect.name) or 1e9  # type: ignore[assignment]
-        far = trial("sky_scale", 268.0 - 400.0)
-        assert rivals.find_rivals(ctx, state, best, [best, far]) == []
-        assert asked == []  # 2 (sqrt(Delta chi2) + sqrt(Delta chi2)) < 400: never fitted
-    finally:
-        rivals.lead_sigma = rivals_sigma
+
+    def sigma(c: Any, b: Any, t: Any) -> float:
+        asked.append(t.effect.name)
+        return 1e9
+
+    monkeypatch.setattr(rivals, "lead_sigma", sigma)
+    big = trial("noise_drift", 1000.0, k=2)
+    far = trial("sky_scale", 500.0)  # passes the test; bound 2 (32 + 23) = 109: 6 + 2 x 109 < 500
+    assert rivals.find_rivals(ctx, state, big, [big, far]) == []
+    assert asked == []
+    fixed = trial("missing_cmb", 500.0, k=0)  # a fixed hypothesis: no bound, asked
+    assert [t.effect.name for t in rivals.find_rivals(ctx, state, big, [big, fixed])] == [
+        "missing_cmb"
+    ]
+    assert asked == ["missing_cmb"]
+    monkeypatch.setattr(rivals, "lead_sigma", lambda c, b, t: math.nan)
+    assert rivals.find_rivals(ctx, state, big, [big, trial("timing_offset", 980.0)]) != []
 
 
 def test_nested_inconsistent_and_earlier_trials_are_not_rivals(search: Any) -> None:
@@ -159,7 +174,7 @@ def test_summary_states_indistinguishable_steps_and_close_alternatives() -> None
     diag = Diagnosis(
         initial_gap=gap,
         final_gap=gap,
-        config={"decisive_margin": rivals.DECISIVE_MARGIN},
+        config={"decisive_margin": rivals.DECISIVE_MARGIN, "lead_sigmas": rivals.LEAD_SIGMAS},
         indistinguishable={"message": "step 1: indistinguishable: ... none is named"},
     )
     text = summary_text(diag)
@@ -168,7 +183,7 @@ def test_summary_states_indistinguishable_steps_and_close_alternatives() -> None
     diag = Diagnosis(
         initial_gap=gap,
         final_gap=gap,
-        config={"decisive_margin": rivals.DECISIVE_MARGIN},
+        config={"decisive_margin": rivals.DECISIVE_MARGIN, "lead_sigmas": rivals.LEAD_SIGMAS},
         effects=["missing_cmb"],
         steps=[
             {
@@ -183,8 +198,8 @@ def test_summary_states_indistinguishable_steps_and_close_alternatives() -> None
         ],
     )
     expected = (
-        "nearly as good (Delta BIC within 6.0 of it, or within twice the noise of its lead; "
-        "the same domain): sky_scale"
+        "nearly as good (Delta BIC within 6.0 of it, or within 2.0 sigma of the noise of its "
+        "lead; the same domain): sky_scale"
     )
     assert expected in summary_text(diag)
 
@@ -209,9 +224,9 @@ def test_the_search_stops_on_a_rival_of_the_other_domain_only(
         state = SimpleNamespace(diag=diag, feed_accepted=set())
         monkeypatch.setattr(stepwise, "_fit_candidates", lambda c, s, k: [best, rival])
         monkeypatch.setattr(stepwise, "_best_consistent", lambda c, s, t, k: (best, None))
-        monkeypatch.setattr(stepwise, "find_rivals", lambda c, s, b, t: [rival])
+        monkeypatch.setattr(stepwise, "find_rivals", lambda c, s, b, t, sig=None: [rival])
         monkeypatch.setattr(
-            stepwise, "indistinguishable_record", lambda c, s, k, b, r: {"step": k + 1}
+            stepwise, "indistinguishable_record", lambda c, s, k, b, r, sig=None: {"step": k + 1}
         )
         monkeypatch.setattr(stepwise, "accept", accept)
         ctx = SimpleNamespace(settings=SimpleNamespace(bic_threshold=10.0, alpha=1e-4))

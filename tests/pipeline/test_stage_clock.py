@@ -18,10 +18,12 @@ def _spin(cpu_seconds: float) -> None:
 def test_a_sleep_takes_wall_time_and_no_cpu() -> None:
     clock = StageClock()
     start = clock.now()
-    time.sleep(0.2)
+    time.sleep(0.5)
     clock.lap("sleep_s", start)
-    assert clock.wall["sleep_s"] >= 0.2
-    assert clock.cpu["sleep_s"] < 0.1
+    assert clock.wall["sleep_s"] >= 0.5
+    # the process's other threads (a BLAS pool left spinning by an earlier test) may
+    # spend a little CPU meanwhile; the sleeping thread spends none
+    assert clock.cpu["sleep_s"] < 0.25
 
 
 def test_cpu_counts_every_thread_of_the_process() -> None:
