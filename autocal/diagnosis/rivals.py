@@ -176,9 +176,10 @@ def lead_sigma(ctx: SearchContext, best: ModelTrial, trial: ModelTrial) -> float
     ``|r - m_b|^2 - |r - m_a|^2``, whose variance over Gaussian noise is
     ``4 |m_a - m_b|^2`` (Vuong 1989's variance of a log-likelihood ratio, summed over the
     data and the receiver prior's rows); in the units of ``Delta BIC`` (``Delta chi^2 / c``)
-    its sigma is ``2 |m_a - m_b| / sqrt(c)``. Two entries that reduce to nearly the same
-    change of the model have a small sigma and a small lead is decisive between them; two
-    that explain the same residual by different changes have a large one.
+    its sigma is ``2 |m_a - m_b| / sqrt(c)``: small for two entries that reduce to nearly
+    the same change of the model, large for two that explain the same residual by
+    different changes (when ``a`` is exactly right its lead is about ``|m_a - m_b|^2``, so
+    the lead over its sigma is ``|m_a - m_b| / 2``: 2 sigma needs a lead of about 16).
 
     Parameters
     ----------
