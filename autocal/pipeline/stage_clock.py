@@ -11,9 +11,6 @@ from __future__ import annotations
 
 import time
 
-#: A point in time: ``(wall, cpu)`` seconds.
-Instant = tuple[float, float]
-
 
 class StageClock:
     """Times a run's stages: wall (``perf_counter``) and this process's CPU.
@@ -28,11 +25,11 @@ class StageClock:
         self.started = self.now()
 
     @staticmethod
-    def now() -> Instant:
-        """Return the wall and CPU clocks now."""
+    def now() -> tuple[float, float]:
+        """Return the wall and CPU clocks now, ``(wall, cpu)`` seconds."""
         return time.perf_counter(), time.process_time()
 
-    def lap(self, name: str, since: Instant) -> None:
+    def lap(self, name: str, since: tuple[float, float]) -> None:
         """Record stage ``name`` as the time from ``since`` to now."""
         wall, cpu = self.now()
         self.wall[name] = wall - since[0]
