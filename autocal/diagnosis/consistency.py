@@ -340,17 +340,19 @@ def _whole_against_halves(
     combined = np.full(whole.shape, np.nan)
     try:
         infos = [np.linalg.pinv(c[np.ix_(idx, idx)], hermitian=True) for c in covs]
-        cov = np.linalg.pinv(infos[0] + infos[1], hermitian=True)
+        info = infos[0] + infos[1]  # the combination's information (inverse covariance)
         values = [np.asarray(h.params[eff.name], float)[idx] for h in halves]
-        combined[idx] = cov @ (infos[0] @ values[0] + infos[1] @ values[1])
+        combined[idx] = np.linalg.pinv(info, hermitian=True) @ (
+            infos[0] @ values[0] + infos[1] @ values[1]
+        )
+        rank = int(np.linalg.matrix_rank(info, hermitian=True)) if idx.size else 0
     except (np.linalg.LinAlgError, ValueError):
         return combined, None, False
     diff = np.where(ok, whole - combined, 0.0)
-    if not np.all(np.isfinite(diff)) or not np.all(np.isfinite(cov)):
+    if not np.all(np.isfinite(diff)) or not np.all(np.isfinite(info)):
         return combined, None, False
     departure = _relative_difference(eff, diff, whole, ok)
-    chi2 = float(diff[idx] @ np.linalg.pinv(cov, hermitian=True) @ diff[idx]) / chat
-    rank = int(np.linalg.matrix_rank(cov, hermitian=True)) if idx.size else 0
+    chi2 = float(diff[idx] @ info @ diff[idx]) / chat
     pval = float(stats.chi2.sf(chi2, max(rank, 1)))
     return combined, departure, bool(pval < CONSISTENCY_ALPHA and departure > CONSISTENCY_RELATIVE)
 
