@@ -570,6 +570,43 @@ def effect_parameters(effect: Hidden, ntime: int, nfeeds: int = 1, span_h: float
     return 1
 
 
+#: Shortest delay a reflection is told from a smooth bandpass by: the catalogue's smooth
+#: bandpass is a Legendre series of order ``round(1.5 B tau)`` over the band ``B`` (the
+#: order that keeps >= 90 % of a ripple of this delay; autocal's ``auto_smooth_order``
+#: at its shortest searched delay), clipped to 4..24.
+SMOOTH_DELAY_S = 90e-9
+
+
+def ripple_template_chi2(
+    freqs: np.ndarray, gain: np.ndarray, sigma: np.ndarray, tau_s: float
+) -> float:
+    """Delta chi^2 a perfect ripple template gains on one antenna-pol's ``G(nu)``.
+
+    ``gain`` (with its 1-sigma) is fitted by the smooth bandpass (a Legendre series of
+    the order :data:`SMOOTH_DELAY_S` sets), then by the smooth bandpass plus the ripple's
+    two quadratures at the true delay ``tau_s``, ``s(nu) cos(2 pi nu tau)`` and
+    ``s(nu) sin(2 pi nu tau)`` with ``s`` the smooth fit (free amplitude and phase); the
+    drop in chi-square is what the ripple explains beyond a smooth bandpass. Weighted
+    least squares with numpy's ``lstsq`` on its own basis (not autocal's bandpass code).
+    """
+    span = float(freqs[-1] - freqs[0])
+    order = int(np.clip(round(1.5 * span * SMOOTH_DELAY_S), 4, 24))
+    x = 2.0 * (freqs - freqs[0]) / span - 1.0
+    basis = np.polynomial.legendre.legvander(x, order)
+    w = 1.0 / np.asarray(sigma, dtype=float)
+    y = np.asarray(gain, dtype=float) * w
+
+    def chi2(cols: np.ndarray) -> tuple[float, np.ndarray]:
+        coef = np.linalg.lstsq(cols * w[:, None], y, rcond=None)[0]
+        return float(np.sum((cols @ coef * w - y) ** 2)), coef
+
+    smooth_chi2, coef = chi2(basis)
+    smooth = basis @ coef
+    phase = 2.0 * np.pi * freqs * tau_s
+    ripple = np.column_stack([smooth * np.cos(phase), smooth * np.sin(phase)])
+    return smooth_chi2 - chi2(np.hstack([basis, ripple]))[0]
+
+
 def _clean_model_fit(
     data: np.ndarray, clean: np.ndarray, gain0: np.ndarray, trxr: np.ndarray, sigma_k: float
 ) -> dict[str, Any]:
@@ -665,8 +702,10 @@ def effect_strength(
     and the receiver prior ``n = Trxr G +- G sigma``. The minimum chi-square is the
     Delta chi^2 a perfect template of the effect could gain; ``dbic`` subtracts
     ``k ln N`` (:func:`effect_parameters`; ``N`` data plus prior rows). A cable
-    reflection is absorbed by the per-channel gain (it is seen in the bandpass domain),
-    so its time-domain chi-square is ~0 and it is reported as visible.
+    reflection is absorbed by the per-channel gain, so it is judged where it can be seen,
+    in the bandpass domain: the clean fit's ``G(nu)``, with its sigma, against a smooth
+    bandpass without and with the ripple of the true delay (:func:`ripple_template_chi2`),
+    ``N`` the antenna-pols' gains.
 
     Parameters
     ----------
@@ -681,10 +720,11 @@ def effect_strength(
     -------
     dict
         ``chi2``, ``k``, ``ndata``, ``dbic`` and ``visible`` (``dbic`` above
-        :data:`BIC_THRESHOLD`, or a cable reflection); ``impact``, how far the clean
-        model's ``G`` and ``Trxr`` land from the truth (:func:`product_impact`, worst
-        feed), and ``matters``: an effect of the instrument, or one of the forward model
-        (:data:`FORWARD_MODEL_EFFECTS`) whose impact is not negligible.
+        :data:`BIC_THRESHOLD`; a cable reflection's in the bandpass domain); ``impact``, how
+        far the clean model's ``G`` and ``Trxr`` land from the truth
+        (:func:`product_impact`, worst feed), and ``matters``: an effect of the instrument,
+        or one of the forward model (:data:`FORWARD_MODEL_EFFECTS`) whose impact is not
+        negligible.
     """
     single = Case(
         case.name,
@@ -706,7 +746,7 @@ def effect_strength(
     trxr = np.asarray(kw["trxr_k"])
     s_time = np.linspace(-1.0, 1.0, ntime) if ntime > 1 else np.zeros(1)
     trxr_t = trxr[None, :] * (1.0 + kw.get("noise_drift", 0.0) * s_time[:, None])
-    chi2 = 0.0
+    chi2 = bandpass_chi2 = 0.0
     impacts: list[dict[str, Any]] = []
     for pol in case.pols:
         common = {"node_spacing_s": case.node_spacing_s}
@@ -729,14 +769,20 @@ def effect_strength(
             fed = gain * own
             fit = _clean_model_fit(fed * (true + trxr_t), clean, gain0, trxr, prior_sigma_k)
             chi2 += fit["chi2"]
+            if effect.name == "cable_reflection":
+                bandpass_chi2 += ripple_template_chi2(
+                    freqs, fit["g"], fit["sigma_g"], effect.params["tau_ns"] * 1e-9
+                )
             share = fit["chi2"] / (ntime * freqs.size)
             impacts.append(product_impact(fit, fed.mean(axis=0), trxr, share))
     nfeeds = len(case.antennas) * len(case.pols)
     ndata = nfeeds * freqs.size * (ntime + 1)
     span_h = (ntime - 1) * case.span.integration_s / 3600.0
     k = effect_parameters(effect, ntime, nfeeds, span_h)
+    if effect.name == "cable_reflection":  # seen in the bandpass domain: N = the gains
+        chi2, ndata = bandpass_chi2, nfeeds * freqs.size
     dbic = chi2 - k * math.log(ndata)
-    visible = effect.name == "cable_reflection" or dbic > BIC_THRESHOLD
+    visible = dbic > BIC_THRESHOLD
     impact = _worst_impact(impacts)
     matters = effect.name not in FORWARD_MODEL_EFFECTS or bool(impact["matters"])
     return {

@@ -29,8 +29,9 @@ class BandpassFit:
     per_feed
         ``a``, ``phi`` and their sigmas for every antenna/pol row, in order.
     at_edge
-        The best delay lies within one resolution element of the searched range's ends:
-        unresolved bandpass structure rather than a reflection.
+        The best delay lies below the searched range (scanned from one resolution element
+        below it) or within one resolution element of its upper end: unresolved bandpass
+        structure rather than a reflection.
     smooth_order
         Legendre order of the smooth bandpass.
     masked_channels
@@ -187,7 +188,8 @@ def fit_cable_reflection(
         Legendre order of the smooth bandpass (default :func:`auto_smooth_order` for the
         shortest searched delay).
     tau_range_ns
-        Delays scanned (capped at the Nyquist delay ``1 / (2 dnu)``).
+        Delays a reflection is claimed at (capped at 0.95 of the Nyquist delay
+        ``1 / (2 dnu)``); the scan starts one resolution element below.
 
     Returns
     -------
@@ -199,7 +201,10 @@ def fit_cable_reflection(
     nyq = 0.5 / abs(freqs[1] - freqs[0]) * 1e9
     hi = min(tau_range_ns[1], 0.95 * nyq)
     resolution = 1e9 / (freqs[-1] - freqs[0])
-    grid = np.arange(tau_range_ns[0], hi, resolution / 8)
+    # scanned from one resolution element below the range, so that a reflection at its
+    # lower end is a minimum inside the scan, and a best delay below the range (the chi^2
+    # still falling towards shorter delays) is what the edge rule refuses
+    grid = np.arange(tau_range_ns[0] - resolution, hi, resolution / 8)
     rows = list(zip(g2, s2, strict=True))
     nused = int((np.isfinite(g2) & np.isfinite(s2)).sum())
     null = BandpassFit(
@@ -232,7 +237,7 @@ def fit_cable_reflection(
         feeds[0]["phi"],
         feeds[0]["sigma_phi"],
         per_feed=tuple(feeds),
-        at_edge=bool(tau - tau_range_ns[0] < resolution or hi - tau < resolution),
+        at_edge=bool(tau < tau_range_ns[0] or hi - tau < resolution),
         smooth_order=order,
         masked_channels=masked,
     )

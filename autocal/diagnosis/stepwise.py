@@ -59,6 +59,7 @@ from autocal.diagnosis.acceptance import (
     accept,
     final_impacts,
     params_dict,
+    refresh_prior_gain,
     retest_accepted,
     supersede,
 )
@@ -348,8 +349,9 @@ def _start(
     current = fit_extended(obs, tpl, [], weights=w, **prior_kw)
     base_fit = current.detached()  # its G and Trxr only: no reference to these weights
     if trxr_prior is not None:
-        # one set of prior weights for every fit of the search (from the model without
-        # effects), whatever effects a fit holds fixed: their chi2 compare
+        # one set of prior weights for every fit of a step, whatever effects a fit holds
+        # fixed: their chi2 compare (from the model without effects until one is
+        # accepted; then from the accepted model: acceptance.refresh_prior_gain)
         prior_kw["gain_ref"] = base_fit.G
     sigma_g, sigma_t = product_sigmas(
         obs, tpl, None if trxr_prior is None else (trxr_prior, trxr_prior_sigma)
@@ -497,6 +499,7 @@ def _restart(
         current.chi2 - escaped.chi2,
     )
     state.weights = radiometer_weights(state.obs, escaped)
+    refresh_prior_gain(ctx, escaped)
     state.current = fit_extended(
         state.obs,
         ctx.tpl,
