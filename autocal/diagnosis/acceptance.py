@@ -234,7 +234,7 @@ def refresh_prior_gain(ctx: SearchContext, fit: ExtendedFit) -> None:
     in until an effect is accepted; it can be far off then: an unmodelled 5 % gain drift
     over a half hour moved the starting ``G`` by a factor 0.2 to 2.6 on the independent
     simulator's files (the drift taken for sky structure), which weighted the prior up to
-    20x too strongly or 7x too weakly and made ``sigma_G`` half or 2.5 times what it is
+    22x too strongly or 7x too weakly and made ``sigma_G`` half or 2.5 times what it is
     (a cable reflection beside the drift lost 3/4 of its Delta chi^2 and was missed).
     Like the radiometer weights, the reference moves to the accepted model, once per
     step, so that the fits within a step still share it (their chi^2 compare).

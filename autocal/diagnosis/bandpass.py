@@ -14,6 +14,10 @@ import numpy as np
 from numpy.polynomial import legendre
 from scipy.ndimage import median_filter
 
+#: Delays (ns) a reflection is claimed at: from the shortest a smooth bandpass of the
+#: default order leaves alone (:func:`auto_smooth_order`) to a few cable lengths.
+REFLECTION_DELAYS_NS = (90.0, 500.0)
+
 
 @dataclass(frozen=True)
 class BandpassFit:
@@ -166,7 +170,7 @@ def fit_cable_reflection(
     sigma_gain: np.ndarray,
     *,
     smooth_order: int | None = None,
-    tau_range_ns: tuple[float, float] = (90.0, 500.0),
+    tau_range_ns: tuple[float, float] = REFLECTION_DELAYS_NS,
 ) -> tuple[BandpassFit, BandpassFit]:
     """Fit ``G(nu)`` by a smooth Legendre bandpass, and by the same times ``1 + a cos``.
 

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from autocal.core.observation import Observation
-from autocal.diagnosis.bandpass import fit_cable_reflection
+from autocal.diagnosis.bandpass import REFLECTION_DELAYS_NS, fit_cable_reflection
 from autocal.diagnosis.consistency import WALD_SHORTFALL, wald_statistic
 from autocal.diagnosis.dispersion import robust_overdispersion
 from autocal.diagnosis.effects import (
@@ -126,7 +126,8 @@ def try_cable_reflection(
     if rip.at_edge:
         state.fail(
             "cable_reflection",
-            f"best delay {rip.tau_ns:.0f} ns at the edge of the searched range: "
+            f"best delay {rip.tau_ns:.0f} ns, below or at the edge of the "
+            f"{REFLECTION_DELAYS_NS[0]:.0f}-{REFLECTION_DELAYS_NS[1]:.0f} ns searched: "
             "unresolved bandpass structure, not a reflection",
         )
         return None
