@@ -549,7 +549,8 @@ def effect_parameters(effect: Hidden, ntime: int, nfeeds: int = 1, span_h: float
     ``gain_drift`` linear / ``noise_drift``: 1 (Legendre order 1); ``gain_drift``
     diurnal: 2 (sine and cosine); ``gain_jitter``: one per integration but the first;
     ``antenna_gain_jitter``: that for each of the ``nfeeds`` antenna-pols;
-    ``missing_cmb``: 0 (a discrete hypothesis); ``cable_reflection``: 3;
+    ``missing_cmb``: 0 (a discrete hypothesis); ``cable_reflection``: an amplitude and a
+    phase per antenna-pol and the shared delay, ``2 nfeeds + 1`` (as the diagnosis counts);
     ``timing_offset``: 3 over spans of ``span_h`` >= 6 h (the time offset and two frame
     tilts, as the diagnosis fits it), else 1; others 1.
     """
@@ -566,7 +567,7 @@ def effect_parameters(effect: Hidden, ntime: int, nfeeds: int = 1, span_h: float
     if effect.name == "missing_cmb":
         return 0
     if effect.name == "cable_reflection":
-        return 3
+        return 2 * nfeeds + 1
     return 1
 
 
@@ -587,7 +588,9 @@ def ripple_template_chi2(
     two quadratures at the true delay ``tau_s``, ``s(nu) cos(2 pi nu tau)`` and
     ``s(nu) sin(2 pi nu tau)`` with ``s`` the smooth fit (free amplitude and phase); the
     drop in chi-square is what the ripple explains beyond a smooth bandpass. Weighted
-    least squares with numpy's ``lstsq`` on its own basis (not autocal's bandpass code).
+    least squares with numpy's ``lstsq`` on its own basis (not autocal's bandpass code),
+    but the catalogue's model of a reflection (its smooth order and linearised ripple):
+    it measures what that model can see at the truth, not whether the model is adequate.
     """
     span = float(freqs[-1] - freqs[0])
     order = int(np.clip(round(1.5 * span * SMOOTH_DELAY_S), 4, 24))

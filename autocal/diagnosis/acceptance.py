@@ -210,12 +210,8 @@ def _accept_model_effect(
 
 
 def _reweight(ctx: SearchContext, state: SearchState, new: ExtendedFit) -> None:
-    """Weights from ``new``'s model, and the current model refitted with them from it.
-
-    The receiver prior's rows are re-weighted too (:func:`refresh_prior_gain`).
-    """
+    """Weights from ``new``'s model, and the current model refitted with them from it."""
     state.weights = radiometer_weights(state.obs, new)
-    refresh_prior_gain(ctx, new)
     state.current = fit_extended(
         state.obs,
         ctx.tpl,
@@ -224,23 +220,6 @@ def _reweight(ctx: SearchContext, state: SearchState, new: ExtendedFit) -> None:
         start=new.params,
         **ctx.prior_kw,
     )
-
-
-def refresh_prior_gain(ctx: SearchContext, fit: ExtendedFit) -> None:
-    """Give the receiver prior's rows the gain of ``fit``, the model the search moved to.
-
-    The prior on ``Trxr = n / G`` is the row ``n - Trxr0 G`` of 1-sigma ``G sigma``, with
-    ``G`` the reference gain (``prior_kw["gain_ref"]``). The starting model's gain stands
-    in until an effect is accepted; it can be far off then: an unmodelled 5 % gain drift
-    over a half hour moved the starting ``G`` by a factor 0.2 to 2.6 on the independent
-    simulator's files (the drift taken for sky structure), which weighted the prior up to
-    22x too strongly or 7x too weakly and made ``sigma_G`` half or 2.5 times what it is
-    (a cable reflection beside the drift lost 3/4 of its Delta chi^2 and was missed).
-    Like the radiometer weights, the reference moves to the accepted model, once per
-    step, so that the fits within a step still share it (their chi^2 compare).
-    """
-    if ctx.prior_kw.get("trxr_prior") is not None:
-        ctx.prior_kw["gain_ref"] = fit.G
 
 
 def params_dict(eff: Effect, fit: ExtendedFit) -> dict[str, dict[str, float]]:

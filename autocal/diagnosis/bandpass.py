@@ -33,13 +33,15 @@ class BandpassFit:
     per_feed
         ``a``, ``phi`` and their sigmas for every antenna/pol row, in order.
     at_edge
-        The best delay lies below the searched range (scanned from one resolution element
-        below it) or within one resolution element of its upper end: unresolved bandpass
-        structure rather than a reflection.
+        The best delay lies below the range searched (scanned from half its lower end) or
+        within one resolution element of its upper end: bandpass structure shorter or
+        longer than the delays searched rather than a reflection.
     smooth_order
         Legendre order of the smooth bandpass.
     masked_channels
         Channels left out as narrow-band outliers of the smooth bandpass.
+    delay_range_ns
+        The delays a reflection is claimed at (the upper end capped below Nyquist).
     """
 
     chi2: float
@@ -55,6 +57,7 @@ class BandpassFit:
     at_edge: bool = False
     smooth_order: int = 0
     masked_channels: int = 0
+    delay_range_ns: tuple[float, float] = (float("nan"), float("nan"))
 
     @property
     def reduced_chi2(self) -> float:
@@ -193,7 +196,7 @@ def fit_cable_reflection(
         shortest searched delay).
     tau_range_ns
         Delays a reflection is claimed at (capped at 0.95 of the Nyquist delay
-        ``1 / (2 dnu)``); the scan starts one resolution element below.
+        ``1 / (2 dnu)``); the scan starts at half the lower end.
 
     Returns
     -------
@@ -205,10 +208,12 @@ def fit_cable_reflection(
     nyq = 0.5 / abs(freqs[1] - freqs[0]) * 1e9
     hi = min(tau_range_ns[1], 0.95 * nyq)
     resolution = 1e9 / (freqs[-1] - freqs[0])
-    # scanned from one resolution element below the range, so that a reflection at its
-    # lower end is a minimum inside the scan, and a best delay below the range (the chi^2
-    # still falling towards shorter delays) is what the edge rule refuses
-    grid = np.arange(tau_range_ns[0] - resolution, hi, resolution / 8)
+    # scanned from half the shortest claimed delay: a reflection at the range's lower end
+    # is a minimum inside the scan, and what the smooth bandpass leaves of shorter
+    # structure (a localised bump or step rings down to ~0.7 of the claimed delay) has its
+    # deepest minimum below the range, where the edge rule refuses it
+    lo = max(0.5 * tau_range_ns[0], resolution / 8)
+    grid = np.arange(lo, hi, resolution / 8)
     rows = list(zip(g2, s2, strict=True))
     nused = int((np.isfinite(g2) & np.isfinite(s2)).sum())
     null = BandpassFit(
@@ -244,6 +249,7 @@ def fit_cable_reflection(
         at_edge=bool(tau < tau_range_ns[0] or hi - tau < resolution),
         smooth_order=order,
         masked_channels=masked,
+        delay_range_ns=(float(tau_range_ns[0]), float(hi)),
     )
     return null, rip
 

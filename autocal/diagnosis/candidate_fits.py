@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from autocal.core.observation import Observation
-from autocal.diagnosis.bandpass import REFLECTION_DELAYS_NS, fit_cable_reflection
+from autocal.diagnosis.bandpass import fit_cable_reflection
 from autocal.diagnosis.consistency import WALD_SHORTFALL, wald_statistic
 from autocal.diagnosis.dispersion import robust_overdispersion
 from autocal.diagnosis.effects import (
@@ -124,11 +124,17 @@ def try_cable_reflection(
         state.obs.freqs, current.G, current.sigma_G, smooth_order=ctx.settings.smooth_order
     )
     if rip.at_edge:
+        lo, hi = rip.delay_range_ns
+        where = (
+            "below the range: structure shorter than a reflection's delay (what the smooth "
+            "bandpass leaves of a bump or a step)"
+            if rip.tau_ns < lo
+            else "at its upper end: structure beyond the delays searched"
+        )
         state.fail(
             "cable_reflection",
-            f"best delay {rip.tau_ns:.0f} ns, below or at the edge of the "
-            f"{REFLECTION_DELAYS_NS[0]:.0f}-{REFLECTION_DELAYS_NS[1]:.0f} ns searched: "
-            "unresolved bandpass structure, not a reflection",
+            f"best delay {rip.tau_ns:.0f} ns of the {lo:.0f}-{hi:.0f} ns searched, {where}, "
+            "not a reflection",
         )
         return None
     dchi = null.chi2 - rip.chi2
@@ -403,8 +409,8 @@ def escape_local_minimum(
     ``fit``'s values (the step's lowest-chi2 candidate model) of the accepted effects'
     parameters, the current model reaches the better minimum itself; it is returned when
     it lowers chi2 by more than ``bic_threshold`` (in units of its overdispersion), else
-    ``None``. Every fit's prior weights come from the model without effects, so chi2 of
-    fits started from different values compare.
+    ``None``. Every fit's prior weights come from one reference gain (the data's own,
+    ``prior_kw["gain_ref"]``), so chi2 of fits started from different values compare.
     """
     start = {e.name: fit.params[e.name] for e in active if e.fixed is None and e.name in fit.params}
     if not start:

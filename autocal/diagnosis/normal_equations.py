@@ -113,6 +113,39 @@ def _contract(w: np.ndarray, z: np.ndarray) -> np.ndarray:
     return np.einsum("aptf,ptf->apf", w, np.broadcast_to(z, w.shape[1:]))
 
 
+def prior_gain_reference(
+    obs: Observation, tpl: SkyTemplates, weights: np.ndarray, trxr_prior: np.ndarray | float
+) -> np.ndarray:
+    """Return the gain ``(Nant, Npol, Nfreq)`` the receiver prior's rows are weighted with.
+
+    The prior on ``Trxr = n / G`` enters a fit as the row ``n - Trxr0 G`` of 1-sigma
+    ``G sigma``, which needs a gain before any is fitted. This one is the data's own: the
+    time-mean of the usable data (``weights > 0``) over the time-mean of the model sky
+    plus the prior's ``Trxr0``, over the same samples, ``<D> / (<Tsky> + Trxr0)``, which
+    needs no fit. The weights used to come from a fit without the prior, which over half
+    an hour cannot tell ``G`` from ``n`` (the sky changes too little): its gain was 0.27 to
+    1.55 times this one on a clean file and -21 to 28 times beside a gain drift (the
+    independent simulator's ``clean_short``, seed 20260, and
+    ``gain_drift+cable_reflection_short``, seeds 20261 and 20265); the search's fits,
+    weighted with the gain of the first fit that used it, then had ``sigma_G`` 2.5x or
+    half what it is, and missed or overstated a cable reflection. NaN where a channel has
+    no usable sample, no finite prior or a non-positive result.
+    """
+    shape3 = (obs.nant, len(obs.pols), obs.nfreq)
+    t0 = np.broadcast_to(np.asarray(trxr_prior, float), shape3)
+    out = np.full(shape3, np.nan)
+    tsky = np.broadcast_to(tpl.total, obs.shape[1:])
+    for sl in antenna_chunks(obs.shape):
+        usable = np.asarray(weights[sl]) > 0
+        count = usable.sum(axis=2)
+        with np.errstate(invalid="ignore"):
+            data = np.einsum("aptf->apf", np.where(usable, obs.data[sl], 0.0), dtype=np.float64)
+        sky = np.einsum("aptf,ptf->apf", usable.astype(np.float64), tsky)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out[sl] = data / (sky + count * t0[sl])
+    return np.where(np.isfinite(out) & (out > 0), out, np.nan)
+
+
 class FitProblem:
     """The extended fit of one observation, weights and set of effects.
 
@@ -177,7 +210,10 @@ class FitProblem:
         if self.prior:
             with np.errstate(over="ignore", invalid="ignore", under="ignore"):
                 if gain_ref is None:
-                    gain_ref = self.evaluate(np.zeros(self.nfree)).g
+                    gain_ref = prior_gain_reference(obs, tpl, weights, t0)
+                    if not np.isfinite(gain_ref).all():  # else: the fit's own, as before
+                        fitted = np.abs(self.evaluate(np.zeros(self.nfree)).g)
+                        gain_ref = np.where(np.isfinite(gain_ref), gain_ref, fitted)
                 gain_ref = np.where(np.abs(gain_ref) > 0, np.abs(gain_ref), np.inf)
                 self.wp = np.where(self.chan_ok & has_prior, 1.0 / (gain_ref * sig0) ** 2, 0.0)
 

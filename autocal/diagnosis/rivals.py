@@ -217,9 +217,10 @@ def _prior_rows(ctx: SearchContext, a: ExtendedFit, b: ExtendedFit) -> float:
     A row is ``(n - Trxr0 G) / (G_ref sigma)`` per channel with a finite prior and
     ``sigma > 0`` (:class:`~autocal.diagnosis.normal_equations.FitProblem`), so the
     difference is ``((n_a - n_b) - Trxr0 (G_a - G_b)) / (G_ref sigma)``. A search always
-    gives ``gain_ref`` (the gain of the model it stands on); without it, ``a``'s gain stands in
-    (what :class:`FitProblem` derives, a fit without effects, differs from it by the
-    effect's change of the gain).
+    gives ``gain_ref`` (the data's own gain,
+    :func:`~autocal.diagnosis.normal_equations.prior_gain_reference`, which
+    :class:`FitProblem` also derives when none is given); without it, ``a``'s gain stands
+    in.
     """
     kw = ctx.prior_kw
     if kw.get("trxr_prior") is None:

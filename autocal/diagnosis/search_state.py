@@ -59,10 +59,9 @@ class SearchContext:
     prior_kw
         The receiver prior's keywords of every fit
         (:func:`~autocal.diagnosis.extended_fit.fit_extended`: ``trxr_prior``,
-        ``trxr_prior_sigma`` and, with a prior, ``gain_ref``: the gain of the model the
-        search stands on, the starting model's and then each accepted one's
-        (:func:`~autocal.diagnosis.acceptance.refresh_prior_gain`), so that the chi^2 of
-        every fit of a step compare).
+        ``trxr_prior_sigma`` and, with a prior, ``gain_ref``, the data's own gain
+        (:func:`~autocal.diagnosis.normal_equations.prior_gain_reference`), so that the
+        chi^2 of every fit compare).
     sigma_g, sigma_t
         Total 1-sigma of ``G`` and ``Trxr`` of the ordinary calibration
         (:func:`autocal.diagnosis.impact.product_sigmas`).

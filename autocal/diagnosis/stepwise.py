@@ -59,11 +59,14 @@ from autocal.diagnosis.acceptance import (
     accept,
     final_impacts,
     params_dict,
-    refresh_prior_gain,
     retest_accepted,
     supersede,
 )
-from autocal.diagnosis.bandpass import auto_smooth_order, fit_cable_reflection
+from autocal.diagnosis.bandpass import (
+    REFLECTION_DELAYS_NS,
+    auto_smooth_order,
+    fit_cable_reflection,
+)
 from autocal.diagnosis.candidate_fits import MAX_RESTARTS, escape_local_minimum, try_candidates
 from autocal.diagnosis.catalogue import catalogue
 from autocal.diagnosis.chunks import antenna_chunks, is_large
@@ -79,7 +82,11 @@ from autocal.diagnosis.impact import (
     product_sigmas,
     signal_rms,
 )
-from autocal.diagnosis.normal_equations import MIN_IDENTIFIABLE, blas_single_thread
+from autocal.diagnosis.normal_equations import (
+    MIN_IDENTIFIABLE,
+    blas_single_thread,
+    prior_gain_reference,
+)
 from autocal.diagnosis.outliers import (
     NOISE_MAX_SIGMA,
     OUTLIER_WINDOW,
@@ -178,7 +185,11 @@ def diagnose(
         bic_threshold=bic_threshold,
         alpha=alpha,
         max_steps=max_steps,
-        smooth_order=auto_smooth_order(obs.freqs, 90.0) if smooth_order is None else smooth_order,
+        smooth_order=(
+            auto_smooth_order(obs.freqs, REFLECTION_DELAYS_NS[0])
+            if smooth_order is None
+            else smooth_order
+        ),
     )
 
     def search_once(obs: Observation) -> Diagnosis:
@@ -349,10 +360,11 @@ def _start(
     current = fit_extended(obs, tpl, [], weights=w, **prior_kw)
     base_fit = current.detached()  # its G and Trxr only: no reference to these weights
     if trxr_prior is not None:
-        # one set of prior weights for every fit of a step, whatever effects a fit holds
-        # fixed: their chi2 compare (from the model without effects until one is
-        # accepted; then from the accepted model: acceptance.refresh_prior_gain)
-        prior_kw["gain_ref"] = base_fit.G
+        # one set of prior weights for every fit of the search, whatever effects a fit
+        # holds: their chi2 compare. From the data's own gain, <D> / (<Tsky> + Trxr0),
+        # not the fit without effects' (an unmodelled drift moves that by 0.001-6x)
+        ref = prior_gain_reference(obs, tpl, w, trxr_prior)
+        prior_kw["gain_ref"] = np.where(np.isfinite(ref), ref, np.abs(base_fit.G))
     sigma_g, sigma_t = product_sigmas(
         obs, tpl, None if trxr_prior is None else (trxr_prior, trxr_prior_sigma)
     )
@@ -499,7 +511,6 @@ def _restart(
         current.chi2 - escaped.chi2,
     )
     state.weights = radiometer_weights(state.obs, escaped)
-    refresh_prior_gain(ctx, escaped)
     state.current = fit_extended(
         state.obs,
         ctx.tpl,
