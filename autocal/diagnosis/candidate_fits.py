@@ -20,8 +20,13 @@ from typing import Any
 import numpy as np
 
 from autocal.core.observation import Observation
-from autocal.diagnosis.bandpass import fit_cable_reflection
-from autocal.diagnosis.consistency import WALD_SHORTFALL, wald_statistic
+from autocal.diagnosis.bandpass import BandpassFit, fit_cable_reflection, ripple_halves
+from autocal.diagnosis.consistency import (
+    CONSISTENCY_ALPHA,
+    CONSISTENCY_RELATIVE,
+    WALD_SHORTFALL,
+    wald_statistic,
+)
 from autocal.diagnosis.dispersion import robust_overdispersion
 from autocal.diagnosis.effects import (
     LST_STEP_H,
@@ -115,14 +120,18 @@ def try_candidates(
     return trials, lowest
 
 
-def try_cable_reflection(
-    ctx: SearchContext, state: SearchState, eff: Effect
-) -> BandpassTrial | None:
-    """Fit a ripple on the current model's ``G(nu)``; ``None`` when it is at the edge."""
-    current = state.current
-    null, rip = fit_cable_reflection(
-        state.obs.freqs, current.G, current.sigma_G, smooth_order=ctx.settings.smooth_order
-    )
+def reflection_refusal(
+    freqs: np.ndarray, gain: np.ndarray, sigma_gain: np.ndarray, rip: BandpassFit
+) -> str | None:
+    """Why the best ripple ``rip`` of ``G(nu)`` is not a reflection, or ``None``.
+
+    Its delay lies outside the range searched (``rip.at_edge``: structure shorter or longer
+    than a reflection's), or the band's two halves disagree on it
+    (:func:`~autocal.diagnosis.bandpass.ripple_halves`, by the rule the model effects'
+    halves are held to: chi-square survival below :data:`CONSISTENCY_ALPHA` and a
+    difference over :data:`CONSISTENCY_RELATIVE` of the amplitude): structure carried by
+    one part of the band.
+    """
     if rip.at_edge:
         lo, hi = rip.delay_range_ns
         where = (
@@ -131,11 +140,37 @@ def try_cable_reflection(
             if rip.tau_ns < lo
             else "at its upper end: structure beyond the delays searched"
         )
-        state.fail(
-            "cable_reflection",
+        return (
             f"best delay {rip.tau_ns:.0f} ns of the {lo:.0f}-{hi:.0f} ns searched, {where}, "
-            "not a reflection",
+            "not a reflection"
         )
+    halves = ripple_halves(freqs, gain, sigma_gain, rip)
+    if halves.p_value < CONSISTENCY_ALPHA and halves.relative_difference > CONSISTENCY_RELATIVE:
+        a_lo, a_hi = np.hypot(*halves.lower[0]), np.hypot(*halves.upper[0])
+        return (
+            f"the two halves of the band disagree on the ripple at {rip.tau_ns:.0f} ns "
+            f"(a = {a_lo:.2g} and {a_hi:.2g} on the first antenna-pol; chi2 {halves.chi2:.1f} "
+            f"for {halves.dof}, p {halves.p_value:.2g}): structure in one part of the band, "
+            "not a reflection"
+        )
+    return None
+
+
+def try_cable_reflection(
+    ctx: SearchContext, state: SearchState, eff: Effect
+) -> BandpassTrial | None:
+    """Fit a ripple on the current model's ``G(nu)``; ``None`` when it is refused.
+
+    Refused (:func:`reflection_refusal`): a best delay outside the range searched, or
+    halves of the band that disagree on the ripple.
+    """
+    current = state.current
+    null, rip = fit_cable_reflection(
+        state.obs.freqs, current.G, current.sigma_G, smooth_order=ctx.settings.smooth_order
+    )
+    refusal = reflection_refusal(state.obs.freqs, current.G, current.sigma_G, rip)
+    if refusal is not None:
+        state.fail("cable_reflection", refusal)
         return None
     dchi = null.chi2 - rip.chi2
     k = rip.nparam - null.nparam
