@@ -20,7 +20,12 @@ from typing import Any
 import numpy as np
 
 from autocal.core.observation import Observation
-from autocal.diagnosis.bandpass import BandpassFit, fit_cable_reflection, ripple_halves
+from autocal.diagnosis.bandpass import (
+    SIDE_LOBE_ELEMENTS,
+    BandpassFit,
+    fit_cable_reflection,
+    ripple_halves,
+)
 from autocal.diagnosis.consistency import (
     CONSISTENCY_ALPHA,
     CONSISTENCY_RELATIVE,
@@ -120,6 +125,11 @@ def try_candidates(
     return trials, lowest
 
 
+#: A half of the band whose ripple's Wald statistic has a survival probability above this
+#: shows none of it (:func:`reflection_refusal`).
+ABSENT_P = 0.05
+
+
 def reflection_refusal(
     freqs: np.ndarray, gain: np.ndarray, sigma_gain: np.ndarray, rip: BandpassFit
 ) -> str | None:
@@ -127,11 +137,13 @@ def reflection_refusal(
 
     Its delay lies outside the range searched (``rip.at_edge``: structure shorter or longer
     than a reflection's), or the band's two halves disagree on it
-    (:func:`~autocal.diagnosis.bandpass.ripple_halves`, by the rule the model effects'
-    halves are held to: chi-square survival below :data:`CONSISTENCY_ALPHA` and a
-    difference over :data:`CONSISTENCY_RELATIVE` of the amplitude): structure carried by
-    one part of the band.
+    (:func:`~autocal.diagnosis.bandpass.ripple_halves`, with the model effects' thresholds:
+    chi-square survival below :data:`CONSISTENCY_ALPHA`, in units of the ripple fit's
+    overdispersion, and a difference over :data:`CONSISTENCY_RELATIVE` of the amplitude,
+    both less what noise adds): structure carried by one part of the band.
     """
+    if not np.isfinite(rip.tau_ns):
+        return None  # no delay scanned (too narrow a band): nothing to refuse
     if rip.at_edge:
         lo, hi = rip.delay_range_ns
         where = (
@@ -144,12 +156,27 @@ def reflection_refusal(
             f"best delay {rip.tau_ns:.0f} ns of the {lo:.0f}-{hi:.0f} ns searched, {where}, "
             "not a reflection"
         )
+    resolution = 1e9 / abs(freqs[-1] - freqs[0])
+    if rip.tau_ns - rip.shorter_tau_ns < SIDE_LOBE_ELEMENTS * resolution:
+        return (
+            f"best delay {rip.tau_ns:.0f} ns, a side lobe of shorter bandpass structure that "
+            f"fits better at {rip.shorter_tau_ns:.0f} ns (within {SIDE_LOBE_ELEMENTS:g} "
+            "resolution elements), not a reflection"
+        )
     halves = ripple_halves(freqs, gain, sigma_gain, rip)
-    if halves.p_value < CONSISTENCY_ALPHA and halves.relative_difference > CONSISTENCY_RELATIVE:
-        a_lo, a_hi = np.hypot(*halves.lower[0]), np.hypot(*halves.upper[0])
+    one_sided = min(halves.p_lower, halves.p_upper) < CONSISTENCY_ALPHA and (
+        max(halves.p_lower, halves.p_upper) > ABSENT_P
+    )
+    differ = (
+        halves.p_value < CONSISTENCY_ALPHA and halves.relative_difference > CONSISTENCY_RELATIVE
+    )
+    if one_sided or differ:
+        row = int(np.argmax([f["a"] if np.isfinite(f["a"]) else -1.0 for f in rip.per_feed]))
+        a_lo, a_hi = np.hypot(*halves.lower[row]), np.hypot(*halves.upper[row])
         return (
             f"the two halves of the band disagree on the ripple at {rip.tau_ns:.0f} ns "
-            f"(a = {a_lo:.2g} and {a_hi:.2g} on the first antenna-pol; chi2 {halves.chi2:.1f} "
+            f"(a = {a_lo:.2g} and {a_hi:.2g} on its strongest antenna-pol; "
+            f"chi2 {halves.chi2:.1f} "
             f"for {halves.dof}, p {halves.p_value:.2g}): structure in one part of the band, "
             "not a reflection"
         )
@@ -161,21 +188,26 @@ def try_cable_reflection(
 ) -> BandpassTrial | None:
     """Fit a ripple on the current model's ``G(nu)``; ``None`` when it is refused.
 
-    Refused (:func:`reflection_refusal`): a best delay outside the range searched, or
-    halves of the band that disagree on the ripple.
+    A ripple significant enough to be named is refused (:func:`reflection_refusal`) when
+    its best delay lies outside the range searched or the halves of the band disagree on it.
     """
     current = state.current
     null, rip = fit_cable_reflection(
         state.obs.freqs, current.G, current.sigma_G, smooth_order=ctx.settings.smooth_order
     )
-    refusal = reflection_refusal(state.obs.freqs, current.G, current.sigma_G, rip)
-    if refusal is not None:
-        state.fail("cable_reflection", refusal)
-        return None
     dchi = null.chi2 - rip.chi2
     k = rip.nparam - null.nparam
     chat = max(1.0, rip.reduced_chi2)
     stat = dchi / chat - k * math.log(max(null.nfreq, 2))
+    # a ripple that would not pass anyway is rejected as any candidate is, not refused
+    refusal = (
+        reflection_refusal(state.obs.freqs, current.G, current.sigma_G, rip)
+        if stat > ctx.settings.bic_threshold
+        else None
+    )
+    if refusal is not None:
+        state.fail("cable_reflection", refusal)
+        return None
     return BandpassTrial(
         effect=eff, delta_chi2=dchi, k=k, overdispersion=chat, statistic=stat, ripple=rip
     )

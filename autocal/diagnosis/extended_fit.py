@@ -266,8 +266,9 @@ def fit_extended(
         to ``(Nant, Npol, Nfreq)`` (:meth:`autocal.fit.priors.TrxrPrior.at`); ``None`` for no
         prior. Channels whose prior is not finite get no prior term.
     gain_ref
-        ``(Nant, Npol, Nfreq)`` gain used to scale the prior's sigma (default: a fit
-        without prior).
+        ``(Nant, Npol, Nfreq)`` gain used to scale the prior's sigma (default: the data's
+        own, :func:`~autocal.diagnosis.normal_equations.prior_gain_reference`, and a fit
+        without the prior's where that has none).
     max_iter, tol
         Gauss-Newton limits (``tol`` in units of the parameter sigma).
     start

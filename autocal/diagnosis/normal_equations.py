@@ -122,7 +122,8 @@ def prior_gain_reference(
     ``G sigma``, which needs a gain before any is fitted. This one is the data's own: the
     time-mean of the usable data (``weights > 0``) over the time-mean of the model sky
     plus the prior's ``Trxr0``, over the same samples, ``<D> / (<Tsky> + Trxr0)``, which
-    needs no fit. The weights used to come from a fit without the prior, which over half
+    needs no fit (NaN where ``<Tsky>`` and ``Trxr0`` nearly cancel: within a tenth of
+    their magnitudes). The weights used to come from a fit without the prior, which over half
     an hour cannot tell ``G`` from ``n`` (the sky changes too little): its gain was 0.27 to
     1.55 times this one on a clean file and -21 to 28 times beside a gain drift (the
     independent simulator's ``clean_short``, seed 20260, and
@@ -142,7 +143,11 @@ def prior_gain_reference(
             data = np.einsum("aptf->apf", np.where(usable, obs.data[sl], 0.0), dtype=np.float64)
         sky = np.einsum("aptf,ptf->apf", usable.astype(np.float64), tsky)
         with np.errstate(divide="ignore", invalid="ignore"):
-            out[sl] = data / (sky + count * t0[sl])
+            total = sky / count + t0[sl]  # <Tsky> + Trxr0
+            # where the two nearly cancel (a receiver temperature near -<Tsky>, as noise-wave
+            # calibrated EDGES data can have), the ratio says nothing: no reference
+            cancels = np.abs(total) < 0.1 * (np.abs(sky / count) + np.abs(t0[sl]))
+            out[sl] = np.where(cancels, np.nan, data / count / total)
     return np.where(np.isfinite(out) & (out > 0), out, np.nan)
 
 

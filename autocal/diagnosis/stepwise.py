@@ -357,14 +357,14 @@ def _start(
     w = radiometer_weights(obs, obs.data)
     current = fit_extended(obs, tpl, [], weights=w, **prior_kw)
     w = radiometer_weights(obs, current)
+    if trxr_prior is not None:
+        # one set of prior weights for every fit of the search, the starting model's
+        # included, whatever effects a fit holds: their chi2 compare. From the data's own
+        # gain, <D> / (<Tsky> + Trxr0), not a fit's (prior_gain_reference)
+        ref = prior_gain_reference(obs, tpl, w, trxr_prior)
+        prior_kw["gain_ref"] = np.where(np.isfinite(ref), ref, np.abs(current.G))
     current = fit_extended(obs, tpl, [], weights=w, **prior_kw)
     base_fit = current.detached()  # its G and Trxr only: no reference to these weights
-    if trxr_prior is not None:
-        # one set of prior weights for every fit of the search, whatever effects a fit
-        # holds: their chi2 compare. From the data's own gain, <D> / (<Tsky> + Trxr0),
-        # not the fit without effects' (an unmodelled drift moves that by 0.001-6x)
-        ref = prior_gain_reference(obs, tpl, w, trxr_prior)
-        prior_kw["gain_ref"] = np.where(np.isfinite(ref), ref, np.abs(base_fit.G))
     sigma_g, sigma_t = product_sigmas(
         obs, tpl, None if trxr_prior is None else (trxr_prior, trxr_prior_sigma)
     )

@@ -14,7 +14,7 @@ from tests.diagnosis.simulated import PRIOR_SIGMA, hidden, s_of
 
 def test_fits_from_another_start_compare(setup):
     """A fit started elsewhere reaches the same minimum with the same chi2: its receiver
-    prior's weights come from the model without effects, not from the start."""
+    prior's weights come from the data's own gain, not from the start."""
     obs, tpl = setup
     g = 1 + 0.02 * s_of(obs.lsts)
     data = hidden(obs, tpl.total, gain=g)
