@@ -136,11 +136,15 @@ def reflection_refusal(
     """Why the best ripple ``rip`` of ``G(nu)`` is not a reflection, or ``None``.
 
     Its delay lies outside the range searched (``rip.at_edge``: structure shorter or longer
-    than a reflection's), or the band's two halves disagree on it
-    (:func:`~autocal.diagnosis.bandpass.ripple_halves`, with the model effects' thresholds:
-    chi-square survival below :data:`CONSISTENCY_ALPHA`, in units of the ripple fit's
-    overdispersion, and a difference over :data:`CONSISTENCY_RELATIVE` of the amplitude,
-    both less what noise adds): structure carried by one part of the band.
+    than a reflection's); it is a side lobe of shorter structure that fits better, within
+    :data:`~autocal.diagnosis.bandpass.SIDE_LOBE_ELEMENTS` resolution elements of it
+    (``rip.shorter_tau_ns``); or it is carried by one part of the band
+    (:func:`~autocal.diagnosis.bandpass.ripple_halves`): the two halves disagree on it by
+    the model effects' thresholds (chi-square survival below :data:`CONSISTENCY_ALPHA`, in
+    units of the ripple fit's overdispersion, and a difference over
+    :data:`CONSISTENCY_RELATIVE` of the amplitude, both less what noise adds), or one half
+    carries it (survival below :data:`CONSISTENCY_ALPHA` against zero) and the other shows
+    none of it (above :data:`ABSENT_P`).
     """
     if not np.isfinite(rip.tau_ns):
         return None  # no delay scanned (too narrow a band): nothing to refuse
@@ -173,13 +177,15 @@ def reflection_refusal(
     if one_sided or differ:
         row = int(np.argmax([f["a"] if np.isfinite(f["a"]) else -1.0 for f in rip.per_feed]))
         a_lo, a_hi = np.hypot(*halves.lower[row]), np.hypot(*halves.upper[row])
-        return (
-            f"the two halves of the band disagree on the ripple at {rip.tau_ns:.0f} ns "
-            f"(a = {a_lo:.2g} and {a_hi:.2g} on its strongest antenna-pol; "
-            f"chi2 {halves.chi2:.1f} "
-            f"for {halves.dof}, p {halves.p_value:.2g}): structure in one part of the band, "
-            "not a reflection"
+        amplitudes = f"a = {a_lo:.2g} and {a_hi:.2g} on its strongest antenna-pol"
+        verdict = (
+            f"only one of the two halves of the band carries the ripple at {rip.tau_ns:.0f} ns "
+            f"({amplitudes}; p {halves.p_lower:.2g} and {halves.p_upper:.2g} against none)"
+            if one_sided
+            else f"the two halves of the band disagree on the ripple at {rip.tau_ns:.0f} ns "
+            f"({amplitudes}; chi2 {halves.chi2:.1f} for {halves.dof}, p {halves.p_value:.2g})"
         )
+        return f"{verdict}: structure in one part of the band, not a reflection"
     return None
 
 
