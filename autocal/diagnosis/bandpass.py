@@ -189,11 +189,12 @@ def fit_cable_reflection(
 
     The ripple is linearised, ``P(nu) + Pbar(nu) (c cos 2 pi nu tau + s sin 2 pi nu tau)``
     with ``Pbar`` the smooth fit; ``tau`` is scanned on a grid oversampled 8x relative to
-    the delay resolution ``1 / bandwidth`` and refined parabolically; its error is where
-    ``chi^2`` rises by 1. The delay is common to all antennas and polarisations, the
-    amplitude and phase are fitted for each (``per_feed``). Channels with narrow-band
-    outliers from the smooth bandpass (RFI absorbed by the per-channel gain) are left out
-    of both fits.
+    the delay resolution ``1 / bandwidth`` from half the range's lower end, the best minimum
+    inside the range refined on a grid 20x finer around it (``BandpassFit.shorter_tau_ns``
+    when one below the range fits better); its error is where ``chi^2`` rises by 1. The
+    delay is common to all antennas and polarisations, the amplitude and phase are fitted
+    for each (``per_feed``). Channels with narrow-band outliers from the smooth bandpass
+    (RFI absorbed by the per-channel gain) are left out of both fits.
 
     Parameters
     ----------
@@ -218,12 +219,12 @@ def fit_cable_reflection(
     nyq = 0.5 / abs(freqs[1] - freqs[0]) * 1e9
     hi = min(tau_range_ns[1], 0.95 * nyq)
     resolution = 1e9 / (freqs[-1] - freqs[0])
-    # scanned from half the shortest claimed delay, the best delay taken inside the range:
-    # a reflection at the range's lower end is a minimum inside the scan, what the smooth
-    # bandpass leaves of shorter structure (a localised bump or step rings down to ~0.7 of
-    # the claimed delay) is a minimum below the range that only reaches into it as a slope
-    # (refused: the refined best lies below the range), and shorter structure stronger
-    # than a reflection in the range does not hide it
+    # scanned from half the shortest claimed delay, the best minimum taken inside the
+    # range: a reflection at the range's lower end is a minimum inside the scan, shorter
+    # structure (a localised bump or step rings down to ~0.7 of the claimed delay) is a
+    # minimum below the range that reaches into it as a slope (refused: the refined best
+    # lies below the range) or side lobes (refused in candidate_fits), and shorter
+    # structure stronger than a reflection further up does not hide it
     lo = max(0.5 * tau_range_ns[0], resolution / 8)
     grid = np.arange(lo, hi, resolution / 8)
     rows = list(zip(g2, s2, strict=True))
@@ -239,8 +240,16 @@ def fit_cable_reflection(
         return null, null
     scan = _RippleScan(freqs, g2, s2, order)
     chis = np.array([scan(t * 1e-9) for t in grid])
+    chis = np.where(np.isfinite(chis), chis, np.inf)
+    # the best minimum inside the range: a point on the slope of a minimum below it is none
     claimed = np.flatnonzero(grid >= tau_range_ns[0])
-    i = int(claimed[np.argmin(chis[claimed])]) if claimed.size else int(np.argmin(chis))
+    interior = [
+        k
+        for k in claimed
+        if 0 < k < grid.size - 1 and chis[k] < chis[k - 1] and chis[k] <= chis[k + 1]
+    ]
+    pool = np.asarray(interior if interior else claimed, dtype=int)
+    i = int(pool[np.argmin(chis[pool])]) if pool.size else int(np.argmin(chis))
     deepest = int(np.argmin(chis))
     shorter = float(grid[deepest]) if chis[deepest] < chis[i] else float("nan")
     fine = np.linspace(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)], 41)
@@ -308,7 +317,8 @@ def ripple_halves(
     A reflection is a ripple across the whole band, with one amplitude and phase; what the
     smooth bandpass leaves of structure in one part of the band (a step or a bump near an
     edge) can pass for a ripple of some delay, carried by that part alone. Each half gets
-    its own smooth bandpass (half the whole band's order: the same shortest delay) and the
+    its own smooth bandpass (half the whole band's order, at least 4: the same shortest
+    delay unless clipped) and the
     two ripple columns at ``rip.tau_ns`` (the same narrow-band channels left out as for the
     whole); the statistics are in units of the ripple fit's overdispersion. The verdict is
     :func:`autocal.diagnosis.candidate_fits.reflection_refusal`'s (measured in
@@ -329,7 +339,14 @@ def ripple_halves(
                 quads[h, i], covs[h, i] = coef[-2:], cov[-2:, -2:]
     diff = quads[0] - quads[1]
     cdiff = covs.sum(axis=0)
-    ok = np.all(np.isfinite(diff), axis=1) & np.all(np.isfinite(cdiff), axis=(1, 2))
+    amp_all = np.array([f["a"] for f in rip.per_feed])
+    sig_all = np.array([f["sigma_a"] for f in rip.per_feed])
+    ok = (
+        np.all(np.isfinite(diff), axis=1)
+        & np.all(np.isfinite(cdiff), axis=(1, 2))
+        & np.isfinite(amp_all)
+        & np.isfinite(sig_all)
+    )
     chi2 = float(
         sum(
             d @ np.linalg.pinv(c, hermitian=True) @ d
@@ -340,7 +357,8 @@ def ripple_halves(
     chat = max(1.0, rip.reduced_chi2)
     chi2 /= chat
     dof = 2 * int(ok.sum())
-    wald = [
+
+    against_none = [
         sum(
             q @ np.linalg.pinv(c, hermitian=True) @ q
             for q, c in zip(quads[h][ok], covs[h][ok], strict=True)
@@ -351,8 +369,7 @@ def ripple_halves(
     # |lower - upper| over the whole band's amplitude, both less what noise alone adds to
     # them (the trace of the difference's covariance; twice the amplitude's variance), so
     # that many antenna-pols of modest signal do not add up to a difference
-    amp = np.array([f["a"] for f in rip.per_feed])[ok]
-    sig_amp = np.array([f["sigma_a"] for f in rip.per_feed])[ok]
+    amp, sig_amp = amp_all[ok], sig_all[ok]
     signal = float(np.sum(diff[ok] ** 2) - np.trace(cdiff[ok], axis1=1, axis2=2).sum())
     whole = float(np.sum(amp**2 - 2 * sig_amp**2))
     return RippleHalves(
@@ -362,8 +379,8 @@ def ripple_halves(
         dof=dof,
         p_value=float(stats.chi2.sf(chi2, dof)) if dof else 1.0,
         relative_difference=float(np.sqrt(max(signal, 0.0) / whole)) if whole > 0 else 0.0,
-        p_lower=float(stats.chi2.sf(wald[0], dof)) if dof else 1.0,
-        p_upper=float(stats.chi2.sf(wald[1], dof)) if dof else 1.0,
+        p_lower=float(stats.chi2.sf(against_none[0], dof)) if dof else 1.0,
+        p_upper=float(stats.chi2.sf(against_none[1], dof)) if dof else 1.0,
     )
 
 

@@ -88,9 +88,7 @@ def _taken(g: np.ndarray, sigma: np.ndarray) -> tuple[bool, float]:
 def test_false_alarms_on_localised_structure_and_reflections_found() -> None:
     """Over 324 localised features (Gaussian bumps, tanh steps and Lorentzians of 1-3 %,
     1-4 MHz wide, at 9 places across the band; noise 1e-3) none passes as a reflection,
-    and every reflection of 92.5-392.5 ns (a = 0.2, 0.5 and 1 %) is found at its delay (one
-    at 90 ns exactly, the range's end, is found or refused as the noise puts its best
-    delay).
+    and every reflection of 92.5-392.5 ns (a = 0.2, 0.5 and 1 %) is found at its delay.
 
     The best delay in the range is refused as a side lobe when shorter structure fits
     better within 4 resolution elements (bumps at the band's centre leave minima at 90-97
@@ -147,13 +145,19 @@ def _smooth() -> np.ndarray:
     return 1.0 + 0.3 * x - 0.2 * x**2 + 0.05 * x**3
 
 
-@pytest.mark.parametrize("tau_ns", [150.0, 250.0, 400.0])
-def test_stronger_shorter_structure_does_not_hide_a_reflection(tau_ns: float) -> None:
-    """A 1 % ripple at 55 ns (below the range, fitting better than anything in it) beside a
-    0.5 % reflection: the best delay in the range is the reflection's, and it is taken (a
-    scan judged by its deepest minimum alone refused it as structure below the range)."""
+@pytest.mark.parametrize(
+    ("shorter_ns", "tau_ns"),
+    [(55.0, 150.0), (55.0, 250.0), (55.0, 400.0), (85.0, 200.0), (85.0, 300.0)],
+)
+def test_stronger_shorter_structure_does_not_hide_a_reflection(
+    shorter_ns: float, tau_ns: float
+) -> None:
+    """A 1 % ripple below the range (fitting better than anything in it) beside a 0.5 %
+    reflection: the best minimum in the range is the reflection's, and it is taken (a scan
+    judged by its deepest minimum alone refused it as structure below the range; one taking
+    the lowest point in the range took the slope of an 85 ns ripple at 90 ns)."""
     rng = np.random.default_rng(int(tau_ns))
-    shorter = 1 + 0.01 * np.cos(2 * np.pi * FREQS * 55e-9 + 0.3)
+    shorter = 1 + 0.01 * np.cos(2 * np.pi * FREQS * shorter_ns * 1e-9 + 0.3)
     ripple = 1 + 0.005 * np.cos(2 * np.pi * FREQS * tau_ns * 1e-9 + 0.7)
     g = _smooth() * shorter * ripple + rng.normal(0, 1e-3, FREQS.size)
     sigma = np.full(FREQS.size, 1e-3)
@@ -165,9 +169,10 @@ def test_stronger_shorter_structure_does_not_hide_a_reflection(tau_ns: float) ->
 
 def test_a_reflection_whose_amplitude_changes_across_the_band() -> None:
     """Real reflections are not of one amplitude: 0.75 to 1.25 times it from end to end of
-    the band (1.7x) is taken at its delay; 0.5 to 1.5 (3x) is refused, the halves
+    the band (1.7x) is taken at its delay here; 0.5 to 1.5 (3x) is refused, the halves
     differing by half the amplitude (not one reflection the catalogue's constant ``a``
-    describes)."""
+    describes). The boundary lies near 2x: a review measured 2 of 32 refused at 1.67x and
+    16 of 32 at 2.08x over other seeds."""
     x = (FREQS - 150e6) / 40e6
     sigma = np.full(FREQS.size, 1e-3)
     for slope, expected in ((0.5, True), (1.0, False)):
