@@ -169,10 +169,11 @@ def reflection_refusal(
         )
     halves = ripple_halves(freqs, gain, sigma_gain, rip)
     # one half carries the ripple, the other shows none of it. A half merely too weak to
-    # show a faint reflection (where the bandpass is low) fails this too: ~13 % of
-    # reflections within a few units of the Delta BIC threshold (a review's measurement);
-    # requiring the weak half to be inconsistent with the whole band's ripple as well let
-    # localised bumps through, whose poor fit inflates the overdispersion the test divides by
+    # show a faint reflection (where the bandpass is low) fails this too: 20 of 245 faint
+    # reflections over the threshold (scripts/reflection_limits.py). Requiring the weak half
+    # to be inconsistent with the whole band's ripple as well let 6 of the 324 localised
+    # features of tests/diagnosis/test_bandpass.py through (tried on 2026-11-29): their
+    # poor fit inflates the overdispersion the test divides by
     one_sided = (
         min(halves.p_lower, halves.p_upper) < CONSISTENCY_ALPHA
         and max(halves.p_lower, halves.p_upper) > ABSENT_P
