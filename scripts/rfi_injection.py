@@ -54,6 +54,17 @@ def hera_qm_flags(data: np.ndarray, band_edge: np.ndarray) -> np.ndarray:
     return out
 
 
+def _runs_mhz(freqs: np.ndarray, flagged: np.ndarray) -> list[str]:
+    """Return the runs of flagged channels as ``"a-b"`` (or ``"a"``) in MHz, 2 decimals."""
+    idx = np.flatnonzero(flagged)
+    runs = np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1) if idx.size else []
+    out = []
+    for run in runs:
+        lo, hi = freqs[run[0]] / 1e6, freqs[run[-1]] / 1e6
+        out.append(f"{lo:.2f}" if run.size == 1 else f"{lo:.2f}-{hi:.2f}")
+    return out
+
+
 def main() -> None:
     """Print the measured rates as JSON."""
     root = data_dir()
@@ -64,7 +75,12 @@ def main() -> None:
     inband = np.broadcast_to(~(base.band_edge | base.channels)[:, :, None, :], data.shape)
     candidates = np.argwhere(inband & ~base_flags)
     rng = np.random.default_rng(1)
-    results: dict[str, object] = {"as_is": base.counts}
+    results: dict[str, object] = {
+        "as_is": base.counts,
+        "channels_flagged_whole_mhz": {
+            pol: _runs_mhz(obs.freqs, base.channels[0, p]) for p, pol in enumerate(obs.pols)
+        },
+    }
     spikes = {}
     for amp in AMPLITUDES:
         pick = candidates[rng.choice(len(candidates), 300, replace=False)]

@@ -17,12 +17,14 @@ never needs a night in memory:
    per pass over one 350-antenna HERA file (2 x 10^8 samples), the kernel takes ~3.8 s of
    CPU, ~1.9 s on two cores (a py-spy profile of ``autocal calibrate`` on the
    HERA-size file, one-off), and its width, from the whole spectrum rather than 16
-   neighbours, is not itself noisy: on real HERA autos it finds 99 % of +1 % spikes where
+   neighbours, is not itself noisy: on real HERA autos it finds 98 % of +1 % spikes where
    the sliding filter found 91 % (``python scripts/rfi_injection.py``);
 2. **RFI in time**, per antenna-pol: each spectrum's level relative to the time-mean
    spectrum (the median of its block medians: one number per integration, kept for the
    whole observation) is median-filtered along time (:data:`KT` integrations each side)
-   and outlying integrations are flagged whole.
+   and outlying integrations are flagged whole; the robust width of
+   :func:`robust_zscores` is floored at the series' own, or radiometer noise alone flags
+   ~5e-4 of the integrations.
 
 Then, once the whole observation has been seen (:class:`RfiScan`):
 
