@@ -423,32 +423,26 @@ def band_sky(tsky: np.ndarray, npol: int) -> np.ndarray:
 
 
 def sky_trend(band: np.ndarray, ok: np.ndarray, sky: np.ndarray) -> np.ndarray:
-    """Return ``(a + b sky(t)) (1 + e t)`` fitted to each antenna-pol's band level.
+    """Return ``a + b sky(t)`` fitted to each antenna-pol's band level ``(Nant, Npol, Ntime)``.
 
-    The band level ``(Nant, Npol, Ntime)`` follows the model sky through a gain that may
-    drift linearly in time, i.e. ``a + b sky + c t + d t sky``, linear in its four
-    coefficients. Least squares over the usable integrations, then again without those
-    more than five robust sigma off (an RFI burst must not pull the fit); zero where it
-    cannot be fitted (fewer than five integrations). The drift terms matter because the
-    time median filter reflects the series at its ends: with ``a + b sky`` alone a 4 %
-    gain drift over a day left its last integrations standing out, flagged
-    (``tests/pipeline/test_rfi.py``).
+    Least squares over the usable integrations, then again without those more than five
+    robust sigma off (an RFI burst must not pull the line); zero where it cannot be fitted
+    (fewer than three integrations or a constant sky).
     """
-    ntime = band.shape[-1]
     x = np.broadcast_to(np.asarray(sky, dtype=np.float64)[None], band.shape)
     w = (ok & np.isfinite(x)).astype(np.float64)
     y = np.where(w > 0, band, 0.0)
-    t = np.broadcast_to(np.linspace(-1.0, 1.0, ntime), band.shape)
     xs = np.where(w > 0, x, 0.0)
-    basis = np.stack([np.ones(band.shape), xs, t, t * xs], axis=-1)
     fit = np.zeros(band.shape)
     for _ in range(2):
-        normal = np.einsum("...t,...ti,...tj->...ij", w, basis, basis)
-        rhs = np.einsum("...t,...ti,...t->...i", w, basis, y)
-        # pinv: a constant sky makes its columns the constant's and t's; the fit is then a + c t
-        coef = np.einsum("...ij,...j->...i", np.linalg.pinv(normal, rcond=1e-10), rhs)
-        good = w.sum(-1) >= 5
-        fit = np.where(good[..., None], np.einsum("...ti,...i->...t", basis, coef), 0.0)
+        sw, sx, sy = w.sum(-1), (w * xs).sum(-1), (w * y).sum(-1)
+        sxx, sxy = (w * xs * xs).sum(-1), (w * xs * y).sum(-1)
+        det = sw * sxx - sx * sx
+        good = (sw >= 3) & (det > 1e-12 * np.maximum(sw * sxx, 1e-300))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            b = np.where(good, (sw * sxy - sx * sy) / det, 0.0)
+            a = np.where(good, (sy - b * sx) / np.where(sw > 0, sw, 1.0), 0.0)
+        fit = np.where(good[..., None], a[..., None] + b[..., None] * xs, 0.0)
         resid = np.where(w > 0, y - fit, np.nan)
         with _quiet_nan():
             mad = 1.4826 * np.nanmedian(np.abs(resid), axis=-1, keepdims=True)
@@ -682,11 +676,11 @@ class RfiScan:
         """Integrations whose band level (of data / level) stands out from its neighbours.
 
         With the model sky's band level (:attr:`sky`), the band level is first divided by
-        the part that follows the sky through a drifting gain (``(a + b sky(t)) (1 + e t)``, fitted
-        per antenna-pol, :func:`sky_trend`): at a coarse cadence the galaxy's transit
-        through a narrow beam is sharper than the median filter, which would otherwise flag
-        it (a day at 15-minute cadence through the HERA beam had three transit integrations
-        flagged and the diagnosis named a sky-scale error that was not there).
+        the part that follows the sky (``a + b sky(t)``, fitted per antenna-pol): at a
+        coarse cadence the galaxy's transit through a narrow beam is sharper than the
+        median filter, which would otherwise flag it (a day at 15-minute cadence through
+        the HERA beam had three transit integrations flagged and the diagnosis named a
+        sky-scale error that was not there).
         """
         assert self.band_median is not None
         med = self.band_median
