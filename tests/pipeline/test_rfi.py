@@ -50,12 +50,15 @@ def _bandpass(nt: int = 40, nf: int = 256, seed: int = 0) -> np.ndarray:
 
 def test_robust_zscores_have_unit_width_on_white_noise() -> None:
     """Median-filter residuals over the robust width are about a unit normal (the 0.456
-    factor of hera_qm's detrend_medfilt), a little narrower (0.88) since the width is the
-    larger of the neighbours' and the series'; 5 sigma is then a rare event."""
+    factor of hera_qm's detrend_medfilt); floored at the series' width a little narrower
+    (0.88: the larger of the neighbours' and the series'), and 5 sigma is then rare."""
     rng = np.random.default_rng(3)
-    z = robust_zscores(rng.standard_normal((200, 512)), 8)
-    assert 0.8 < np.std(z[np.abs(z) < 10]) < 1.1
-    assert np.mean(np.abs(z) > 5) < 2e-5
+    noise = rng.standard_normal((200, 512))
+    z = robust_zscores(noise, 8)
+    assert 0.9 < np.std(z[np.abs(z) < 10]) < 1.25
+    floored = robust_zscores(noise, 8, series_floor=True)
+    assert 0.8 < np.std(floored[np.abs(floored) < 10]) < 1.0
+    assert np.mean(np.abs(floored) > 5) < 2e-5 < np.mean(np.abs(z) > 5)
 
 
 def _local_zscores(values: np.ndarray, k: int) -> np.ndarray:
@@ -77,13 +80,14 @@ def test_the_width_floor_removes_false_alarms_of_white_noise_and_keeps_real_burs
     rng = np.random.default_rng(1)
     noise = rng.standard_normal((20000, 192))
     local = np.mean(watershed(_local_zscores(noise, 8), 5.0, 2.0))
-    floored = np.mean(watershed(robust_zscores(noise, 8), 5.0, 2.0))
+    floored = np.mean(watershed(robust_zscores(noise, 8, series_floor=True), 5.0, 2.0))
     assert local > 3e-4  # the false alarms of the local width, which the floor removes
     assert floored < 1e-5
+    np.testing.assert_array_equal(robust_zscores(noise, 8), _local_zscores(noise, 8))
     for amplitude in (8.0, 10.0):
         burst = noise.copy()
         burst[:, 100] += amplitude
-        found = np.mean(robust_zscores(burst, 8)[:, 100] > 5)
+        found = np.mean(robust_zscores(burst, 8, series_floor=True)[:, 100] > 5)
         found_local = np.mean(_local_zscores(burst, 8)[:, 100] > 5)
         assert found >= found_local - 0.01, (amplitude, found, found_local)
 
@@ -117,8 +121,9 @@ def test_robust_zscores_on_threads_are_scipys_filter_of_the_whole(monkeypatch, t
     resid = values - median_filter(values, footprint=footprint, mode="reflect")
     local = median_filter(resid**2, footprint=footprint, mode="reflect")
     series = np.median(resid**2, axis=-1, keepdims=True)
+    np.testing.assert_array_equal(robust_zscores(values, 8), resid / np.sqrt(local / 0.456))
     width = np.sqrt(np.maximum(local, series) / 0.456)
-    np.testing.assert_array_equal(robust_zscores(values, 8), resid / width)
+    np.testing.assert_array_equal(robust_zscores(values, 8, series_floor=True), resid / width)
 
 
 def test_watershed_grows_only_runs_touching_a_strong_sample() -> None:
@@ -271,6 +276,25 @@ def test_flags_in_time_follow_the_model_sky_not_its_transit() -> None:
     followed = time_flags(True)
     assert followed[20] and not followed[55:66].any()
     assert time_flags(False)[55:66].any()  # the transit, flagged without the model sky
+
+
+def test_an_integration_without_a_model_sky_is_not_flagged_for_it() -> None:
+    """A model sky that is not finite at one integration: the band level is not divided by
+    a fit there (the fit's constant alone, a fraction of the level, flagged it in every
+    antenna-pol), so nothing is flagged."""
+    rng = np.random.default_rng(4)
+    nt, nf = 60, 64
+    t = np.linspace(0, 1, nt)[:, None]
+    sky = 300 * (1 + 0.5 * t) * np.linspace(1, 0.6, nf) ** 2.5
+    data = (sky + 150.0) * (1 + 1e-3 * rng.standard_normal((3, 2, nt, nf)))
+    flags = np.zeros(data.shape, bool)
+    model = band_sky(sky[None], 2).copy()
+    model[:, 40] = np.nan
+    levels = LevelScan()
+    levels.add(data, flags)
+    scan = RfiScan(nt, levels.level(), model)
+    scan.add(data, flags, 0)
+    assert not scan.finish().integrations.any()
 
 
 def test_a_persistent_narrow_band_transmitter_flags_its_channel() -> None:
