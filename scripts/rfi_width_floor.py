@@ -15,9 +15,13 @@ rows of white noise per figure, fixed seeds, this prints as JSON:
 * ``z_spread``: the standard deviation of the z-scores within +-10;
 * ``found``: the share of single-sample bursts of 6, 8 and 10 sigma above 5 sigma;
 * ``found_beside_noisier_part``: the same for 8-sigma bursts (in the quiet part's sigma)
-  in a series whose last 40 % (60 %) has twice (three times) the noise.
+  in a series whose last 40 % (60 %) has twice (three times) the noise;
+* ``false_alarm_beside_filled``: the false-alarm share when the first 30, 60 or 90
+  samples are unusable and filled with the row's median (as the pipeline fills them),
+  the floor taken over every sample or over the usable ones only (``usable``, as
+  :meth:`autocal.pipeline.rfi.RfiScan._time_outliers` does).
 
-Takes a few seconds.
+Takes about 20 s.
 """
 
 from __future__ import annotations
@@ -39,7 +43,7 @@ def main() -> None:
     """Print the measured rates as JSON."""
     rng = np.random.default_rng(1)
     noise = rng.standard_normal((ROWS, NTIME))
-    out: dict[str, dict[str, object]] = {}
+    out: dict[str, object] = {}
     for name, floor in (("local", False), ("floored", True)):
         z = _z(noise, floor)
         found = {}
@@ -60,6 +64,22 @@ def main() -> None:
             "found": found,
             "found_beside_noisier_part": beside,
         }
+    filled_out = {}
+    for nfill in (30, 60, 90):
+        usable = np.ones(noise.shape, bool)
+        usable[:, :nfill] = False
+        filled = noise.copy()
+        filled[:, :nfill] = np.median(noise[:, nfill:], axis=-1, keepdims=True)
+        rates = {}
+        for name, mask in (
+            ("local", None),
+            ("floor over all", None),
+            ("floor over usable", usable),
+        ):
+            z = robust_zscores(filled, KT, series_floor=name != "local", usable=mask)
+            rates[name] = float(np.mean(watershed(z, NSIG, NSIG_ADJACENT) & usable))
+        filled_out[str(nfill)] = rates
+    out["false_alarm_beside_filled"] = filled_out
     print(json.dumps(out, indent=1))
 
 

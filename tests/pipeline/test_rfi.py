@@ -278,6 +278,25 @@ def test_flags_in_time_follow_the_model_sky_not_its_transit() -> None:
     assert time_flags(False)[55:66].any()  # the transit, flagged without the model sky
 
 
+def test_the_width_floor_is_taken_over_the_usable_integrations() -> None:
+    """The first 60 of 192 integrations flagged in every channel (their band level is
+    filled with the row's median, residuals near zero): with the floor taken over every
+    integration it fell, and noise in the rest was flagged (12 integrations here, 78 with
+    the local width alone); over the usable ones, none."""
+    rng = np.random.default_rng(12)
+    nant, nt, nf = 50, 192, 64
+    t = np.linspace(0, 1, nt)[:, None]
+    sky = 300 * (1 + 0.02 * t) * np.linspace(1, 0.5, nf) ** 2.5
+    data = (sky + 150.0) * (1 + 1e-3 * rng.standard_normal((nant, 2, nt, nf)))
+    flags = np.zeros(data.shape, bool)
+    flags[:, :, :60] = True
+    levels = LevelScan()
+    levels.add(data, flags)
+    scan = RfiScan(nt, levels.level(), band_sky(sky[None], 2))
+    scan.add(data, flags, 0)
+    assert not scan.finish().integrations[:, :, 60:].any()
+
+
 def test_an_integration_without_a_model_sky_is_not_flagged_for_it() -> None:
     """A model sky that is not finite at one integration: the band level is not divided by
     a fit there (the fit's constant alone, a fraction of the level, flagged it in every
