@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -144,6 +145,7 @@ def read_file_meta(path: Path) -> FileMeta:
     check_uvh5_file(path)
     plain = read_plain_header(path)
     header, arrays = plain if plain is not None else _header_through_pyuvdata(path)
+    _check_header_values(path, arrays)
     is_auto = arrays.ant_1 == arrays.ant_2
     if not np.any(is_auto):
         nbls = np.unique(np.stack([arrays.ant_1, arrays.ant_2]), axis=1).shape[1]
@@ -176,10 +178,61 @@ def _header_through_pyuvdata(path: Path) -> tuple[UVH5Header, HeaderArrays]:
             uv = UVData.from_file(str(path), file_type="uvh5", read_data=False)
     except Exception as err:  # pyuvdata raises many types for broken headers
         raise UVH5FormatError(
-            f"pyuvdata cannot read the UVH5 header of {path}: {type(err).__name__}: {err}; "
-            "the file may be corrupt or not a UVData UVH5 file"
+            f"pyuvdata cannot read the UVH5 header of {path}: {type(err).__name__}: "
+            f"{_first_line(err)}; the file may be corrupt (copy or download it again) or "
+            "not a UVData UVH5 file"
         ) from err
     return header_from_uvdata(uv, feed_orientation(uv.telescope), file_history(path))
+
+
+def _first_line(err: Exception) -> str:
+    """Return an error's first line, without a request to report it upstream.
+
+    Errors raised inside compiled code (numba) carry a traceback after the first line, and
+    some of pyuvdata's ask the user to file an issue with pyuvdata: a corrupt file is not
+    pyuvdata's bug.
+    """
+    lines = str(err).strip().splitlines()
+    text = lines[0] if lines else ""
+    return re.sub(r"\s*[^.;]*\bfile an issue\b[^.;]*[.;]?", "", text, flags=re.I).strip() or (
+        "(no message)"
+    )
+
+
+def _check_header_values(path: Path, arrays: HeaderArrays) -> None:
+    """Refuse a header whose channels, times or antennas are not numbers a file can hold.
+
+    Raises
+    ------
+    UVH5FormatError
+        Naming the data set and what is wrong with it.
+    """
+    problems = []
+    with np.errstate(invalid="ignore"):
+        bad_freqs = ~(np.isfinite(arrays.freqs) & (arrays.freqs > 0))
+        if bad_freqs.any():
+            problems.append(
+                f"Header/freq_array has {int(bad_freqs.sum())} of {arrays.freqs.size} "
+                "channel frequencies not finite and positive"
+            )
+        for name, values in (("time_array", arrays.times), ("lst_array", arrays.lsts_rad)):
+            bad = ~np.isfinite(np.asarray(values, dtype=np.float64))
+            if bad.any():
+                problems.append(f"Header/{name} has {int(bad.sum())} non-finite value(s)")
+    for name, values in (("ant_1_array", arrays.ant_1), ("ant_2_array", arrays.ant_2)):
+        numbers = np.asarray(values)
+        if numbers.dtype.kind not in "iu" and not (
+            numbers.dtype.kind == "f"
+            and np.all(np.isfinite(numbers))
+            and np.all(numbers == np.round(numbers))
+        ):
+            problems.append(f"Header/{name} holds values that are not antenna numbers")
+        elif numbers.size and numbers.min() < 0:
+            problems.append(f"Header/{name} holds negative antenna numbers")
+    if problems:
+        raise UVH5FormatError(
+            f"{path.name} is corrupt: {'; '.join(problems)}; copy or download it again"
+        )
 
 
 def file_history(path: Path) -> str | None:

@@ -2,7 +2,8 @@
 
 Run with ``uvicorn autocal.service.app:create_app --factory`` (settings from
 ``AUTOCAL_*``; see :mod:`autocal.service.settings`). Interactive documentation is served
-at ``/docs``, the schema at ``/openapi.json``.
+at ``/docs`` (Swagger UI from the installed package, offline: :mod:`.routers.docs`), the
+schema at ``/openapi.json``.
 
 Errors always answer JSON ``{"detail": "<what is wrong and what to do>"}``: request
 validation failures are 422 with ``errors`` naming each bad field and why; unexpected
@@ -29,6 +30,7 @@ from autocal.service.body_limit import BodyLimitMiddleware
 from autocal.service.routers import (
     MAX_ERRORS,
     describe_problem,
+    docs,
     health,
     job_results,
     jobs,
@@ -120,9 +122,31 @@ async def single_valued_query(request: Request) -> None:
         )
 
 
+#: What FastAPI says of a body that ``json.loads`` cannot take (invalid UTF-8, nested too
+#: deep): replaced by :data:`_UNPARSEABLE`.
+_PARSE_FAILURE = "There was an error parsing the body"
+_UNPARSEABLE = (
+    "the body could not be read as JSON (it must be UTF-8 text holding one JSON object, "
+    "nested a few levels at most): send the object the API's schema shows (/openapi.json)"
+)
+
+
+def _json_media(request: Request) -> bool:
+    """Whether the request says its body is JSON (``application/json`` or ``+json``)."""
+    media = request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
+    return media == "application/json" or media.endswith("+json")
+
+
 async def _validation_error(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, RequestValidationError)
-    problems = [describe_problem(dict(e)) for e in exc.errors()][:MAX_ERRORS]
+    errors = exc.errors()
+    if not _json_media(request) and any(tuple(e.get("loc", ()))[:1] == ("body",) for e in errors):
+        # a form, text or multipart body where JSON was expected: say so, not "not a dict"
+        media = request.headers.get("content-type") or "none"
+        detail = f"send the body as JSON with Content-Type: application/json (got {media})"
+        problem = {"field": "header.content-type", "message": detail, "type": "media_type"}
+        return JSONResponse({"detail": detail, "errors": [problem]}, status_code=415)
+    problems = [describe_problem(dict(e)) for e in errors][:MAX_ERRORS]
     return JSONResponse(
         {"detail": problems_message("invalid request", problems), "errors": problems},
         status_code=422,
@@ -137,6 +161,11 @@ async def _http_error(request: Request, exc: Exception) -> JSONResponse:
     errors = getattr(exc, "errors", None)
     if errors:
         body["errors"] = errors
+    if exc.status_code == 400 and exc.detail == _PARSE_FAILURE:
+        body = {
+            "detail": _UNPARSEABLE,
+            "errors": [{"field": "body", "message": _UNPARSEABLE, "type": "json_invalid"}],
+        }
     headers = dict(exc.headers or {})
     if exc.status_code == 405:
         headers["Allow"] = _allowed_methods(request)
@@ -193,6 +222,8 @@ def create_app(settings: Settings | None = None, store: JobStore | None = None) 
         description=DESCRIPTION,
         lifespan=lifespan,
         dependencies=[Depends(single_valued_query)],
+        docs_url=None,  # served by routers.docs, with Swagger UI's files from the package
+        redoc_url=None,  # ReDoc's script would come from a CDN
     )
     app.state.settings = settings
     app.state.store = store
@@ -204,7 +235,7 @@ def create_app(settings: Settings | None = None, store: JobStore | None = None) 
     # outermost: an oversized body is refused before it is read, before authentication
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
     # ui: the monitoring web page (HTML, left out of the schema)
-    modules = (jobs, job_results, uploads, nightly, health, monitoring, ui)
+    modules = (jobs, job_results, uploads, nightly, health, monitoring, ui, docs)
     for module in modules:
         app.include_router(module.router)
     app.state.api_routes = [route for module in modules for route in module.router.routes]

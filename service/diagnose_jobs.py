@@ -15,6 +15,7 @@ from pydantic import ValidationError
 
 from autocal.diagnosis.errors import DiagnoseError
 from autocal.diagnosis.run import DiagnoseConfig
+from autocal.pipeline.option_rules import diagnosis_refusals
 from autocal.service.input_check import fingerprint_config
 from autocal.service.nightly import checked_options, job_key, night_of
 from autocal.service.paths import resolve_input
@@ -22,7 +23,13 @@ from autocal.service.routers import MAX_ERRORS, as_api_error, describe_problem, 
 from autocal.service.schemas import CALIBRATE_ONLY, ApiError
 from autocal.service.settings import Settings
 from autocal.service.store import JobStore
-from autocal.service.submission_checks import check_band, check_distinct, check_sky_varies
+from autocal.service.submission_checks import (
+    SubmissionError,
+    check_band,
+    check_distinct,
+    check_sky_varies,
+    check_uvh5_inputs,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -76,6 +83,8 @@ def build_diagnose_config(
     autocal.sky.models.SkyModelError
         For an unknown sky model.
     """
+    for field, why in diagnosis_refusals(dict(options or {})):
+        raise SubmissionError(field, why)
     opts = checked_options(DiagnoseConfig, settings, inputs, options)
     resolved = [resolve_input(str(p), settings) for p in inputs]
     folders = [str(p) for p in resolved if p.is_dir()]
@@ -85,6 +94,7 @@ def build_diagnose_config(
             "convert Miriad data to UVH5 first"
         )
     check_distinct(resolved, "inputs")
+    check_uvh5_inputs(resolved, opts)
     check_band(resolved, opts.get("freq_range_mhz"))
     # the diagnosis fits G and Trxr too: a sky constant in time leaves them inseparable
     check_sky_varies(opts.get("sky"), opts.get("trxr_prior"))

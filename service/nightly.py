@@ -90,7 +90,16 @@ def checked_options(
         get_sky(str(opts["sky"]))
     beam = opts.get("beam")
     if beam is not None and str(beam).strip().lower() not in NAMED_BEAMS:
-        opts["beam"] = str(resolve_input(str(beam), settings, what="beam"))
+        named = ", ".join(sorted(NAMED_BEAMS))
+        try:
+            opts["beam"] = str(resolve_input(str(beam), settings, what="beam"))
+        except InputPathError as err:
+            if err.status_code != 400:  # outside the roots (403): as it is
+                raise
+            raise InputPathError(
+                f"beam {beam!r} is neither a named beam ({named}) nor a beam file under the "
+                f"data roots ({err})"
+            ) from None
     prior = opts.get("trxr_prior")
     if isinstance(prior, str):  # a table or solution under the roots, read and checked now
         from autocal.fit.priors import parse_trxr_prior, prior_value
@@ -136,9 +145,22 @@ def build_config(
     autocal.sky.models.SkyModelError
         For an unknown sky model.
     autocal.service.submission_checks.SubmissionError
-        For a file listed twice, a frequency range outside the data's band or a sky that
-        would flag every channel.
+        For an option that does nothing with the others, a file listed twice, an input the
+        reader refuses, a selection the inputs cannot satisfy, a frequency range outside
+        the data's band, a sky that would flag every channel or a reference file that is
+        not a calibration.
     """
+    from autocal.pipeline.option_rules import calibration_refusals
+    from autocal.service.submission_checks import SubmissionError
+
+    for name, why in calibration_refusals(dict(options or {})):
+        raise SubmissionError(name, why)
+    if options is not None and options.get("products") == []:
+        raise SubmissionError(
+            "products",
+            "products is empty: name at least one of calh5, calfits, hdf5, png (the hdf5 "
+            "product is always written), or leave it out for calh5, hdf5 and png",
+        )
     opts = checked_options(CalibrationConfig, settings, inputs, options)
     if opts.get("reference"):
         opts["reference"] = [
@@ -158,13 +180,24 @@ def build_config(
 
 def check_submission(inputs: Sequence[Path], opts: Mapping[str, Any]) -> None:
     """Run the checks of :mod:`autocal.service.submission_checks` on a calibration."""
-    from autocal.service.submission_checks import check_band, check_distinct, check_sky_varies
+    from autocal.service.submission_checks import (
+        check_band,
+        check_distinct,
+        check_input_kind,
+        check_references,
+        check_sky_varies,
+        check_uvh5_inputs,
+    )
 
     check_distinct(inputs, "inputs")
     if opts.get("reference"):
         check_distinct(opts["reference"], "reference")
+    if check_input_kind(inputs, opts) == "uvh5":
+        check_uvh5_inputs(inputs, opts)
     check_band(inputs, opts.get("freq_range_mhz"))
     check_sky_varies(opts.get("sky"), opts.get("trxr_prior"))
+    if opts.get("reference"):
+        check_references(opts["reference"])
 
 
 def job_key(kind: str, config: CalibrationConfig) -> str:

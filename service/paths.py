@@ -172,6 +172,11 @@ def resolve_input(value: str, settings: Settings, *, what: str = "input") -> Pat
         raise InputPathError(f"{what} {value!r}: paths cannot contain NUL characters")
     if UPLOAD_ID.fullmatch(text):
         return upload_path(settings, text)
+    if text.lower().startswith("upload:"):
+        raise InputPathError(
+            f"{what} {value!r}: {text[7:]!r} is not an upload id (the 32 hexadecimal "
+            "characters POST /uploads returned, as upload:<id> or alone)"
+        )
     roots = allowed_roots(settings)
     raw = Path(text)
     # a relative path is tried under each root in turn

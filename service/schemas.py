@@ -162,7 +162,9 @@ class CalibrationOptions(BaseModel):
     antennas: list[AntennaNumber] | None = Field(
         None, min_length=1, max_length=10_000, description="antenna numbers; omit for all"
     )
-    pols: list[Literal["ee", "nn", "xx", "yy"]] | None = Field(None, max_length=4)
+    pols: list[Literal["ee", "nn", "xx", "yy"]] | None = Field(
+        None, min_length=1, max_length=4, description="polarisations; omit for all"
+    )
     freq_range_mhz: tuple[Number, Number] | None = Field(None, description="(low, high) MHz")
     lst_range_h: tuple[Number, Number] | None = Field(None, description="(start, stop) hours")
     products: list[Literal["calh5", "calfits", "hdf5", "png"]] | None = Field(
@@ -586,6 +588,23 @@ class DiagnosisResults(BaseModel):
     summary: dict[str, Any] | None = Field(
         None, description="the job's summary: observation, config, timings"
     )
+
+
+class ProductEntry(BaseModel):
+    """One product file of a job."""
+
+    name: str = Field(..., description="the name to download it by")
+    file: str = Field(..., description="its file name")
+    media_type: str
+    size_bytes: int
+    url: str = Field(..., description="GET it to download the file")
+
+
+class ProductList(BaseModel):
+    """Answer to ``GET /jobs/{id}/products``: the product files of a succeeded job."""
+
+    job_id: str
+    products: list[ProductEntry]
 
 
 class UploadCreated(BaseModel):

@@ -13,6 +13,7 @@ whose heartbeat stopped.
 from __future__ import annotations
 
 import logging
+import math
 import time
 import uuid
 from collections.abc import Iterator
@@ -516,7 +517,10 @@ class JobStore:
         return True
 
     def recover_stale(
-        self, stale_after_s: float, job_timeout_s: float = 0.0
+        self,
+        stale_after_s: float,
+        job_timeout_s: float = 0.0,
+        alive: tuple[str, int] | None = None,
     ) -> list[dict[str, Any]]:
         """Re-queue or fail running jobs that stopped beating or ran out of time.
 
@@ -532,6 +536,12 @@ class JobStore:
             Seconds without heartbeat after which a worker is presumed dead.
         job_timeout_s
             Per-attempt time limit in seconds (``AUTOCAL_JOB_TIMEOUT_S``); 0: none.
+        alive
+            ``(job id, attempt)`` of a job the caller is running itself and knows alive (a
+            worker's heartbeat thread): never re-queued as stale, whatever its last
+            heartbeat says (a process starved of CPU for longer than ``stale_after_s``
+            must not take its own running job for a dead worker's). Its time limit still
+            applies.
 
         Returns
         -------
@@ -545,7 +555,10 @@ class JobStore:
             if not self.is_sqlite:
                 query = query.with_for_update(skip_locked=True)
             for job in s.scalars(query):
-                if self._recover_one(job, now, stale_after_s, job_timeout_s):
+                stale_after = stale_after_s
+                if alive is not None and (job.id, job.attempts) == alive:
+                    stale_after = math.inf  # its worker is the caller, and it is running
+                if self._recover_one(job, now, stale_after, job_timeout_s):
                     changed.append(job.to_dict())
         for job in changed:
             logger.warning("job %s: %s", job["id"], job["error"] or job["message"])
@@ -562,7 +575,9 @@ class JobStore:
                 f"{job.attempts} running since {started.isoformat()} on worker {job.worker}"
             )
             requeue = False
-        elif beat is None or now - beat > timedelta(seconds=stale_after_s):
+        elif math.isfinite(stale_after_s) and (
+            beat is None or now - beat > timedelta(seconds=stale_after_s)
+        ):
             reason = (
                 f"worker {job.worker} stopped sending heartbeats (last "
                 f"{beat.isoformat() if beat else 'never'}; attempt {job.attempts})"

@@ -9,17 +9,25 @@ Run after the options are validated and the paths resolved, before the job is qu
   range holding no channel of some file is refused with that file's band;
 - a sky that would flag every channel: a sky constant in time (``uniform:T``, or a power
   law of a uniform sky) leaves the receiver temperature and the gain inseparable, so every
-  channel's normal matrix is singular, unless a receiver-temperature prior ties them.
+  channel's normal matrix is singular, unless a receiver-temperature prior ties them;
+- options that do not apply to the kind of inputs (:func:`check_input_kind`: EDGES options
+  on UVH5 files, ``rfi_flagging`` on EDGES spectra);
+- UVH5 inputs whose header the reader refuses (not HDF5, empty, truncated, not UVH5,
+  without auto-correlations) and selections they cannot satisfy (an antenna without an
+  auto-correlation, a polarisation they do not hold, an LST range holding none of their
+  integrations): :func:`check_uvh5_inputs` runs the reader's own header checks
+  (:func:`autocal.io.uvh5_meta.read_file_meta`, no data read), so the job is refused with
+  the message the worker would have failed with.
 
-Inputs that cannot be read here (not HDF5, Miriad folders, EDGES files) are left to the
-worker, which reports them.
+Miriad folders and EDGES files are left to the worker, which reports them.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
@@ -149,3 +157,122 @@ def check_sky_varies(sky: str | None, trxr_prior: object) -> None:
             "cannot be told apart and every channel would be flagged (singular). Use a "
             "sky map (gsm2008, gsm2016, lfsm, haslam) or give trxr_prior",
         )
+
+
+def check_input_kind(paths: Sequence[Path], opts: Mapping[str, Any]) -> str:
+    """Refuse options that do not apply to the inputs' kind; return the kind.
+
+    Parameters
+    ----------
+    paths
+        Resolved inputs.
+    opts
+        The options given.
+
+    Returns
+    -------
+    str
+        ``uvh5``, ``miriad`` or ``edges`` (:func:`autocal.pipeline.sources.detect_format`).
+
+    Raises
+    ------
+    SubmissionError
+        For the first option that does not apply
+        (:func:`autocal.pipeline.option_rules.input_kind_refusals`), or for ``inputs`` that
+        mix formats.
+    """
+    from autocal.pipeline.config import PipelineError
+    from autocal.pipeline.option_rules import input_kind_refusals
+    from autocal.pipeline.sources import detect_format
+
+    try:
+        kind = detect_format(list(paths), str(opts.get("input_format", "auto")))
+    except PipelineError as err:
+        raise SubmissionError("inputs", str(err)) from None
+    for field, why in input_kind_refusals(opts, kind):
+        raise SubmissionError(field, why)
+    return kind
+
+
+def check_uvh5_inputs(paths: Sequence[Path], opts: Mapping[str, Any]) -> None:
+    """Refuse UVH5 inputs the reader would refuse, and selections they cannot satisfy.
+
+    Each file's header is read as the worker's reader reads it
+    (:func:`autocal.io.uvh5_meta.read_file_meta`; no data), and the antenna and
+    polarisation selections are made as it makes them; an LST range is refused when no
+    input has an integration in it.
+
+    Parameters
+    ----------
+    paths
+        Resolved UVH5 inputs.
+    opts
+        The options given (``antennas``, ``pols``, ``lst_range_h``).
+
+    Raises
+    ------
+    SubmissionError
+        For ``inputs`` (the reader's message: not HDF5, truncated, not UVH5, no
+        auto-correlations), ``antennas``, ``pols`` or ``lst_range_h``.
+    """
+    from autocal.core.observation import ObservationError
+    from autocal.io.uvh5_meta import (
+        UVH5FormatError,
+        lst_mask,
+        read_file_meta,
+        select_antennas,
+        select_pols,
+    )
+
+    lst_range = opts.get("lst_range_h")
+    in_range = 0
+    lsts: list[np.ndarray] = []
+    for path in paths:
+        try:
+            meta = read_file_meta(Path(path))
+        except (UVH5FormatError, ObservationError) as err:
+            raise SubmissionError("inputs", str(err)) from None
+        except (OSError, KeyError, ValueError, TypeError) as err:  # a header HDF5 cannot read
+            raise SubmissionError(
+                "inputs",
+                f"{Path(path).name}: its header cannot be read ({type(err).__name__}: {err}); "
+                "the file is corrupt: copy or download it again",
+            ) from None
+        for field, select in (("antennas", select_antennas), ("pols", select_pols)):
+            if opts.get(field) is not None:
+                try:
+                    select(meta, opts[field])
+                except ObservationError as err:
+                    raise SubmissionError(field, str(err)) from None
+        if lst_range is not None:
+            in_range += int(lst_mask(meta.lsts, tuple(lst_range)).sum())
+            lsts.append(meta.lsts)
+    if lst_range is not None and lsts and not in_range:
+        every = np.concatenate(lsts)
+        raise SubmissionError(
+            "lst_range_h",
+            f"lst_range_h {lst_range[0]:g}-{lst_range[1]:g} h holds no integration of the "
+            f"input(s), whose LSTs are {every.min():.4g}-{every.max():.4g} h: give a range "
+            "inside them (start > stop wraps through 24 h)",
+        )
+
+
+def check_references(paths: Sequence[str | Path]) -> None:
+    """Refuse reference files that are not calibration files (calfits or calh5).
+
+    Each file's first bytes and header are checked as the comparison's reader checks them
+    (:func:`autocal.io.calsol_files.sniff_cal_file`), so a job is not run through its
+    whole calibration only to fail when it reads its reference.
+
+    Raises
+    ------
+    SubmissionError
+        For ``reference``, with the reader's message.
+    """
+    from autocal.io.calsol_files import CalsolFormatError, sniff_cal_file
+
+    for path in paths:
+        try:
+            sniff_cal_file(Path(path))
+        except CalsolFormatError as err:
+            raise SubmissionError("reference", f"reference: {err}") from None

@@ -222,7 +222,9 @@ class _Run:
         interval = self.worker.settings.heartbeat_s
         while not self.done.wait(interval):
             self.beat()
-            self.worker.maybe_recover()
+            # this job is alive (its heartbeat thread is here) even if the last beat was
+            # late: only other workers' jobs can be stale
+            self.worker.maybe_recover(alive=(self.job_id, self.attempt))
 
     def beat(self) -> bool:
         """Send one heartbeat; raise the stop flag when the store says stop."""
@@ -320,8 +322,14 @@ class Worker:
         """Seconds between two stale-job recoveries by this worker."""
         return max(min(self.settings.stale_after_s / 2, 30.0), 0.2)
 
-    def maybe_recover(self, force: bool = False) -> list[dict[str, Any]]:
-        """Re-queue or fail stale jobs, at most once per :attr:`recover_interval_s`."""
+    def maybe_recover(
+        self, force: bool = False, alive: tuple[str, int] | None = None
+    ) -> list[dict[str, Any]]:
+        """Re-queue or fail stale jobs, at most once per :attr:`recover_interval_s`.
+
+        ``alive``: ``(job id, attempt)`` of the job this worker is running, never taken for
+        stale (:meth:`JobStore.recover_stale`).
+        """
         with self._recover_lock:
             now = time.monotonic()
             if not force and now - self._last_recover < self.recover_interval_s:
@@ -329,7 +337,7 @@ class Worker:
             self._last_recover = now
         try:
             changed = self.store.recover_stale(
-                self.settings.stale_after_s, self.settings.job_timeout_s
+                self.settings.stale_after_s, self.settings.job_timeout_s, alive=alive
             )
         except Exception as err:
             logger.warning("stale-job recovery failed: %s", err)

@@ -128,22 +128,23 @@ def run(args: argparse.Namespace) -> int:
 def refuse_inapplicable(args: argparse.Namespace) -> None:
     """Refuse options that do nothing with the other options given, saying why.
 
+    The rules are :func:`autocal.pipeline.option_rules.diagnosis_refusals` (the API's too).
+
     Raises
     ------
     CliError
         ``--trxr-prior-sigma`` without ``--trxr-prior``; ``--bic-threshold`` or ``--alpha``
         with ``--max-steps 0`` (no effect is tried, so nothing is accepted or refused).
     """
-    if args.trxr_prior_sigma is not None and args.trxr_prior is None:
-        raise CliError("--trxr-prior-sigma is the 1-sigma of --trxr-prior: give the prior too")
-    if args.max_steps == 0:
-        given = [
-            f"--{n}"
-            for n in ("bic-threshold", "alpha")
-            if getattr(args, n.replace("-", "_")) is not None
-        ]
-        if given:
-            raise CliError(
-                f"{', '.join(given)}: the acceptance test of an effect, and --max-steps 0 "
-                "tries none: drop it or allow steps"
-            )
+    from autocal.cli.options import cli_spelling
+    from autocal.pipeline.option_rules import diagnosis_refusals
+
+    given = {
+        "trxr_prior": args.trxr_prior,
+        "trxr_prior_sigma_k": args.trxr_prior_sigma,
+        "bic_threshold": args.bic_threshold,
+        "alpha": args.alpha,
+        "max_steps": args.max_steps,
+    }
+    for _, why in diagnosis_refusals(given, cli_spelling):
+        raise CliError(why)

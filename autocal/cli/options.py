@@ -252,8 +252,25 @@ def _prior_value(text: str) -> Any:
     return prior_value(text)
 
 
+#: Options whose flag is not ``--`` and the field's name with dashes.
+_FLAGS = {
+    "inflate_errors": "--(no-)inflate-errors",
+    "rfi_flagging": "--(no-)rfi-flagging",
+    "trxr_prior_sigma_k": "--trxr-prior-sigma",
+    "input_format": "--format",
+}
+
+
+def cli_spelling(field: str, value: Any = None) -> str:
+    """Return a configuration field as its command-line option (and a value of it)."""
+    flag = _FLAGS.get(field, "--" + field.replace("_", "-"))
+    return flag if value is None else f"{flag} {value}"
+
+
 def refuse_inapplicable(settings: dict[str, Any]) -> None:
     """Refuse options that do nothing with the other options given, saying why.
+
+    The rules are :func:`autocal.pipeline.option_rules.calibration_refusals` (the API's too).
 
     Parameters
     ----------
@@ -267,60 +284,29 @@ def refuse_inapplicable(settings: dict[str, Any]) -> None:
         ``--trxr-prior``, ``--passes`` or ``--no-inflate-errors`` with identity weights, or an
         EDGES option with a ``--format`` other than ``edges`` or ``auto``.
     """
-    refusals = {
-        "order": (
-            settings.get("model", "constant") != "legendre",
-            "--order sets the Legendre order: it needs --model legendre (the constant model "
-            "has none)",
-        ),
-        "trxr_prior_sigma_k": (
-            "trxr_prior" not in settings,
-            "--trxr-prior-sigma is the 1-sigma of --trxr-prior: give the prior too",
-        ),
-        "passes": (
-            settings.get("weights") == "identity",
-            "--passes re-weights radiometer weights: it does nothing with --weights identity",
-        ),
-        "inflate_errors": (
-            settings.get("weights") == "identity",
-            "identity weights always scale the errors by chi2/dof: drop --(no-)inflate-errors",
-        ),
-    }
-    for option in ("edges_r", "edges_bin"):
-        refusals[option] = (
-            settings.get("input_format", "auto") not in ("auto", "edges"),
-            f"--{option.replace('_', '-')} is an option of EDGES spectra: it does nothing with "
-            f"--format {settings.get('input_format')}",
-        )
-    for name, (refused, why) in refusals.items():
-        if name in settings and refused:
-            raise CliError(why)
+    from autocal.pipeline.option_rules import calibration_refusals
+
+    for _, why in calibration_refusals(settings, cli_spelling):
+        raise CliError(why)
 
 
 def refuse_edges_options(settings: dict[str, Any], inputs: list[Path]) -> None:
     """Refuse options that do not apply to the kind of inputs.
 
     ``--edges-r`` / ``--edges-bin`` unless the inputs are EDGES spectra, and
-    ``--(no-)rfi-flagging`` when they are.
+    ``--(no-)rfi-flagging`` when they are
+    (:func:`autocal.pipeline.option_rules.input_kind_refusals`).
     """
+    from autocal.pipeline.option_rules import input_kind_refusals
     from autocal.pipeline.sources import detect_format
 
-    given = [f"--{n.replace('_', '-')}" for n in ("edges_r", "edges_bin") if n in settings]
-    if not given and "rfi_flagging" not in settings:
+    if not {"edges_r", "edges_bin", "rfi_flagging"} & set(settings):
         return
     kind = detect_format(
         [Path(p).expanduser().absolute() for p in inputs], settings.get("input_format", "auto")
     )
-    if kind == "edges" and "rfi_flagging" in settings:
-        raise CliError(
-            "--(no-)rfi-flagging: EDGES spectra are not flagged from the autos (the option "
-            "applies to HERA UVH5 and Miriad inputs): drop it"
-        )
-    if given and kind != "edges":
-        raise CliError(
-            f"{', '.join(given)}: option(s) of EDGES spectra, and the inputs are {kind} "
-            "files: drop them"
-        )
+    for _, why in input_kind_refusals(settings, kind, cli_spelling):
+        raise CliError(why)
 
 
 def calibration_dests() -> list[str]:

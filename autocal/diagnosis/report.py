@@ -268,6 +268,7 @@ _REASON_TEXT = {
     "band_edge": "band edge",
     "rfi_frequency": "RFI in frequency",
     "rfi_time": "RFI in time",
+    "no_data": "no usable data",
 }
 
 

@@ -208,7 +208,7 @@ def _calibrate(
     source = open_source(config) if observation is None else memory_source(observation, config)
     clock.lap("scan_s", clock.started)
 
-    pols = tuple(p.lower() for p in (config.pols or source.pols))
+    pols = source.pol_names(config.pols)
     prior = _read_prior(config, source, pols)  # read and checked before any work is done
     if out is not None:  # a per-time calh5 too large to hold is refused before any reading
         nant = len(source.antenna_numbers(config.antennas))

@@ -52,8 +52,8 @@ class CalibrationConfig(BaseModel):
         DEFAULT_PASSES,
         description="radiometer weighting passes (auto: 2 only when data weights bias G)",
     )
-    antennas: list[int] | None = None
-    pols: list[str] | None = None
+    antennas: list[int] | None = Field(None, min_length=1, description="None: every antenna")
+    pols: list[str] | None = Field(None, min_length=1, description="None: the same-feed ones")
     freq_range_mhz: tuple[float, float] | None = None
     lst_range_h: tuple[float, float] | None = None
     products: list[ProductName] = Field(default_factory=lambda: ["calh5", "hdf5", "png"])

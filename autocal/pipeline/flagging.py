@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from autocal.core.observation import Observation
-from autocal.fit.solve import FLAG_BAND_EDGE, FLAG_RFI, FLAG_TOO_FEW
+from autocal.fit.solve import FLAG_BAND_EDGE, FLAG_NO_DATA, FLAG_RFI, FLAG_TOO_FEW
 from autocal.io.uvh5_blocks import BLOCK_SAMPLES
 from autocal.pipeline.config import CalibrationConfig, read_selection
 from autocal.pipeline.flag_partials import FileScan, ScanSpec, level_of, rfi_of, scan_file
@@ -191,9 +191,10 @@ def _finish(scan: RfiScan) -> RfiMask:
     mask = scan.finish()
     counts = mask.counts
     logger.info(
-        "flagged before the fit: %d band-edge channel(s), %d RFI channel(s), "
-        "%d RFI integration(s); samples %s",
+        "flagged before the fit: %d band-edge channel(s), %d without usable data, "
+        "%d RFI channel(s), %d RFI integration(s); samples %s",
         counts["band_edge_channels"],
+        counts["no_data_channels"],
         counts["rfi_channels"],
         counts["rfi_integrations"],
         counts["samples"],
@@ -269,14 +270,21 @@ def file_starts(obs: Observation) -> list[int]:
 def mark_flag_reasons(solved: dict[str, np.ndarray], mask: RfiMask | None) -> None:
     """Say in ``solved["flag_reason"]`` which empty channels the flagging emptied.
 
-    A channel the fit flagged for too few samples is marked ``band edge``
-    (:data:`~autocal.fit.solve.FLAG_BAND_EDGE`) or ``RFI`` (:data:`~autocal.fit.solve.FLAG_RFI`)
-    when the mask flagged it whole. In place.
+    A channel the fit flagged for too few samples is marked ``no usable data``
+    (:data:`~autocal.fit.solve.FLAG_NO_DATA`) when it had no usable sample at all (its
+    time-mean spectrum is not positive and finite: every sample flagged by the file, NaN,
+    inf, zero or negative), else ``band edge`` (:data:`~autocal.fit.solve.FLAG_BAND_EDGE`)
+    or ``RFI`` (:data:`~autocal.fit.solve.FLAG_RFI`) when the mask flagged it whole. In
+    place.
     """
     if mask is None:
         return
     reason = solved["flag_reason"]
     too_few = reason == FLAG_TOO_FEW
+    with np.errstate(invalid="ignore"):
+        no_data = ~(np.isfinite(mask.level) & (mask.level > 0))
+    reason[too_few & no_data] = FLAG_NO_DATA
+    too_few &= ~no_data
     reason[too_few & mask.band_edge] = FLAG_BAND_EDGE
     reason[too_few & mask.channels & ~mask.band_edge] = FLAG_RFI
     whole_time = mask.integrations.all(axis=2)[..., None]

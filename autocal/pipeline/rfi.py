@@ -733,20 +733,28 @@ class RfiScan:
     def _counts(
         self, edge: np.ndarray, channel: np.ndarray, integrations: np.ndarray, nfreq: int
     ) -> dict[str, Any]:
-        """Return the numbers of channels, integrations and samples flagged per reason."""
-        assert self.sums is not None
+        """Return the numbers of channels, integrations and samples flagged per reason.
+
+        A channel without any usable sample (its time-mean spectrum not positive and
+        finite) counts as ``no_data``, not as a band edge, though the mask flags it as one.
+        """
+        assert self.sums is not None and self.level is not None
         nant, npol, ntime = integrations.shape
         total = nant * npol * ntime * nfreq
+        with np.errstate(invalid="ignore"):
+            no_data = ~(np.isfinite(self.level) & (self.level > 0))
+        edge = edge & ~no_data
         edge_samples = int(edge.sum()) * ntime
         channel_samples = int(channel.sum()) * ntime
-        scattered = int(np.where(edge | channel, 0, self.sums.hits).sum())
+        scattered = int(np.where(edge | channel | no_data, 0, self.sums.hits).sum())
         # integrations flagged whole x channels not flagged already, per antenna-pol
-        kept_channels = np.count_nonzero(~(edge | channel), axis=-1)
+        kept_channels = np.count_nonzero(~(edge | channel | no_data), axis=-1)
         time_samples = int((np.count_nonzero(integrations, axis=-1) * kept_channels).sum())
         samples = {
             "band_edge": edge_samples,
             "rfi_frequency": channel_samples + scattered,
             "rfi_time": time_samples,
+            "no_data": int(no_data.sum()) * ntime,
         }
         return {
             "applied": True,
@@ -754,6 +762,7 @@ class RfiScan:
             "samples": samples,
             "fractions": {k: round(v / total, 6) if total else 0.0 for k, v in samples.items()},
             "band_edge_channels": int(edge.any(axis=(0, 1)).sum()),
+            "no_data_channels": int(no_data.any(axis=(0, 1)).sum()),
             "rfi_channels": int(channel.any(axis=(0, 1)).sum()),
             "rfi_integrations": int(integrations.any(axis=(0, 1)).sum()),
             "method": {

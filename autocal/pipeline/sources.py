@@ -9,6 +9,7 @@ temperature of the source's grid (:func:`tsky_per_pol`) is computed once per nig
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,7 +21,7 @@ from autocal.core.observation import Observation
 from autocal.core.sites import EDGES
 from autocal.io.edges_read import read_edges_spectra
 from autocal.io.miriad import is_miriad, read_miriad
-from autocal.io.uvh5_meta import file_meta_of, lst_mask, scan_uvh5
+from autocal.io.uvh5_meta import file_meta_of, lst_mask, scan_uvh5, select_pols
 from autocal.pipeline.config import CalibrationConfig, PipelineError, read_selection
 from autocal.pipeline.partials import FileTask
 from autocal.tsky.compute import compute_tsky
@@ -51,6 +52,21 @@ class Source:
         if self.observation is not None:
             return [int(a) for a in self.observation.antennas]
         return [int(a) for a in file_meta_of(self.scanned[0]).auto_ants] if self.scanned else []
+
+    def pol_names(self, pols: Sequence[str] | None) -> tuple[str, ...]:
+        """Return the selected polarisations as the data name them (lower case).
+
+        A UVH5 file's polarisation asked for by an alias (``xx`` of an ``ee``/``nn`` file
+        whose x feed points east) is the file's name, as the reader selects it
+        (:func:`autocal.io.uvh5_meta.select_pols`), so that the solution, its products and
+        the service's history name one feed one way.
+        """
+        if not pols:
+            return tuple(p.lower() for p in self.pols)
+        if self.kind == "uvh5" and self.scanned:
+            meta = file_meta_of(self.scanned[0])
+            return tuple(meta.pol_names[i].lower() for i in select_pols(meta, list(pols)))
+        return tuple(p.lower() for p in pols)
 
     def tasks(self, tsky_all: np.ndarray) -> list[FileTask]:
         """One task per file (uvh5) or one for the whole in-memory observation."""

@@ -3,8 +3,12 @@
 ========================================  ==================================================
 ``GET /jobs/{id}/results``                calibrate: G, ``|g|``, Trxr... per antenna and pol;
                                           diagnose: accepted effects, steps, gaps
+``GET /jobs/{id}/products``               the product files: name, size, media type, URL
 ``GET /jobs/{id}/products/{name}``        download one product file
 ========================================  ==================================================
+
+Both answer 409 for a job that has not succeeded (as ``/results`` does): a queued,
+running, failed or cancelled job has no products to serve.
 """
 
 from __future__ import annotations
@@ -37,6 +41,8 @@ from autocal.service.schemas import (
     DiagnosisStep,
     ErrorBody,
     JobResults,
+    ProductEntry,
+    ProductList,
     json_safe,
 )
 from autocal.service.settings import Settings
@@ -68,6 +74,14 @@ UNITS = {
     "sigma_Trxr_stat": "K",
     "reduced_chi2": "",
 }
+
+
+def _succeeded(job: dict[str, Any], what: str) -> None:
+    """Refuse (409) a job that has not succeeded: it has no ``what`` to serve."""
+    if job["state"] != "succeeded":
+        raise ApiError(
+            409, f"job {job['id']} is {job['state']}; {what} exist only once it has succeeded"
+        )
 
 
 def _product_path(settings: Settings, job: dict[str, Any], name: str) -> Path:
@@ -187,10 +201,7 @@ def job_results(
     from autocal.io.products import ProductFormatError, read_solution
 
     job = job_or_404(store, job_id)
-    if job["state"] != "succeeded":
-        raise ApiError(
-            409, f"job {job_id} is {job['state']}; results exist only once it has succeeded"
-        )
+    _succeeded(job, "results")
     if job["kind"] == "diagnose":
         if antenna is not None or pol is not None:
             raise ApiError(
@@ -258,11 +269,44 @@ def job_results(
 
 
 @router.get(
+    "/{job_id}/products",
+    response_model=ProductList,
+    responses=api_errors(401, 404, 409, 422, 429),
+)
+def job_products(
+    job_id: JobId, store: StoreDep, settings: SettingsDep, _reader: ReaderDep
+) -> ProductList:
+    """List a succeeded job's product files, each with its download URL.
+
+    The names are those ``GET /jobs/{id}/products/{name}`` takes; a product no longer on
+    disk (removed by the janitor) is left out.
+    """
+    job = job_or_404(store, job_id)
+    _succeeded(job, "products")
+    entries = []
+    for name in sorted(job.get("products") or {}):
+        try:
+            path = _product_path(settings, job, name)
+        except ApiError:
+            continue
+        entries.append(
+            ProductEntry(
+                name=name,
+                file=path.name,
+                media_type=MEDIA_TYPES.get(path.suffix.lower(), "application/octet-stream"),
+                size_bytes=path.stat().st_size,
+                url=f"/jobs/{job['id']}/products/{name}",
+            )
+        )
+    return ProductList(job_id=job["id"], products=entries)
+
+
+@router.get(
     "/{job_id}/products/{name}",
     response_class=FileResponse,
     responses={
         200: {"content": {"application/octet-stream": {}}, "description": "the product file"},
-        **api_errors(401, 404, 422, 429),
+        **api_errors(401, 404, 409, 422, 429),
     },
 )
 def job_product(
@@ -272,13 +316,15 @@ def job_product(
     settings: SettingsDep,
     _reader: ReaderDep,
 ) -> FileResponse:
-    """Download a product by name (``GET /jobs/{id}`` lists a job's products).
+    """Download a product by name (``GET /jobs/{id}/products`` lists them).
 
     ``calibrate``: calh5, calfits, hdf5, png, residuals_png, summary, compare_json...
     ``diagnose``: diagnosis (diagnosis.json), summary_txt (summary.txt), summary
     (summary.json), residuals_step1_png... (before/after each accepted step) or
     residuals_png (nothing accepted).
     """
-    path = _product_path(settings, job_or_404(store, job_id), name)
+    job = job_or_404(store, job_id)
+    _succeeded(job, "products")
+    path = _product_path(settings, job, name)
     media = MEDIA_TYPES.get(path.suffix.lower(), "application/octet-stream")
     return FileResponse(path, media_type=media, filename=path.name)

@@ -49,6 +49,7 @@ from autocal.service.schemas import (
     JobAccepted,
     JobCreate,
     JobDetail,
+    JobKind,
     JobList,
     JobStateName,
 )
@@ -171,9 +172,7 @@ def list_jobs(
         int | None,
         Query(ge=0, le=10**6, description="only jobs naming this antenna or every antenna"),
     ] = None,
-    kind: Annotated[
-        str | None, Query(max_length=32, description="only jobs of this kind: calibrate, diagnose")
-    ] = None,
+    kind: Annotated[JobKind | None, Query(description="only jobs of this kind")] = None,
     limit: Annotated[int, Query(ge=1, le=1000, description="jobs per page")] = 100,
     cursor: Annotated[
         str | None,

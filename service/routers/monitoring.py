@@ -9,7 +9,9 @@
 ``GET /nights/{night}``                   a night: antennas, outliers, failed jobs
 ========================================  ==================================================
 
-Reads need no token. An unknown antenna or night is a 404 listing the ones that exist.
+Reads need no token. An unknown antenna or night is a 404 listing the ones that exist. As
+for ``GET /jobs/{id}``, an anonymous reader gets a night's failed jobs with their inputs
+relative to the data roots and no server path in their errors.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from autocal.service.monitoring_schemas import (
     NightList,
 )
 from autocal.service.routers import app_store
+from autocal.service.routers.job_common import ReaderDep, SettingsDep, redactor_for
 from autocal.service.schemas import ApiError, ErrorBody, json_safe
 from autocal.service.store import JobStore
 
@@ -109,11 +112,20 @@ def list_nights(store: StoreDep) -> NightList:
 @router.get("/nights/{night}", response_model=NightDetail, responses=_ERRORS)
 def get_night(
     store: StoreDep,
+    settings: SettingsDep,
+    reader: ReaderDep,
     night: Annotated[int, PathParam(ge=0, le=10**8, description="integer JD of the night")],
 ) -> NightDetail:
-    """Return a night: antennas calibrated, outliers and failed jobs, with reasons."""
+    """Return a night: antennas calibrated, outliers and failed jobs, with reasons.
+
+    An anonymous reader gets the failed jobs' inputs relative to the data roots and their
+    errors without server paths; send a token to see them whole.
+    """
     try:
         detail = night_detail(store, night)
     except MonitoringError as err:
         raise _not_found(err) from None
+    redactor = redactor_for(reader, settings)
+    if redactor is not None:
+        detail["failed_jobs"] = redactor.value(detail["failed_jobs"])
     return NightDetail(**json_safe(detail))

@@ -41,6 +41,7 @@ from autocal.service.monitoring import (
     outliers_of_night,
 )
 from autocal.service.routers import app_store
+from autocal.service.routers.job_common import ReaderDep, SettingsDep, redactor_for
 from autocal.service.store import JobStore
 from autocal.service.ui_svg import history_svg, state_svg
 
@@ -212,12 +213,24 @@ def _jobs_section(store: JobStore, job_ids: list[str]) -> str:
 
 
 @router.get("/ui/nights/{night}", response_class=HTMLResponse)
-def night_page(store: StoreDep, night: Annotated[int, PathParam(ge=0, le=10**8)]) -> HTMLResponse:
-    """Render a night: values, outliers, failed jobs, products and figures."""
+def night_page(
+    store: StoreDep,
+    settings: SettingsDep,
+    reader: ReaderDep,
+    night: Annotated[int, PathParam(ge=0, le=10**8)],
+) -> HTMLResponse:
+    """Render a night: values, outliers, failed jobs, products and figures.
+
+    The failed jobs' errors are shown without server paths unless the reader sent a token
+    (as ``GET /nights/{night}`` answers).
+    """
     try:
         detail = night_detail(store, night)
     except MonitoringError as err:
         return _page("Unknown night", f'<p class="bad">{escape(str(err))}</p>', 404)
+    redactor = redactor_for(reader, settings)
+    if redactor is not None:
+        detail["failed_jobs"] = redactor.value(detail["failed_jobs"])
     body = [
         f"<p>jobs: {escape(', '.join(f'{v} {k}' for k, v in sorted(detail['jobs'].items())))}</p>",
         "<h2>Outliers</h2>",

@@ -157,6 +157,35 @@ class _UploadSink:
             self.handle = None
 
 
+#: The first bytes of every HDF5 file (UVH5, calh5, EDGES HDF5, solution.h5).
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+def check_uploaded_file(path: Path, name: str) -> None:
+    """Refuse (422) an upload that cannot be any input: empty, or HDF5 that does not open.
+
+    Other content (a text prior table, an ACQ file, calfits) is judged when a job names
+    it: ``POST /jobs`` reads a UVH5 input's header as the worker would.
+    """
+    import h5py
+
+    if path.stat().st_size == 0:
+        raise ApiError(422, f"{name} is empty: upload the file's contents")
+    with open(path, "rb") as handle:
+        head = handle.read(len(HDF5_SIGNATURE))
+    if head != HDF5_SIGNATURE:
+        return
+    try:
+        with h5py.File(path, "r") as h5:
+            list(h5.keys())
+    except OSError as err:
+        raise ApiError(
+            422,
+            f"{name} starts as an HDF5 file but HDF5 cannot open it ({err}): it is truncated "
+            "or corrupt; upload a complete copy",
+        ) from None
+
+
 def _too_large(limit: int) -> ApiError:
     return ApiError(
         413,
@@ -179,6 +208,7 @@ def _too_large(limit: int) -> ApiError:
             429: "too many failed authentications; see Retry-After",
             413: "the file exceeds AUTOCAL_MAX_UPLOAD_BYTES",
             415: "not multipart/form-data",
+            422: "an empty file, or an HDF5 file HDF5 cannot open (truncated)",
             503: "writes disabled: no API token configured",
         }.items()
     },
@@ -224,6 +254,7 @@ async def create_upload(
             raise ApiError(400, f"no file part named {FILE_FIELD!r} (with a filename) in the body")
         if not sink.finished or sink.partial is None:
             raise ApiError(400, "the multipart body ended before the file part was complete")
+        await run_in_threadpool(check_uploaded_file, sink.partial, sink.filename)
         final = folder / sink.filename
         await run_in_threadpool(os.replace, sink.partial, final)
     except _AbortError as abort:

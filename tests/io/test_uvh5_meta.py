@@ -40,3 +40,38 @@ def test_pyuvdata_compiled_helpers_are_cached_on_disk(data_root, tmp_path) -> No
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
     subprocess.run([sys.executable, "-c", code, str(path)], env=env, check=True, timeout=300)
     assert list(tmp_path.rglob("bls_numba._antnums_to_baseline-*.nbi"))
+
+
+@pytest.mark.parametrize(
+    ("dataset", "value", "words"),
+    [
+        ("freq_array", np.nan, "channel frequencies not finite and positive"),
+        ("freq_array", -1.0, "channel frequencies not finite and positive"),
+        ("lst_array", np.inf, "Header/lst_array has"),
+        ("ant_1_array", -7, "negative antenna numbers"),
+    ],
+)
+def test_a_header_with_impossible_values_is_called_corrupt(tmp_path, dataset, value, words):
+    """A live audit (2026-11-29): a NaN freq_array gave "the data cover nan-nan MHz ...
+    choose a range inside that band" instead of saying the file is corrupt."""
+    import h5py
+
+    from autocal.io.uvh5_meta import UVH5FormatError, read_file_meta
+
+    path = write_uvh5(synthetic_observation(), tmp_path / "zen.2458098.30000.HH.uvh5")
+    with h5py.File(path, "r+") as h5:
+        values = h5[f"Header/{dataset}"][()]
+        values[...] = value
+        h5[f"Header/{dataset}"][...] = values
+    with pytest.raises(UVH5FormatError, match="is corrupt") as err:
+        read_file_meta(path)
+    assert words in str(err.value) and "copy or download it again" in str(err.value)
+
+
+def test_pyuvdatas_errors_are_reported_on_one_line_without_asking_for_a_bug_report():
+    from autocal.io.uvh5_meta import _first_line
+
+    asked = ValueError("Frequencies are odd. Please file an issue in our GitHub issue log.")
+    assert _first_line(asked) == "Frequencies are odd."
+    compiled = ValueError('failed in nopython mode\nFile "bls_numba.py", line 1')
+    assert _first_line(compiled) == "failed in nopython mode"

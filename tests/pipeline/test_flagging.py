@@ -146,3 +146,51 @@ def test_read_keeps_the_data_flags_only(data_root) -> None:
     """autocal.read is a reader: it adds no RFI flags (the calibration does)."""
     obs = read(data_root / HERA_116[0], antennas=[23])
     assert not obs.flags.any()
+
+
+@pytest.mark.data
+def test_channels_without_usable_data_are_not_called_band_edges(data_root, tmp_path) -> None:
+    """A live audit (2026-11-29): all-zero (or NaN, or negative) autos were reported as
+    "2048 band edge"; such channels now have their own reason, in the solution and the
+    flagging's counts."""
+    import h5py
+
+    from autocal.fit.solve import FLAG_NO_DATA
+
+    path = tmp_path / "zen.2458116.31939.HH.uvh5"
+    path.write_bytes((data_root / "hera" / "autos" / path.name).read_bytes())
+    with h5py.File(path, "r+") as h5:
+        vis = h5["Data/visdata"]
+        values = vis[()]
+        values[:, 400:500] = 0.0  # channels without any usable sample
+        values[:, 600:610] = np.nan
+        vis[...] = values
+    config = CalibrationConfig(inputs=[str(path)], beam="hera", products=["hdf5"], nside=32)
+    result = run_calibration(config, tmp_path / "out")
+    reason = result.solution.flag_reason
+    assert np.all(reason[..., 400:500] == FLAG_NO_DATA)
+    assert np.all(reason[..., 600:610] == FLAG_NO_DATA)
+    assert not np.any(reason[..., 400:500] == FLAG_BAND_EDGE)
+    counts = result.summary["rfi_flagging"]
+    with h5py.File(path, "r") as h5:  # the file's own dead channels (zeros, flags) count too
+        auto = h5["Header/ant_1_array"][()] == h5["Header/ant_2_array"][()]
+        power = h5["Data/visdata"][()][auto].real
+        unusable = ~(np.isfinite(power) & (power > 0)) | h5["Data/flags"][()][auto]
+    dead = unusable.all(axis=0).T  # (pol, channel): no usable sample at any integration
+    assert dead[:, 400:500].all() and dead[:, 600:610].all()
+    assert counts["no_data_channels"] == int(dead.any(axis=0).sum())
+    assert np.all(reason[0][dead] == FLAG_NO_DATA)
+    assert counts["samples"]["no_data"] == int(dead.sum()) * unusable.shape[0]
+    assert "no usable data" in result.summary["quality"]["message"]
+
+
+@pytest.mark.data
+def test_a_polarisation_asked_for_by_its_alias_is_named_as_the_file_names_it(
+    data_root, tmp_path
+) -> None:
+    """A live audit (2026-11-29): ``pols=["xx"]`` of an ee/nn file (x pointing east) gave a
+    solution, and a service history, of pol ``xx`` beside ``ee``: one feed, two names."""
+    path = data_root / "hera" / "autos" / "zen.2458116.31939.HH.uvh5"
+    config = CalibrationConfig(inputs=[str(path)], pols=["xx"], products=[], nside=32)
+    result = run_calibration(config, None)
+    assert tuple(result.solution.pols) == ("ee",)

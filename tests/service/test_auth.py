@@ -15,6 +15,7 @@ from autocal.service.app import create_app
 from autocal.service.settings import Settings
 from autocal.service.store import JobStore
 from autocal.service.tokens import FailedAuthLimiter, TokenConfigError, named_tokens
+from tests.service.tiny_uvh5 import write_tiny_uvh5
 
 with warnings.catch_warnings():
     warnings.filterwarnings("ignore", message=".*httpx2")
@@ -28,7 +29,8 @@ HH = "zen.2458116.30448.HH.uvh5"
 def _settings(tmp_path: Path, **kwargs: object) -> Settings:
     data = tmp_path / "data"
     data.mkdir(exist_ok=True)
-    (data / HH).write_bytes(b"not really uvh5")
+    if not (data / HH).exists():
+        write_tiny_uvh5(data / HH)
     values: dict[str, object] = {
         "state_dir": tmp_path / "state",
         "database_url": f"sqlite:///{tmp_path / 'jobs.sqlite'}",

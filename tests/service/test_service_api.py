@@ -40,6 +40,7 @@ from autocal.service.paths import job_products_dir
 from autocal.service.schemas import CALIBRATE_ONLY, DIAGNOSE_ONLY, CalibrationOptions
 from autocal.service.settings import Settings
 from autocal.service.store import JobState, JobStore
+from tests.service.tiny_uvh5 import write_tiny_uvh5
 
 with warnings.catch_warnings():  # starlette's notice about httpx2, raised at import
     warnings.filterwarnings("ignore", message=".*httpx2")
@@ -69,7 +70,7 @@ def data(tmp_path: Path) -> Path:
     folder = tmp_path / "data"
     folder.mkdir()
     for name in (HH, "zen.2458116.31193.HH.uvh5", "zen.2458117.30000.HH.uvh5"):
-        (folder / name).write_bytes(b"not really uvh5")
+        write_tiny_uvh5(folder / name)
     (tmp_path / "secret.txt").write_text("top secret")
     return folder
 
@@ -512,8 +513,8 @@ def test_health_reports_database_errors(client: TestClient, store: JobStore, mon
 # uploads --------------------------------------------------------------------------------
 
 
-def test_upload_then_submit_by_id(client: TestClient, settings: Settings) -> None:
-    payload = b"uvh5 bytes " * 1000
+def test_upload_then_submit_by_id(client: TestClient, settings: Settings, tmp_path: Path) -> None:
+    payload = write_tiny_uvh5(tmp_path / "upload" / "zen.2458118.40000.HH.uvh5").read_bytes()
     response = client.post(
         "/uploads",
         files={"file": ("../../zen.2458118.40000.HH.uvh5", payload)},
@@ -666,6 +667,14 @@ def test_results_and_products_of_a_completed_job(
     assert summary_file.json()["config"]["beam"] == "dipole"
     missing = client.get(f"/jobs/{job_id}/products/calfits")
     assert missing.status_code == 404 and "available" in missing.json()["detail"]
+    # the job's products link lists them (it answered 404 before the 2026-11-29 audit)
+    listing = client.get(detail["links"]["products"])
+    assert listing.status_code == 200, listing.text
+    entries = {e["name"]: e for e in listing.json()["products"]}
+    assert set(entries) == set(detail["products"])
+    assert entries["hdf5"]["size_bytes"] == len(hdf5.content)
+    assert entries["png"]["media_type"] == "image/png"
+    assert client.get(entries["png"]["url"]).content == png.content
 
     # a record pointing outside the job's folder is never served
     _submit(client, inputs=["zen.2458098.50000.sim.uvh5"], force=True)
@@ -758,6 +767,7 @@ OPERATIONS = [
     ("GET", "/jobs/{job_id}"),
     ("POST", "/jobs/{job_id}/cancel"),
     ("GET", "/jobs/{job_id}/results"),
+    ("GET", "/jobs/{job_id}/products"),
     ("GET", "/jobs/{job_id}/products/{name}"),
     ("POST", "/uploads"),
     ("POST", "/nightly"),

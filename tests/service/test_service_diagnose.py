@@ -268,9 +268,18 @@ def test_paths_outside_the_data_roots_are_403(client: TestClient, data: Path) ->
 
 
 def test_failing_input_fails_the_job_with_a_reason_and_no_products(
-    client: TestClient, worker: Worker, settings: Settings, data: Path
+    client: TestClient, worker: Worker, settings: Settings, data: Path, store: JobStore
 ) -> None:
-    job_id = _submit(client, inputs=[JUNK]).json()["id"]
+    # the API refuses the junk file at submission, with the reader's message
+    refused = _submit(client, inputs=[JUNK])
+    assert refused.status_code == 422, refused.text
+    assert refused.json()["errors"][0]["field"] == "body.inputs"
+    assert "not an HDF5 file" in refused.json()["detail"]
+    # a job queued without that check (another client of the store) fails in the worker
+    from autocal.diagnosis.run import DiagnoseConfig
+
+    config = DiagnoseConfig(inputs=[str((data / JUNK).resolve())], **FAST)
+    job_id = store.submit(config.model_dump(mode="json"), kind="diagnose")[0]["id"]
     assert worker.run_once() is True
     job = client.get(f"/jobs/{job_id}", headers=AUTH).json()
     assert job["state"] == "failed", job

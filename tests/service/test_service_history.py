@@ -36,6 +36,7 @@ from autocal.service.settings import Settings
 from autocal.service.store import JobState, JobStore
 from autocal.service.worker import Worker
 from tests.service.test_service_store import BACKENDS, database_url
+from tests.service.tiny_uvh5 import write_tiny_uvh5
 
 NIGHT = 2458043
 
@@ -244,7 +245,7 @@ def test_autocal_nightly_prints_the_nights_outliers(tmp_path: Path, monkeypatch,
 
     data = tmp_path / "data"
     data.mkdir()
-    (data / f"zen.{NIGHTS[-1]}.40000.HH.uvh5").write_bytes(b"x")  # grouped by name only
+    write_tiny_uvh5(data / f"zen.{NIGHTS[-1]}.40000.HH.uvh5")  # a real header: it is read
     monkeypatch.setenv("AUTOCAL_STATE_DIR", str(tmp_path / "state"))
     monkeypatch.setenv("AUTOCAL_DATA_ROOTS", str(data))
     monkeypatch.delenv("AUTOCAL_DATABASE_URL", raising=False)

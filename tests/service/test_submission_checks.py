@@ -75,9 +75,13 @@ def test_a_frequency_range_outside_the_band_is_refused_with_the_band(
     assert inside.status_code == 202, inside.text
 
 
-def test_an_unreadable_file_is_left_to_the_worker(client: TestClient) -> None:
-    response = _submit(client, inputs=["zen.2458098.40000.HH.uvh5"], freq_range_mhz=[150, 160])
-    assert response.status_code == 202, response.text
+def test_an_unreadable_file_is_refused_with_the_readers_message(client: TestClient) -> None:
+    """A live audit (2026-11-29): a text file, an empty or a truncated UVH5 file were
+    accepted (202) and failed later in the worker."""
+    for kind in ("calibrate", "diagnose"):
+        response = _submit(client, kind=kind, inputs=["zen.2458098.40000.HH.uvh5"])
+        detail = _refused(response, "inputs")
+        assert "is not an HDF5 file, so not UVH5" in detail
 
 
 def test_the_same_file_named_twice_is_refused(client: TestClient, data: Path) -> None:
