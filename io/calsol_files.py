@@ -117,7 +117,7 @@ def _check_calh5_header(path: Path) -> None:
             header = h5.get("Header")
             keys = set(header.keys()) if isinstance(header, h5py.Group) else set()
             fmt = h5.attrs.get("format")
-    except OSError as err:
+    except (OSError, RuntimeError) as err:  # h5py raises both for a damaged file
         raise CalsolFormatError(
             f"{path} is truncated or corrupt (HDF5 error: {err}); copy or download it again"
         ) from err

@@ -299,7 +299,7 @@ class _BlockReader:
                     arrays[key] = read_rows(
                         dset, rows, self.chans, self.pols, self.stats, bufs, rep, inflater
                     )
-                except OSError as err:  # a chunk failing its checksum, not decoding, short
+                except (OSError, RuntimeError) as err:  # a bad chunk: checksum, decoding, short
                     what = f"integrations {t0}-{t1 - 1}"
                     raise read_error(self.meta.path, dset, what, err) from err
         self.stats.bytes_read += self.raw.nread - self.counted

@@ -201,7 +201,7 @@ def read_plain_header(path: Path) -> tuple[UVH5Header, HeaderArrays] | None:
     try:
         with h5py.File(path, "r") as h5:
             return _read(h5["Header"])
-    except (KeyError, OSError, ValueError, TypeError, UnicodeDecodeError) as err:
+    except (KeyError, OSError, RuntimeError, ValueError, TypeError, UnicodeDecodeError) as err:
         logger.debug("%s: header read through pyuvdata (%s)", path.name, err)
         return None
 

@@ -112,9 +112,14 @@ def check_uvh5_file(path: Path) -> None:
     if not path.exists():
         raise UVH5FormatError(f"{path} does not exist: check the path")
     if path.is_dir():
+        missing = [n for n in ("visdata", "vartable") if not (path / n).is_file()]
         raise UVH5FormatError(
-            f"{path} is a directory, not a UVH5 file (Miriad data sets are not read by "
-            "read_uvh5; convert them to UVH5 with pyuvdata)"
+            f"{path} is a folder, not a UVH5 file, and not a whole Miriad data set either "
+            f"(it has no {' and no '.join(missing)}): give UVH5 files or complete Miriad "
+            "folders"
+            if missing
+            else f"{path} is a Miriad data set, not a UVH5 file: this reader takes UVH5 "
+            "(autocal calibrate reads Miriad folders; elsewhere convert them with pyuvdata)"
         )
     if not h5py.is_hdf5(path):
         raise UVH5FormatError(
@@ -124,7 +129,7 @@ def check_uvh5_file(path: Path) -> None:
     try:
         with h5py.File(path, "r") as h5:
             groups = set(h5.keys())
-    except OSError as err:
+    except (OSError, RuntimeError) as err:  # h5py raises both for a damaged file
         raise UVH5FormatError(
             f"{path} is truncated or corrupt (HDF5 error: {err}); copy or download it again"
         ) from err

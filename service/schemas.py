@@ -192,7 +192,7 @@ class CalibrationOptions(BaseModel):
         "calibrate and diagnose alike); the counts per reason are in the results and the "
         "summary under rfi_flagging",
     )
-    trxr_prior: Annotated[Number, Field(ge=-100_000.0, le=100_000.0)] | PathText | None = Field(
+    trxr_prior: Annotated[Number, Field(ge=0.0, le=100_000.0)] | PathText | None = Field(
         None,
         description="receiver-temperature prior: a number (K), or a CSV table "
         "freq_mhz,trxr_k[,sigma_k] or a previous solution.h5 under the data roots; calibrate: "

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from autocal.cli.args import output_file
+
 
 def add(sub: argparse._SubParsersAction) -> None:
     """Register the command."""
@@ -22,7 +24,7 @@ def add(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("solution", type=Path, help="gain solution (calfits or calh5)")
     p.add_argument("data", type=Path, nargs="+", help="UVH5 file(s) of one observation")
-    p.add_argument("--out", required=True, type=Path, help="calibrated UVH5 file to write")
+    p.add_argument("--out", required=True, type=output_file, help="calibrated UVH5 file to write")
     p.add_argument(
         "--antennas",
         help="comma-separated antenna numbers: calibrate only the baselines between them "

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import argparse
+import re
 import sys
+import tempfile
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from autocal.errors import AutocalError
@@ -73,6 +77,8 @@ def parse_freq_mhz(
         raise CliError(
             f"--{what} {raw!r}: give a frequency in MHz, or with a unit (150MHz, 1.5e8Hz, 250kHz)"
         ) from None
+    if value != value or value in (float("inf"), float("-inf")):
+        raise CliError(f"--{what} {raw!r}: give a finite frequency in MHz")
     if scale is not None:
         return value * scale
     if abs(value) > bare_limit_mhz and legacy_unit is not None:
@@ -113,6 +119,10 @@ def parse_freq_range_mhz(text: str, what: str, legacy_unit: str | None = None) -
     return np.array(values)
 
 
+#: Most points a ``START:STOP:N`` range may ask for (a million LSTs is 1 per 0.09 s).
+MAX_RANGE_POINTS = 1_000_000
+
+
 def parse_range(text: str, what: str, unit: str) -> np.ndarray:
     """Parse ``START:STOP:N`` (inclusive, N points) or a comma-separated list.
 
@@ -145,6 +155,10 @@ def parse_range(text: str, what: str, unit: str) -> np.ndarray:
     if ":" in text:
         if num < 1:
             raise CliError(f"--{what}: N must be >= 1 (got {num})")
+        if num > MAX_RANGE_POINTS:
+            raise CliError(f"--{what}: N = {num} is more than {MAX_RANGE_POINTS} points")
+        if not (np.isfinite(start) and np.isfinite(stop)):
+            raise CliError(f"--{what} {text!r}: START and STOP must be finite numbers ({unit})")
         return np.linspace(start, stop, num)
     if values.size == 0:
         raise CliError(f"--{what} is empty")
@@ -190,7 +204,119 @@ def parse_freq_pair(text: str | None, what: str) -> tuple[float, float] | None:
 
 
 def validation_message(err: Any, what: str = "settings") -> str:
-    """One line listing every field a pydantic ``ValidationError`` rejected, and why."""
-    return "; ".join(
-        f"{'.'.join(str(x) for x in e['loc']) or what}: {e['msg']}" for e in err.errors()
-    )
+    """One line listing every field a pydantic ``ValidationError`` rejected, and why.
+
+    Each field is named as the command line spells it (``--tgnd``, not ``tgnd_k``:
+    :data:`FIELD_FLAGS`, else ``--`` and the field with dashes; a setting of the service
+    by its environment variable, ``AUTOCAL_DATA_ROOTS``), and pydantic's ``Value error, ``
+    prefix is dropped.
+    """
+    settings = getattr(err, "title", "") == "Settings"  # the service's, from AUTOCAL_*
+
+    def where(loc: tuple[Any, ...]) -> str:
+        if not loc:
+            return what
+        field = str(loc[0])
+        if settings:
+            flag = f"AUTOCAL_{field.upper()}"
+        else:
+            flag = FIELD_FLAGS.get(field, "--" + field.replace("_", "-"))
+        return ".".join([flag, *(str(x) for x in loc[1:])])
+
+    def why(message: str) -> str:  # a model-level check names fields in its text
+        message = message.removeprefix("Value error, ")
+        for field, flag in FIELD_FLAGS.items():
+            message = re.sub(rf"\b{field}\b", flag, message)
+        return message
+
+    return "; ".join(f"{where(tuple(e['loc']))}: {why(str(e['msg']))}" for e in err.errors())
+
+
+#: Configuration fields whose command-line option is not ``--`` and the field with dashes.
+FIELD_FLAGS = {
+    "tgnd_k": "--tgnd",
+    "trxr_k": "--trxr",
+    "freq_range_mhz": "--freq-range",
+    "lst_range_h": "--lst-range",
+    "trxr_prior_sigma_k": "--trxr-prior-sigma",
+    "input_format": "--format",
+    "channel_width_khz": "--channel-width",
+    "freq_start_mhz": "--freq-start",
+    "freq_stop_mhz": "--freq-stop",
+    "lst_start_h": "--lst-start",
+    "duration_h": "--duration",
+    "cadence_s": "--cadence",
+    "jd_start": "--jd",
+    "noise_dnu_hz": "--noise-dnu",
+    "noise_dt_s": "--noise-dt",
+}
+
+
+def output_folder(text: str) -> Path:
+    """Parse an ``--out`` folder (argparse ``type``): refuse an empty path.
+
+    ``Path("")`` is the current folder, so ``--out ""`` (an unset shell variable) wrote
+    every product there.
+    """
+    if not text.strip():
+        raise argparse.ArgumentTypeError("the output folder is empty: give a folder path")
+    return Path(text)
+
+
+def output_file(text: str) -> Path:
+    """Parse an ``--out`` file (argparse ``type``): refuse an empty path or a folder."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("the output file is empty: give a file path")
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a folder: give a file path")
+    return path
+
+
+def check_output_folder(out: Path) -> None:
+    """Refuse, before any work, an output folder that is a file or cannot be written.
+
+    Raises
+    ------
+    CliError
+        Saying what is wrong with ``out`` (checked before a run computes for minutes and
+        only then finds it cannot write its products).
+    """
+    if out.exists() and not out.is_dir():
+        raise CliError(f"--out {out} is a file, not a folder: give a folder (new or autocal's)")
+    probe = out
+    while not probe.exists():  # the nearest existing parent decides whether it can be made
+        probe = probe.parent
+    if not probe.is_dir():
+        raise CliError(f"--out {out}: {probe} is a file, so the folder cannot be made there")
+    try:  # a write, not os.access: root passes that test on an immutable or read-only folder
+        with tempfile.TemporaryFile(dir=probe):
+            pass
+    except OSError as err:
+        raise CliError(
+            f"--out {out}: {probe} cannot be written ({err.strerror or err}); choose a folder "
+            "you can write"
+        ) from None
+
+
+def check_output_file(path: Path) -> None:
+    """Refuse, before any work, an output file whose folder is missing or cannot be written.
+
+    Raises
+    ------
+    CliError
+        Saying what is wrong (a run that computed for minutes before failing to write, or
+        that wrote one file of two, is what this prevents).
+    """
+    if path.is_dir():
+        raise CliError(f"{path} is a folder: give a file path")
+    folder = path.expanduser().absolute().parent
+    if not folder.is_dir():
+        raise CliError(f"{path}: the folder {folder} does not exist; create it first")
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as err:
+        raise CliError(
+            f"{path}: the folder {folder} cannot be written ({err.strerror or err})"
+        ) from None

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from autocal.cli.args import CliError, validation_message
+from autocal.cli.args import CliError, check_output_folder, output_folder, validation_message
 from autocal.cli.options import (
     add_calibration_arguments,
     calibration_settings,
@@ -61,7 +61,7 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--out",
         required=True,
-        type=Path,
+        type=output_folder,
         help="output folder, owned by autocal: a rerun replaces every product it wrote there "
         "(products this run does not write, e.g. an old comparison, are removed)",
     )
@@ -71,6 +71,7 @@ def add(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
     # Options checked here first: a usage error is reported before the science stack loads.
+    check_output_folder(args.out)
     if args.dask_workers is not None and args.dask_workers < 1:
         raise CliError("--dask-workers must be at least 1")
     if args.dask_workers is not None and args.dask is None:

@@ -5,7 +5,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from autocal.cli.args import CliError, parse_freq_mhz, parse_int_list, parse_str_list
+from autocal.cli.args import (
+    CliError,
+    check_output_folder,
+    output_folder,
+    parse_freq_mhz,
+    parse_int_list,
+    parse_str_list,
+)
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -28,7 +35,7 @@ def add(sub: argparse._SubParsersAction) -> None:
         nargs="+",
         help="reference gains: one calfits/calh5 file or consecutive files of one run",
     )
-    p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.add_argument("--out", required=True, type=output_folder, help="output folder")
     p.add_argument(
         "--smooth-mhz",
         default=None,
@@ -56,6 +63,7 @@ def add(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
+    check_output_folder(args.out)
     from autocal.compare.comparison import compare
     from autocal.compare.report import OUTPUT_NAMES, write_comparison
     from autocal.io.calsol_read import read_reference_gains
@@ -65,6 +73,8 @@ def run(args: argparse.Namespace) -> int:
         args.smooth_mhz = parse_freq_mhz(args.smooth_mhz, "smooth-mhz")
     if args.smooth_mhz is not None and not args.smooth_mhz > 0:
         raise CliError(f"--smooth-mhz must be positive (MHz), got {args.smooth_mhz}")
+    if args.nside is not None and (not 2 <= args.nside <= 8192 or args.nside & (args.nside - 1)):
+        raise CliError(f"--nside {args.nside}: a power of two from 2 to 8192")
     if args.out.exists() and not args.out.is_dir():
         raise CliError(f"--out {args.out} exists and is not a folder")
     if not args.overwrite:

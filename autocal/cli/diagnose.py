@@ -8,6 +8,8 @@ from typing import Any
 
 from autocal.cli.args import (
     CliError,
+    check_output_folder,
+    output_folder,
     parse_freq_pair,
     parse_int_list,
     parse_pair,
@@ -76,12 +78,13 @@ def add(sub: argparse._SubParsersAction) -> None:
         "sample the data do not flag (outliers of the residuals are flagged either way) "
         f"({default_text(HELP_DEFAULTS['rfi_flagging'])})",
     )
-    p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.add_argument("--out", required=True, type=output_folder, help="output folder")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
+    check_output_folder(args.out)
     from pydantic import ValidationError
     from tqdm import tqdm
 

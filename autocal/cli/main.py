@@ -30,7 +30,9 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 from typing import Any
 
@@ -38,6 +40,7 @@ from autocal.cli.args import CliError, parse_range
 from autocal.errors import AutocalError
 
 __all__ = [
+    "EXIT_INTERRUPTED",
     "EXIT_OK",
     "EXIT_USER_ERROR",
     "CliError",
@@ -124,6 +127,36 @@ EXIT_OK = 0
 EXIT_USER_ERROR = 2
 
 
+#: Exit status of a command stopped by Ctrl-C or SIGTERM (128 + SIGINT, as shells report).
+EXIT_INTERRUPTED = 130
+
+
+def _terminate_unwinds() -> Any:
+    """Make SIGTERM stop a command as Ctrl-C does, running its clean-ups.
+
+    Python's default SIGTERM ends the process at once: a run stopped while writing left its
+    staging folder behind. Commands that handle SIGTERM themselves (``serve``, ``worker``)
+    install their own handler later, which replaces this one.
+
+    Returns
+    -------
+    object
+        The handler replaced (:func:`main` puts it back), or ``None`` when nothing was
+        changed (not the main thread, or SIGTERM already handled).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    previous = signal.getsignal(signal.SIGTERM)
+    if previous is not signal.SIG_DFL:
+        return None
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    signal.signal(signal.SIGTERM, interrupt)
+    return previous
+
+
 def user_error_message(err: BaseException) -> str | None:
     """Return the one-line message of an error the user caused, ``None`` for anything else.
 
@@ -186,14 +219,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parse_arguments(parser, argv)
     level = [logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    previous = _terminate_unwinds()
     try:
         return int(args.func(args))
+    except KeyboardInterrupt:
+        print(
+            f"autocal {args.command}: interrupted; products are published only when a run "
+            "finishes, so none was left half-written (earlier ones are kept)",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
     except Exception as err:
         message = user_error_message(err)
         if message is None:
             raise
         print(f"autocal {args.command}: error: {message}", file=sys.stderr)
         return EXIT_USER_ERROR
+    finally:
+        if previous is not None:  # main() called in a longer-lived process (tests, notebooks)
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":  # pragma: no cover

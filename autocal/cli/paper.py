@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from autocal.cli.args import CliError, parse_str_list
+from autocal.cli.args import CliError, check_output_folder, output_folder, parse_str_list
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -18,7 +17,7 @@ def add(sub: argparse._SubParsersAction) -> None:
         "beam-model incompleteness) for each beam, and write paper_table.md, "
         "paper_results.json and PNG figures to --out.",
     )
-    p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.add_argument("--out", required=True, type=output_folder, help="output folder")
     p.add_argument("--beams", default="hera,dipole,airy", help="comma-separated beams")
     p.add_argument("--seed", type=int, default=1, help="noise seed (1)")
     p.add_argument(
@@ -33,6 +32,7 @@ def add(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the command."""
+    check_output_folder(args.out)
     from autocal.simulate.mock import SimulationConfig
     from autocal.simulate.paper import PAPER_BEAMS, run_paper
 

@@ -7,6 +7,8 @@ from pathlib import Path
 
 from autocal.cli.args import (
     CliError,
+    check_output_file,
+    output_file,
     parse_freq_mhz,
     parse_int_list,
     parse_str_list,
@@ -69,7 +71,7 @@ def add(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-noise", action="store_true", help="noiseless data")
     p.add_argument("--seed", type=int, default=0, help="noise seed (0)")
     p.add_argument("--nside", type=int, default=64, help="HEALPix resolution of Tsky (64)")
-    p.add_argument("--out", required=True, type=Path, help="output .uvh5 file")
+    p.add_argument("--out", required=True, type=output_file, help="output .uvh5 file")
     p.add_argument("--truth", type=Path, help="truth side-car (default OUT.truth.h5)")
     p.add_argument("--overwrite", action="store_true", help="replace existing files")
     p.set_defaults(func=run)
@@ -86,9 +88,12 @@ def run(args: argparse.Namespace) -> int:
     if args.out.suffix.lower() != ".uvh5":
         raise CliError(f"--out {args.out}: give a file name ending in .uvh5")
     truth_path = args.truth or args.out.with_suffix(".truth.h5")
+    if truth_path.expanduser().absolute() == args.out.expanduser().absolute():
+        raise CliError(f"--truth {truth_path} is --out itself: give the truth its own file")
     for path in (args.out, truth_path):
         if path.exists() and not args.overwrite:
             raise CliError(f"{path} exists; pass --overwrite to replace it")
+        check_output_file(path)  # before simulating, not after writing the data
     freq = {
         name: parse_freq_mhz(getattr(args, name.replace("-", "_")), name, limit, legacy)
         for name, (limit, legacy) in BARE_LIMIT_MHZ.items()

@@ -3,9 +3,16 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from autocal.cli.args import BEAM_HELP, SKY_HELP, CliError, parse_freq_range_mhz, parse_range
+from autocal.cli.args import (
+    BEAM_HELP,
+    SKY_HELP,
+    CliError,
+    check_output_file,
+    output_file,
+    parse_freq_range_mhz,
+    parse_range,
+)
 
 
 def add(sub: argparse._SubParsersAction) -> None:
@@ -59,9 +66,16 @@ def add(sub: argparse._SubParsersAction) -> None:
         help="fft (fast engine, default) or brute (per-LST reference)",
     )
     p.add_argument("--no-cache", action="store_true", help="neither read nor write the cache")
-    p.add_argument("--out", required=True, type=Path, help="output HDF5 file")
-    p.add_argument("--plot", type=Path, help="also write a PNG plot here")
+    p.add_argument("--out", required=True, type=output_file, help="output HDF5 file")
+    p.add_argument("--plot", type=output_file, help="also write a PNG plot here")
+    p.add_argument("--overwrite", action="store_true", help="replace existing files")
     p.set_defaults(func=run)
+
+
+#: Largest HEALPix resolution (as ``autocal diagnose``): 8192 is 805 M pixels per map.
+MAX_NSIDE = 8192
+#: Largest Tsky table (channels x LSTs; float64, and the engine's work arrays): ~1.6 GB.
+MAX_TABLE_VALUES = 200_000_000
 
 
 def run(args: argparse.Namespace) -> int:
@@ -72,9 +86,29 @@ def run(args: argparse.Namespace) -> int:
 
     if args.out.suffix.lower() not in {".h5", ".hdf5"}:
         raise CliError(f"--out {args.out}: the Tsky table is HDF5; use a .h5 file name")
+    if args.plot is not None and args.plot.suffix.lower() != ".png":
+        raise CliError(f"--plot {args.plot}: the plot is a PNG image; use a .png file name")
+    for path in (args.out, args.plot):
+        if path is None:
+            continue
+        if path.exists() and not args.overwrite:
+            raise CliError(f"{path} exists; pass --overwrite to replace it")
+        check_output_file(path)
+    if not 0.0 <= args.horizon_width <= 30.0:
+        raise CliError(
+            f"--horizon-width {args.horizon_width:g}: the soft horizon's width is 0 (a hard "
+            "cut) to 30 degrees"
+        )
+    if not 1 <= args.nside <= MAX_NSIDE or args.nside & (args.nside - 1):
+        raise CliError(f"--nside {args.nside}: a power of two from 1 to {MAX_NSIDE}")
     # MHz on the command line; the engine works in Hz
     freqs = parse_freq_range_mhz(args.freqs, "freqs", legacy_unit="Hz") * 1e6
     lsts = parse_range(args.lsts, "lsts", "hours")
+    if freqs.size * lsts.size > MAX_TABLE_VALUES:
+        raise CliError(
+            f"{freqs.size} channels x {lsts.size} LSTs = {freqs.size * lsts.size:.3g} values, "
+            f"more than the {MAX_TABLE_VALUES:.0e} of a table held in memory: ask for fewer"
+        )
     result = compute_tsky(
         args.sky,
         args.beam,

@@ -8,12 +8,21 @@ never a renamed but empty file.
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
+import re
+import shutil
 import tempfile
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
+
+logger = logging.getLogger(__name__)
+
+#: A staging folder of the product writers: ``.staging-<pid>-<ns>``.
+_STAGING = re.compile(r"^\.staging-(\d+)-\d+$")
 
 
 def _current_umask() -> int:
@@ -59,6 +68,40 @@ def fsync_dir(path: str | Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+def make_staging(out: Path) -> Path:
+    """Create ``out`` and a new staging folder in it, removing orphaned ones first.
+
+    A run's products are written into ``out/.staging-<pid>-<ns>`` and renamed into ``out``
+    once all are written; a run killed outright (SIGKILL, a crash) leaves its staging
+    folder behind. Those of processes that no longer exist on this machine are removed
+    here, so the next run into ``out`` cleans up (a folder shared between machines keeps
+    other machines' staging folders: their processes cannot be checked from here).
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    for entry in out.iterdir():
+        match = _STAGING.match(entry.name)
+        if match is None or not entry.is_dir() or _alive(int(match.group(1))):
+            continue
+        shutil.rmtree(entry, ignore_errors=True)
+        logger.info("removed %s, left by a run that no longer exists", entry)
+    staging = out / f".staging-{os.getpid()}-{time.time_ns()}"
+    staging.mkdir()
+    return staging
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists on this machine (ours included)."""
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # exists, another user's
+        return True
+    return True
 
 
 def publish_staged(staging: Path, out: Path, names: list[str]) -> None:

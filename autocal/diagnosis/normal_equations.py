@@ -198,7 +198,15 @@ class FitProblem:
             self.chan_ok[sl] = nuse >= 3
             self.used += int(nuse[self.chan_ok[sl]].sum())
         if not self.chan_ok.any():
-            raise DiagnoseError("no channel has 3 or more unflagged samples to fit")
+            with np.errstate(invalid="ignore"):
+                positive = np.isfinite(obs.data) & (obs.data > 0)
+            why = (
+                "the data hold no positive, finite value (all NaN, inf, zero or negative: "
+                "check the file)"
+                if not positive.any()
+                else "the data's own flags, the band edges and RFI leave too few samples"
+            )
+            raise DiagnoseError(f"no channel has 3 or more unflagged samples to fit: {why}")
         self.blocks = _split(effects)
         self.nfree = sum(b.stop - b.start for _, b in self.blocks)
         self.fixed = {e.name: np.asarray(e.fixed, float) for e in effects if e.fixed is not None}

@@ -25,7 +25,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import shutil
 import time
 from collections.abc import Callable
@@ -44,7 +43,7 @@ from pydantic import (
 
 from autocal import __version__
 from autocal.core.coords import night_epoch
-from autocal.core.files import publish_staged
+from autocal.core.files import make_staging, publish_staged
 from autocal.core.memory import available_memory
 from autocal.core.observation import Observation
 from autocal.core.stopping import checkpoint, stop_when
@@ -466,9 +465,7 @@ def _publish(
     ``summary.json`` (with the final product paths and timings) is written last into the
     staging folder and moved last; the staging folder is removed whatever happens.
     """
-    out.mkdir(parents=True, exist_ok=True)
-    staging = out / f".staging-{os.getpid()}-{time.time_ns()}"
-    staging.mkdir()
+    staging = make_staging(out)
     try:
         write(staging)
         files = sorted(p.name for p in staging.iterdir() if p.name != SUMMARY)

@@ -135,6 +135,11 @@ def read_visibilities(paths: Sequence[str | Path], antennas: Sequence[int] | Non
     if not paths:
         raise ApplyError("no data files given: name one or more UVH5 files")
     for path in paths:
+        if path.is_dir():
+            raise ApplyError(
+                f"data file {path} is a folder: apply reads UVH5 files (convert a Miriad data "
+                "set with pyuvdata first)"
+            )
         if not path.is_file():
             raise ApplyError(f"data file {path} does not exist: check the path")
     select = {} if antennas is None else {"antenna_nums": [int(a) for a in antennas]}
@@ -264,6 +269,24 @@ def check_output(path: Path, overwrite: bool) -> None:
         raise ApplyError(f"the output {path} exists: pass --overwrite to replace it")
 
 
+def _flag_non_finite(uvd: Any) -> None:
+    """Flag the data's NaN and infinite samples and store them as 0 (in place).
+
+    A UVH5 file's autos must be real, and pyuvdata refuses to write a NaN; such samples
+    carry no measurement, so they are flagged (``calibrate`` leaves them out of the fit the
+    same way) and written as 0, with a warning saying how many.
+    """
+    bad = ~np.isfinite(uvd.data_array)
+    if not bad.any():
+        return
+    uvd.flag_array |= bad
+    uvd.data_array[bad] = 0.0
+    logger.warning(
+        "%d non-finite (NaN or infinite) samples of the data flagged and written as 0",
+        int(bad.sum()),
+    )
+
+
 def _history_line(solution: Path, data: Sequence[Path]) -> str:
     names = ", ".join(str(p) for p in data)
     return (
@@ -318,19 +341,34 @@ def apply_solution(
     check_output(out, overwrite)
     uvc = read_gains(solution)
     uvd = read_visibilities(data_paths, antennas)
+    if str(uvd.vis_units).strip().lower() != "uncalib":
+        raise ApplyError(
+            f"the data are already calibrated (vis_units {uvd.vis_units!r}): give the raw, "
+            "uncalibrated visibilities (vis_units 'uncalib'), or they would be calibrated twice"
+        )
     if freq_range_mhz is not None:
         select_band(uvd, freq_range_mhz)
     check_coverage(uvd, uvc)
+    _flag_non_finite(uvd)
     try:
         with _log_warnings("calibrating"):
             uvutils.uvcalibrate(uvd, uvc, inplace=True, prop_flags=True)
     except ValueError as err:
         raise ApplyError(f"pyuvdata cannot apply {solution} to the data: {err}") from err
+    if np.all(uvd.flag_array):
+        raise ApplyError(
+            f"{solution} flags every channel the data have (or the data flag every sample): "
+            "the calibrated file would hold no usable sample; check the solution's "
+            "summary.json 'quality' (autocal info) or select other channels or antennas"
+        )
     separator = "" if uvd.history.endswith("\n") else "\n"
     uvd.history += separator + _history_line(solution, data_paths)
     with atomic_path(out) as tmp, _log_warnings(f"writing {out.name}"):
         tmp.unlink()  # pyuvdata writes a new file
-        uvd.write_uvh5(str(tmp))
+        try:
+            uvd.write_uvh5(str(tmp))
+        except ValueError as err:
+            raise ApplyError(f"pyuvdata cannot write the calibrated data: {err}") from err
     result = ApplyResult(
         path=out,
         nbls=int(uvd.Nbls),

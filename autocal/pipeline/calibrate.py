@@ -96,6 +96,23 @@ class CalibrationResult:
         return compact_repr(self)
 
 
+def _check_references(paths: list[str] | None) -> None:
+    """Refuse reference files that are not calibrations before the run reads any data.
+
+    Raises
+    ------
+    autocal.io.calsol_files.CalsolFormatError
+        For a missing, empty, corrupt or non-calibration file (its first bytes and header
+        only are read: :func:`autocal.io.calsol_files.sniff_cal_file`).
+    """
+    if not paths:
+        return
+    from autocal.io.calsol_files import sniff_cal_file
+
+    for path in paths:
+        sniff_cal_file(Path(path).expanduser())
+
+
 def run_calibration(
     config: CalibrationConfig,
     out: str | Path | None,
@@ -204,6 +221,7 @@ def _calibrate(
     """
     report = _reporter(progress)
     clock = StageClock()
+    _check_references(config.reference)  # before any work: the comparison comes last
     report(0.0, "scanning inputs")
     source = open_source(config) if observation is None else memory_source(observation, config)
     clock.lap("scan_s", clock.started)

@@ -44,7 +44,7 @@ class CalibrationConfig(BaseModel):
     sky: str = Field("gsm2008", description="sky model (autocal.sky.models.get_sky spec)")
     beam: str = Field("hera", description="beam (autocal.sky.beam_names.get_beam spec)")
     tgnd_k: float = Field(300.0, ge=0.0, description="ground temperature")
-    nside: int = Field(64, ge=2, description="HEALPix resolution of Tsky (a power of two)")
+    nside: int = Field(64, ge=2, le=8192, description="HEALPix resolution of Tsky (a power of two)")
     model: Literal["constant", "legendre"] = "constant"
     order: int = Field(1, ge=0, le=10, description="Legendre order (model=legendre)")
     weights: Literal["radiometer", "identity"] = "radiometer"
@@ -96,6 +96,10 @@ def check_prior_spec(spec: float | str | None, sigma_k: float) -> None:
         raise ValueError("trxr_prior must be a number (K) or a path, not a boolean")
     if isinstance(spec, float) and not np.isfinite(spec):
         raise ValueError("trxr_prior must be a finite temperature in K")
+    if isinstance(spec, float | int) and spec < 0:
+        raise ValueError(
+            f"trxr_prior {spec:g} K: a receiver temperature is not below 0 K (a sign error?)"
+        )
     if isinstance(spec, str) and not spec.strip():
         raise ValueError("trxr_prior is empty: give a number in K or a .csv/.h5 path")
     if not np.isfinite(sigma_k):

@@ -10,16 +10,14 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
-import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from autocal.core.files import atomic_path, publish_staged
+from autocal.core.files import atomic_path, make_staging, publish_staged
 from autocal.core.memory import available_memory
 from autocal.fit.solution import Solution
 from autocal.io.products import write_solution
@@ -281,9 +279,7 @@ def write_products(
     files are flushed to disk and renamed, ``summary.json`` last, so a folder with a
     ``summary.json`` holds the whole set.
     """
-    out.mkdir(parents=True, exist_ok=True)
-    staging = out / f".staging-{os.getpid()}-{time.time_ns()}"
-    staging.mkdir()
+    staging = make_staging(out)
     names = {**PRODUCT_FILES, **FIGURE_FILES}
     try:
         stems = file_stems(config.inputs)

@@ -112,7 +112,7 @@ def is_edges(path: Path) -> bool:
     try:
         with h5py.File(path, "r") as h5:
             return {"p0", "p1", "p2"} <= set(h5.keys())
-    except OSError:
+    except (OSError, RuntimeError):
         return False
 
 

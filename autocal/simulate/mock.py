@@ -142,6 +142,12 @@ def lsts_to_jds(lsts: np.ndarray, site: Any, jd_start: float) -> np.ndarray:
     return jds
 
 
+#: Largest simulated observation (values, ~8 bytes each plus the model's copies): ~2.4 GB.
+MAX_SIMULATED_VALUES = 300_000_000
+#: Largest HEALPix resolution of a simulation's Tsky (as ``autocal diagnose`` allows).
+MAX_NSIDE = 8192
+
+
 class SimulationConfig(BaseModel):
     """Settings of a mock observation (shared by the CLI, the pipeline and the API).
 
@@ -163,7 +169,7 @@ class SimulationConfig(BaseModel):
     pols: list[str] = Field(default_factory=lambda: ["ee"])
     freq_start_mhz: float = 110.0
     freq_stop_mhz: float = 190.0
-    channel_width_khz: float = 250.0
+    channel_width_khz: float = Field(250.0, gt=0.0, description="channel spacing, kHz")
     lst_start_h: float = Field(0.0, ge=0.0, lt=24.0)
     duration_h: float = Field(24.0, gt=0.0, le=48.0, description="LST hours covered")
     cadence_s: float = Field(300.0, gt=0.0, description="sidereal seconds between samples")
@@ -177,8 +183,8 @@ class SimulationConfig(BaseModel):
     noise: bool = True
     noise_dnu_hz: float = Field(5e3, gt=0.0)
     noise_dt_s: float = Field(1.0, gt=0.0)
-    seed: int | None = 0
-    nside: int = 64
+    seed: int | None = Field(0, ge=0, description="noise seed (None: a fresh one)")
+    nside: int = Field(64, ge=1, le=MAX_NSIDE, description="HEALPix resolution of Tsky")
 
     @model_validator(mode="after")
     def _check(self) -> SimulationConfig:
@@ -190,18 +196,35 @@ class SimulationConfig(BaseModel):
             raise ValueError("give at least one polarisation")
         if len(set(self.antennas)) != len(self.antennas):
             raise ValueError("antenna numbers must be unique")
+        if self.nside & (self.nside - 1):
+            raise ValueError(f"nside must be a power of two (got {self.nside})")
+        nfreq, ntime = self.nfreq(), self.ntime()
+        values = nfreq * ntime * len(self.antennas) * len(self.pols)
+        if values > MAX_SIMULATED_VALUES:
+            raise ValueError(
+                f"{nfreq} channels x {ntime} integrations x {len(self.antennas)} antenna(s) x "
+                f"{len(self.pols)} pol(s) = {values:.3g} values, more than the "
+                f"{MAX_SIMULATED_VALUES:.0e} a simulation holds in memory: widen the "
+                "channels or the cadence, or shorten the span"
+            )
         return self
+
+    def nfreq(self) -> int:
+        """Return the number of channels (start to stop inclusive in channel-width steps)."""
+        width = self.channel_width_khz * 1e3
+        return int(np.floor((self.freq_stop_mhz - self.freq_start_mhz) * 1e6 / width + 1e-9)) + 1
+
+    def ntime(self) -> int:
+        """Return the number of integrations."""
+        return max(round(self.duration_h * 3600.0 / self.cadence_s), 1)
 
     def freqs(self) -> np.ndarray:
         """Channel centres in Hz (start to stop inclusive in channel-width steps)."""
-        width = self.channel_width_khz * 1e3
-        n = int(np.floor((self.freq_stop_mhz - self.freq_start_mhz) * 1e6 / width + 1e-9)) + 1
-        return self.freq_start_mhz * 1e6 + width * np.arange(n)
+        return self.freq_start_mhz * 1e6 + self.channel_width_khz * 1e3 * np.arange(self.nfreq())
 
     def lsts(self) -> np.ndarray:
         """LSTs in hours (time order, wrapped to [0, 24))."""
-        n = max(round(self.duration_h * 3600.0 / self.cadence_s), 1)
-        return (self.lst_start_h + np.arange(n) * self.cadence_s / 3600.0) % 24.0
+        return (self.lst_start_h + np.arange(self.ntime()) * self.cadence_s / 3600.0) % 24.0
 
 
 def true_beam(config: SimulationConfig, pol: str) -> Beam:

@@ -89,7 +89,7 @@ def test_options_are_parsed_into_configuration_fields() -> None:
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--edges-bin", "0"], "edges_bin"),
+        (["--edges-bin", "0"], "--edges-bin"),
         (["--nside", "63"], "power of two"),
         (["--order", "11"], "order"),
         (["--freq-range", "110e6:190e6"], "MHz"),

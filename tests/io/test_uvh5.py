@@ -312,8 +312,10 @@ def test_broken_and_wrong_files(data_root, tmp_path):
     with pytest.raises(UVH5FormatError, match="does not exist"):
         read_uvh5(tmp_path / "missing.uvh5")
     miriad = next((data_root / AUTOS).glob("*.uvOR_36x_auto_only"))
-    with pytest.raises(UVH5FormatError, match="is a directory"):
+    with pytest.raises(UVH5FormatError, match="is a Miriad data set, not a UVH5 file"):
         read_uvh5(miriad)
+    with pytest.raises(UVH5FormatError, match="not a whole Miriad data set either"):
+        read_uvh5(tmp_path)  # a folder without visdata and vartable
     with pytest.raises(ValueError):  # the error class is a ValueError for callers
         read_uvh5(text)
 

@@ -1,0 +1,187 @@
+"""What a live audit of the command line found (2026-11-29): each now a clear error, early.
+
+Every test failed before its fix: tracebacks (a damaged HDF5 file, Ctrl-C, SIGTERM, a
+database URL, huge ranges), output written where it should not be (``--out ""``, a Tsky
+table over an existing file, the truth side-car over the data), work done before an error
+that was known at the start (an unwritable ``--out``, a missing reference), data
+calibrated twice, field names instead of options in messages.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from autocal.cli.main import EXIT_INTERRUPTED, EXIT_USER_ERROR, main
+
+HH = "zen.2458116.31939.HH.uvh5"
+
+
+@pytest.fixture
+def hera(data_root: Path) -> Path:
+    return data_root / "hera" / "autos" / HH
+
+
+def _error(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
+    assert main(argv) == EXIT_USER_ERROR
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return err
+
+
+def test_a_damaged_hdf5_file_is_called_corrupt(hera, tmp_path, capsys) -> None:
+    path = tmp_path / HH
+    raw = bytearray(hera.read_bytes())
+    raw[4000:8000] = np.random.default_rng(0).bytes(4000)  # the header's B-tree nodes
+    path.write_bytes(bytes(raw))
+    for command in ("calibrate", "diagnose"):
+        err = _error(capsys, [command, str(path), "--out", str(tmp_path / command)])
+        assert "corrupt" in err and HH in err
+
+
+def test_an_empty_or_unwritable_out_is_refused_before_any_work(hera, tmp_path, capsys) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main(["calibrate", str(hera), "--out", ""])
+    assert exit_.value.code == 2 and "output folder is empty" in capsys.readouterr().err
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    err = _error(capsys, ["calibrate", str(hera), "--out", str(afile)])
+    assert "is a file, not a folder" in err
+    err = _error(capsys, ["diagnose", str(hera), "--out", str(afile / "sub")])
+    assert "cannot be made there" in err
+
+
+def test_a_missing_reference_is_refused_before_the_fit(hera, tmp_path, capsys) -> None:
+    out = tmp_path / "out"
+    err = _error(capsys, ["calibrate", str(hera), "--reference", "nope.calfits", "--out", str(out)])
+    assert "nope.calfits does not exist" in err
+    assert not out.exists()  # not even an empty folder
+
+
+def test_messages_name_the_options_not_the_fields(hera, tmp_path, capsys) -> None:
+    out = str(tmp_path / "o")
+    assert "--freq-range must be" in _error(
+        capsys, ["calibrate", str(hera), "--freq-range", "180:120", "--out", out]
+    )
+    err = _error(capsys, ["calibrate", str(hera), "--tgnd", "nan", "--out", out])
+    assert err.count("--tgnd") and "tgnd_k" not in err
+    assert "finite frequency" in _error(
+        capsys, ["calibrate", str(hera), "--freq-range", "120:inf", "--out", out]
+    )
+    assert "--nside" in _error(capsys, ["calibrate", str(hera), "--nside", "65536", "--out", out])
+    err = _error(capsys, ["calibrate", str(hera), "--trxr-prior=-150", "--out", out])
+    assert "below 0 K" in err
+
+
+def test_tsky_refuses_to_overwrite_huge_tables_and_bad_plot_names(tmp_path, capsys) -> None:
+    table = tmp_path / "t.h5"
+    table.write_text("precious")
+    base = ["tsky", "--freqs", "100:200:3", "--lsts", "0:24:3", "--nside", "8"]
+    assert "exists; pass --overwrite" in _error(capsys, [*base, "--out", str(table)])
+    assert table.read_text() == "precious"
+    new = str(tmp_path / "new.h5")
+    assert "PNG" in _error(capsys, [*base, "--out", new, "--plot", str(tmp_path / "x.csv")])
+    assert not Path(new).exists()  # refused before the table was written
+    huge = ["tsky", "--lsts", "0:24:1000000000", "--out", new]
+    assert "more than 1000000 points" in _error(capsys, huge)
+    big = ["tsky", "--freqs", "100:200:5000", "--lsts", "0:24:100000", "--out", new]
+    assert "held in memory" in _error(capsys, big)
+    assert "0 (a hard cut) to 30" in _error(capsys, [*base, "--horizon-width=-3", "--out", new])
+
+
+def test_simulate_checks_its_grid_seed_and_truth_before_simulating(tmp_path, capsys) -> None:
+    out = str(tmp_path / "s.uvh5")
+    assert "--channel-width" in _error(capsys, ["simulate", "--channel-width", "0", "--out", out])
+    assert "--seed" in _error(capsys, ["simulate", "--seed=-1", "--out", out])
+    err = _error(
+        capsys,
+        ["simulate", "--duration", "24", "--cadence", "0.01", "--channel-width", "0.001",
+         "--out", out],
+    )  # fmt: skip
+    assert "a simulation holds in memory" in err
+    assert "is --out itself" in _error(capsys, ["simulate", "--out", out, "--truth", out])
+    missing = str(tmp_path / "no" / "t.h5")
+    assert "does not exist" in _error(capsys, ["simulate", "--out", out, "--truth", missing])
+    assert not Path(out).exists()
+
+
+def test_apply_refuses_data_already_calibrated_and_flags_nan_samples(
+    hera, tmp_path, capsys
+) -> None:
+    solution = tmp_path / "cal"
+    argv = ["calibrate", str(hera), "--out", str(solution), "--products", "calh5", "--nside", "32"]
+    assert main(argv) == 0
+    data = tmp_path / HH
+    data.write_bytes(hera.read_bytes())
+    with h5py.File(data, "r+") as h5:
+        vis = h5["Data/visdata"][()]
+        vis[:, 100:110] = np.nan
+        h5["Data/visdata"][...] = vis
+    once = tmp_path / "once.uvh5"
+    cal = str(solution / "solution.calh5")
+    assert main(["apply", cal, str(data), "--antennas", "23", "--out", str(once)]) == 0
+    with h5py.File(once, "r") as h5:
+        auto = h5["Header/ant_1_array"][()] == h5["Header/ant_2_array"][()]
+        assert h5["Data/flags"][()][auto][:, 100:110].all()
+        assert np.isfinite(h5["Data/visdata"][()]).all()
+    twice = ["apply", cal, str(once), "--antennas", "23", "--out", str(tmp_path / "twice.uvh5")]
+    assert "already calibrated" in _error(capsys, twice)
+
+
+def test_a_bad_database_url_or_data_roots_setting_is_a_message(monkeypatch, capsys) -> None:
+    from autocal.service.settings import get_settings
+
+    monkeypatch.setenv("AUTOCAL_DATABASE_URL", "garbage://x")
+    get_settings.cache_clear()
+    try:
+        assert "database URL is not usable" in _error(capsys, ["nightly", "--night", "2458043"])
+        monkeypatch.delenv("AUTOCAL_DATABASE_URL")
+        monkeypatch.setenv("AUTOCAL_DATA_ROOTS", "[/x")
+        get_settings.cache_clear()
+        assert "AUTOCAL_DATA_ROOTS" in _error(capsys, ["nightly", "--night", "2458043"])
+    finally:
+        get_settings.cache_clear()
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_an_interrupted_run_says_so_and_leaves_no_staging_folder(tmp_path, signum: int) -> None:
+    """Ctrl-C printed a traceback; SIGTERM while writing left ``.staging-*`` behind."""
+    from autocal.io.uvh5 import write_uvh5
+    from autocal.simulate.mock import SimulationConfig, simulate
+
+    obs, _ = simulate(SimulationConfig(beam="dipole", channel_width_khz=4000, cadence_s=900))
+    data = write_uvh5(obs, tmp_path / "zen.2458098.50000.HH.uvh5")
+    out = tmp_path / "out"
+    env = {**os.environ, "AUTOCAL_CACHE_DIR": "off", "MPLBACKEND": "Agg"}
+    argv = [sys.executable, "-m", "autocal", "calibrate", str(data), "--out", str(out)]
+    proc = subprocess.Popen([*argv, "--nside", "256"], env=env, stderr=subprocess.PIPE)
+    time.sleep(4.0)  # inside the work (Tsky at nside 256 without a cache takes longer)
+    proc.send_signal(signum)
+    _, err = proc.communicate(timeout=120)
+    text = err.decode()
+    assert proc.returncode == EXIT_INTERRUPTED, text
+    assert "interrupted" in text and "Traceback" not in text
+    assert not list(out.glob(".staging-*"))
+
+
+def test_a_killed_runs_staging_folder_is_removed_by_the_next_run(tmp_path) -> None:
+    from autocal.core.files import make_staging
+
+    out = tmp_path / "out"
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)  # fmt: skip
+    orphan = out / f".staging-{int(dead.stdout)}-1"
+    orphan.mkdir(parents=True)
+    (orphan / "solution.h5").write_bytes(b"half")
+    mine = make_staging(out)
+    assert not orphan.exists() and mine.is_dir()
+    second = make_staging(out)  # this process's own stays
+    assert mine.is_dir() and second.is_dir()
