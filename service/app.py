@@ -2,8 +2,8 @@
 
 Run with ``uvicorn autocal.service.app:create_app --factory`` (settings from
 ``AUTOCAL_*``; see :mod:`autocal.service.settings`). Interactive documentation is served
-at ``/docs`` (Swagger UI from the installed package, offline: :mod:`.routers.docs`), the
-schema at ``/openapi.json``.
+at ``/docs`` and ``/redoc`` (their files served from an installed package, offline:
+:mod:`.routers.docs`), the schema at ``/openapi.json``.
 
 Errors always answer JSON ``{"detail": "<what is wrong and what to do>"}``: request
 validation failures are 422 with ``errors`` naming each bad field and why; unexpected
@@ -222,8 +222,8 @@ def create_app(settings: Settings | None = None, store: JobStore | None = None) 
         description=DESCRIPTION,
         lifespan=lifespan,
         dependencies=[Depends(single_valued_query)],
-        docs_url=None,  # served by routers.docs, with Swagger UI's files from the package
-        redoc_url=None,  # ReDoc's script would come from a CDN
+        docs_url=None,  # /docs and /redoc: routers.docs, their files from fastapi-offline
+        redoc_url=None,
     )
     app.state.settings = settings
     app.state.store = store

@@ -483,7 +483,9 @@ def submit_nightly(
     -------
     dict
         ``night``, ``observations`` (each ``night``, ``kind``, ``files``, ``job_id``,
-        ``state``, ``created``), ``created`` and ``existing`` counts.
+        ``state``, ``created``, ``error``; an observation whose files the submission checks
+        refuse has no job, state ``refused`` and the reason in ``error``), ``created``,
+        ``existing`` and ``refused`` counts.
 
     Raises
     ------
@@ -493,25 +495,33 @@ def submit_nightly(
         A folder or option path outside the allowed roots.
     pydantic.ValidationError
         Invalid options.
+    autocal.service.submission_checks.SubmissionError
+        An option that does nothing with the others given (for the whole request).
     """
+    from autocal.pipeline.option_rules import calibration_refusals
+    from autocal.service.submission_checks import SubmissionError
+
+    for name, why in calibration_refusals(dict(options or {})):  # the whole request's
+        raise SubmissionError(name, why)
     observations = find_observations(settings, night=night, folder=folder)
     entries = []
     for group in observations:
-        job, created = submit_calibration(
-            store, settings, group.paths, options, force=force, submitted_by=submitted_by
-        )
-        entries.append(
-            {
-                "night": group.night,
-                "kind": group.kind,
-                "files": group.paths,
-                "job_id": job["id"],
-                "state": job["state"],
-                "created": created,
-            }
-        )
+        entry: dict[str, Any] = {"night": group.night, "kind": group.kind, "files": group.paths}
+        try:
+            job, created = submit_calibration(
+                store, settings, group.paths, options, force=force, submitted_by=submitted_by
+            )
+        except SubmissionError as err:
+            # this observation's files (a truncated file, an antenna or LSTs it lacks):
+            # reported with it, the night's other observations still submitted
+            logger.warning("nightly: observation %s refused: %s", group.paths[0], err)
+            entry.update(job_id=None, state="refused", created=False, error=str(err))
+        else:
+            entry.update(job_id=job["id"], state=job["state"], created=created, error=None)
+        entries.append(entry)
     nights = sorted({g.night for g in observations})
     ncreated = sum(e["created"] for e in entries)
+    nrefused = sum(e["job_id"] is None for e in entries)
     logger.info(
         "nightly %s: %d observation(s), %d new job(s)",
         night if night is not None else folder,
@@ -522,5 +532,6 @@ def submit_nightly(
         "night": night if night is not None else (nights[0] if len(nights) == 1 else None),
         "observations": entries,
         "created": ncreated,
-        "existing": len(entries) - ncreated,
+        "existing": len(entries) - ncreated - nrefused,
+        "refused": nrefused,
     }

@@ -192,7 +192,7 @@ class CalibrationOptions(BaseModel):
         "calibrate and diagnose alike); the counts per reason are in the results and the "
         "summary under rfi_flagging",
     )
-    trxr_prior: Annotated[Number, Field(ge=0.0, le=100_000.0)] | PathText | None = Field(
+    trxr_prior: Annotated[Number, Field(ge=-100_000.0, le=100_000.0)] | PathText | None = Field(
         None,
         description="receiver-temperature prior: a number (K), or a CSV table "
         "freq_mhz,trxr_k[,sigma_k] or a previous solution.h5 under the data roots; calibrate: "
@@ -623,9 +623,12 @@ class NightlyObservation(BaseModel):
     night: int
     kind: str
     files: list[str]
-    job_id: str
-    state: str
+    job_id: str | None = Field(..., description="null when the observation was refused")
+    state: str = Field(..., description="the job's state, or refused (see error)")
     created: bool
+    error: str | None = Field(
+        None, description="why the observation's files were refused (no job was queued)"
+    )
 
 
 class NightlyAccepted(BaseModel):
@@ -635,6 +638,7 @@ class NightlyAccepted(BaseModel):
     observations: list[NightlyObservation]
     created: int
     existing: int
+    refused: int = Field(0, description="observations refused by the submission checks")
 
 
 class Health(BaseModel):

@@ -208,8 +208,8 @@ def validation_message(err: Any, what: str = "settings") -> str:
 
     Each field is named as the command line spells it (``--tgnd``, not ``tgnd_k``:
     :data:`FIELD_FLAGS`, else ``--`` and the field with dashes; a setting of the service
-    by its environment variable, ``AUTOCAL_DATA_ROOTS``), and pydantic's ``Value error, ``
-    prefix is dropped.
+    by its environment variable, ``AUTOCAL_DATA_ROOTS``), and the "Value error," that
+    pydantic puts before a check's own message is dropped.
     """
     settings = getattr(err, "title", "") == "Settings"  # the service's, from AUTOCAL_*
 

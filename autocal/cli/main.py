@@ -135,7 +135,8 @@ def _terminate_unwinds() -> Any:
     """Make SIGTERM stop a command as Ctrl-C does, running its clean-ups.
 
     Python's default SIGTERM ends the process at once: a run stopped while writing left its
-    staging folder behind. Commands that handle SIGTERM themselves (``serve``, ``worker``)
+    staging folder behind. Installed only when :func:`main` runs as the command (``autocal``,
+    ``python -m autocal``); commands that handle SIGTERM themselves (``serve``, ``worker``)
     install their own handler later, which replaces this one.
 
     Returns
@@ -219,7 +220,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parse_arguments(parser, argv)
     level = [logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    previous = _terminate_unwinds()
+    # only as the command (argv from the command line): a program calling main([...]) in
+    # a loop keeps Python's SIGTERM, which ends it (a batch system's time limit must)
+    previous = _terminate_unwinds() if argv is None else None
     try:
         return int(args.func(args))
     except KeyboardInterrupt:
@@ -236,7 +239,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"autocal {args.command}: error: {message}", file=sys.stderr)
         return EXIT_USER_ERROR
     finally:
-        if previous is not None:  # main() called in a longer-lived process (tests, notebooks)
+        if previous is not None:
             signal.signal(signal.SIGTERM, previous)
 
 

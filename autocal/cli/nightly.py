@@ -154,13 +154,17 @@ def _report(result: dict[str, Any], as_json: bool) -> None:
         return
     observations = result.get("observations") or []
     label = f"night {result['night']}" if result.get("night") is not None else "folder"
+    refused = f", {_count(result.get('refused'))} refused" if result.get("refused") else ""
     print(
         f"{label}: {len(observations)} observation(s), {_count(result.get('created'))} "
-        f"submitted, {_count(result.get('existing'))} already queued or calibrated"
+        f"submitted, {_count(result.get('existing'))} already queued or calibrated{refused}"
     )
     for obs in observations:
         files = obs.get("files") or []
         first = Path(files[0]).name if files else "?"
+        if obs.get("job_id") is None:
+            print(f"  refused   {len(files)} file(s) from {first}: {obs.get('error')}")
+            continue
         status = "submitted" if obs.get("created") else "exists   "
         print(f"  {status} job {obs.get('job_id')}  {len(files)} file(s) from {first}")
 

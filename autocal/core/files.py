@@ -12,6 +12,7 @@ import logging
 import os
 import re
 import shutil
+import socket
 import tempfile
 import time
 from collections.abc import Iterator
@@ -21,8 +22,8 @@ from pathlib import Path
 
 logger = logging.getLogger(__name__)
 
-#: A staging folder of the product writers: ``.staging-<pid>-<ns>``.
-_STAGING = re.compile(r"^\.staging-(\d+)-\d+$")
+#: A staging folder of the product writers: ``.staging-<pid>-<ns>@<host>``.
+_STAGING = re.compile(r"^\.staging-(\d+)-\d+@(.+)$")
 
 
 def _current_umask() -> int:
@@ -73,22 +74,32 @@ def fsync_dir(path: str | Path) -> None:
 def make_staging(out: Path) -> Path:
     """Create ``out`` and a new staging folder in it, removing orphaned ones first.
 
-    A run's products are written into ``out/.staging-<pid>-<ns>`` and renamed into ``out``
-    once all are written; a run killed outright (SIGKILL, a crash) leaves its staging
-    folder behind. Those of processes that no longer exist on this machine are removed
-    here, so the next run into ``out`` cleans up (a folder shared between machines keeps
-    other machines' staging folders: their processes cannot be checked from here).
+    A run's products are written into ``out/.staging-<pid>-<ns>@<host>`` and renamed into
+    ``out`` once all are written; a run killed outright (SIGKILL, a crash) leaves its
+    staging folder behind. Those of this machine (same host name) whose process no longer
+    exists are removed here, so the next run into ``out`` cleans up; another machine's
+    (a folder shared over the network), and the host-less names of earlier versions, are
+    left alone: their processes cannot be checked from here (the service's janitor removes
+    old ones by age).
     """
     out.mkdir(parents=True, exist_ok=True)
+    host = _host()
     for entry in out.iterdir():
         match = _STAGING.match(entry.name)
-        if match is None or not entry.is_dir() or _alive(int(match.group(1))):
+        if match is None or match.group(2) != host or not entry.is_dir():
+            continue
+        if _alive(int(match.group(1))):
             continue
         shutil.rmtree(entry, ignore_errors=True)
         logger.info("removed %s, left by a run that no longer exists", entry)
-    staging = out / f".staging-{os.getpid()}-{time.time_ns()}"
+    staging = out / f".staging-{os.getpid()}-{time.time_ns()}@{host}"
     staging.mkdir()
     return staging
+
+
+def _host() -> str:
+    """Return this machine's name as a file name may hold it."""
+    return re.sub(r"[^A-Za-z0-9._-]", "_", socket.gethostname()) or "host"
 
 
 def _alive(pid: int) -> bool:

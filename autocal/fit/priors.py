@@ -22,6 +22,7 @@ import hashlib
 import logging
 import math
 import numbers
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -155,6 +156,9 @@ class TrxrPrior:
             ia = [index[int(a)] for a in antennas]
         if pols is not None:
             pindex = {p.lower(): i for i, p in enumerate(self.pols)}
+            pindex.update(
+                {str(p).lower(): pindex[alias] for p in pols if (alias := _alias(p, pindex))}
+            )
             missing_p = [str(p) for p in pols if str(p).lower() not in pindex]
             if missing_p:
                 raise PriorError(
@@ -601,3 +605,30 @@ def prior_value(text: str) -> float | str:
         return float(text)
     except ValueError:
         return text
+
+
+def _alias(pol: Any, names: Mapping[str, int]) -> str | None:
+    """Return the name among ``names`` of the same feeds as ``pol``, when ``pol`` is not one.
+
+    A solution calibrated with ``pols=["xx"]`` of an ``ee``/``nn`` file names its pol
+    ``xx`` (earlier versions did; the data name it ``ee``). The feeds are matched as
+    HERA's files orient them (x east: ``xx`` is ``ee``), then north; ``None`` when no name
+    matches or ``pol`` is there already.
+    """
+    from autocal.io.polarisations import name_to_code
+
+    name = str(pol).lower()
+    if name in names:
+        return None
+    for orientation in ("east", "north"):
+        try:
+            code = name_to_code(name, orientation)
+        except KeyError:
+            continue
+        for other in names:
+            try:
+                if name_to_code(other, orientation) == code:
+                    return other
+            except KeyError:
+                continue
+    return None

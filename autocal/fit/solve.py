@@ -54,7 +54,7 @@ FLAG_REASONS: dict[int, str] = {
     3: "non-positive gain",
     4: "band edge",
     5: "RFI",
-    6: "no usable data (flagged in the file, or NaN, inf, zero or negative)",
+    6: "no usable data",
 }
 #: ``flag_reason`` of a channel with too few unflagged samples.
 FLAG_TOO_FEW = 1
@@ -63,8 +63,9 @@ FLAG_TOO_FEW = 1
 FLAG_BAND_EDGE = 4
 #: ``flag_reason`` of a channel flagged whole (or at every integration) for RFI before the fit.
 FLAG_RFI = 5
-#: ``flag_reason`` of a channel with no usable sample at all (every one flagged by the file,
-#: or not finite, or not positive), found by the flagging's time-mean spectra.
+#: ``flag_reason`` of a channel with no usable sample at all ("no usable data": every one
+#: flagged by the file, or NaN, infinite, zero or negative), found by the flagging's
+#: time-mean spectra.
 FLAG_NO_DATA = 6
 #: Largest condition number of the (column-scaled, sky-centred) normal matrix accepted as
 #: solvable (see the module notes).

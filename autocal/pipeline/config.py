@@ -96,10 +96,6 @@ def check_prior_spec(spec: float | str | None, sigma_k: float) -> None:
         raise ValueError("trxr_prior must be a number (K) or a path, not a boolean")
     if isinstance(spec, float) and not np.isfinite(spec):
         raise ValueError("trxr_prior must be a finite temperature in K")
-    if isinstance(spec, float | int) and spec < 0:
-        raise ValueError(
-            f"trxr_prior {spec:g} K: a receiver temperature is not below 0 K (a sign error?)"
-        )
     if isinstance(spec, str) and not spec.strip():
         raise ValueError("trxr_prior is empty: give a number in K or a .csv/.h5 path")
     if not np.isfinite(sigma_k):

@@ -287,14 +287,15 @@ def job_products(
     for name in sorted(job.get("products") or {}):
         try:
             path = _product_path(settings, job, name)
-        except ApiError:
+            size = path.stat().st_size
+        except (ApiError, OSError):  # gone (the janitor), or going while listed
             continue
         entries.append(
             ProductEntry(
                 name=name,
                 file=path.name,
                 media_type=MEDIA_TYPES.get(path.suffix.lower(), "application/octet-stream"),
-                size_bytes=path.stat().st_size,
+                size_bytes=size,
                 url=f"/jobs/{job['id']}/products/{name}",
             )
         )

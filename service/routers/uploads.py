@@ -178,7 +178,7 @@ def check_uploaded_file(path: Path, name: str) -> None:
     try:
         with h5py.File(path, "r") as h5:
             list(h5.keys())
-    except OSError as err:
+    except (OSError, RuntimeError) as err:  # h5py raises both for a damaged file
         raise ApiError(
             422,
             f"{name} starts as an HDF5 file but HDF5 cannot open it ({err}): it is truncated "

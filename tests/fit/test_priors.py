@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -340,8 +341,8 @@ def test_solution_prior_missing_antenna_or_pol(solution_file):
         prior.at(DATA_FREQS, antennas=[0, 7, 8])
     with pytest.raises(PriorError, match="which has antennas 0, 5, 9"):
         prior.at(DATA_FREQS, antennas=[7])
-    with pytest.raises(PriorError, match=r"polarisation\(s\) xx not in the file, which has ee, nn"):
-        prior.at(DATA_FREQS, pols=["xx"])
+    with pytest.raises(PriorError, match=r"polarisation\(s\) ne not in the file, which has ee, nn"):
+        prior.at(DATA_FREQS, pols=["ne"])  # xx would be ee's other name (x east: HERA's)
 
 
 def test_solution_prior_band(solution_file):
@@ -377,3 +378,21 @@ def test_direct_construction_is_checked():
         TrxrPrior("x", np.array([2e8, 1e8]), np.ones(2), np.ones(2))
     with pytest.raises(PriorError, match="sigma_k > 0"):
         TrxrPrior("x", None, 150.0, 0.0)
+
+
+def test_a_solution_of_pols_named_xx_yy_is_a_prior_for_ee_nn_data(solution_file):
+    """A review (2026-11-29): runs now name a polarisation asked for as ``xx`` the way the
+    file does (``ee``), so a solution of an earlier such run (pols ``xx``, ``yy``) must still
+    serve as the prior of the same feeds (HERA's files: x east)."""
+    _, path = solution_file
+    prior = parse_trxr_prior(path, sigma_k=20.0)
+    freqs = np.array([110e6, 150e6, 190e6])
+    renamed = dataclasses.replace(
+        prior, pols=tuple({"ee": "xx", "nn": "yy"}[p] for p in prior.pols)
+    )
+    for wanted, stored in (("ee", "xx"), ("nn", "yy")):
+        mean, _ = renamed.at(freqs, pols=[wanted])
+        np.testing.assert_array_equal(mean, prior.at(freqs, pols=[wanted])[0])
+        assert renamed.at(freqs, pols=[stored])[0].shape == mean.shape
+    with pytest.raises(PriorError, match="not in the file"):
+        dataclasses.replace(prior, pols=("xy", "yx")).at(freqs, pols=["ee"])

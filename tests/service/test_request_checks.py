@@ -135,7 +135,7 @@ def test_empty_and_truncated_uploads_are_refused_and_nothing_is_kept(
 
 
 def test_a_body_that_is_not_json_gets_415_or_a_hint(client: TestClient) -> None:
-    form = client.post("/jobs", content=f'{{"inputs": ["{NAME}"]}}', headers=AUTH)
+    form = client.post("/jobs", data={"inputs": NAME}, headers=AUTH)  # a form
     text = client.post("/jobs", content="inputs", headers={**AUTH, "content-type": "text/plain"})
     for response in (form, text):
         assert response.status_code == 415, response.text
@@ -168,15 +168,26 @@ def test_products_of_a_job_that_has_not_succeeded_answer_409(client: TestClient)
         assert response.status_code == 409 and "queued" in response.json()["detail"]
 
 
-def test_the_documentation_page_needs_no_internet(client: TestClient) -> None:
-    page = client.get("/docs")
-    assert page.status_code == 200
-    assert not re.search(r"""(src|href)=["']https?://""", page.text), page.text
-    for name in ("swagger-ui-bundle.js", "swagger-ui.css"):
-        asset = client.get(f"/docs/static/{name}")
-        assert asset.status_code == 200 and len(asset.content) > 10_000
-    assert client.get("/docs/static/../../settings.py").status_code == 404
-    assert client.get("/docs/static/index.html").status_code == 404
+def test_the_documentation_pages_need_no_internet_and_render_the_schema(
+    client: TestClient, settings: Settings, store: JobStore
+) -> None:
+    version = client.get("/openapi.json").json()["openapi"]
+    for page_path in ("/docs", "/redoc"):
+        page = client.get(page_path)
+        assert page.status_code == 200
+        assert not re.search(r"""(src|href)=["']https?://""", page.text), page.text
+    bundle = client.get("/docs/static/swagger-ui-bundle.js")
+    assert bundle.status_code == 200
+    # a Swagger UI that renders the schema's version (Swagger UI 4 refused 3.1: a review)
+    assert version.startswith("3.1") and b"isOAS31" in bundle.content
+    for name in ("swagger-ui.css", "redoc.standalone.js", "favicon.png"):
+        assert client.get(f"/docs/static/{name}").status_code == 200
+    for name in ("..%2F..%2Fsettings.py", "index.html"):
+        assert client.get(f"/docs/static/{name}").status_code == 404
+    with TestClient(create_app(settings, store), root_path="/autocal") as behind_a_proxy:
+        page = behind_a_proxy.get("/docs").text
+        assert "'/autocal/openapi.json'" in page or '"/autocal/openapi.json"' in page
+        assert "/autocal/docs/static/swagger-ui-bundle.js" in page
 
 
 def test_a_nights_failed_jobs_show_no_server_paths_to_anonymous_readers(
@@ -205,3 +216,28 @@ def test_a_worker_never_takes_its_own_running_job_for_a_dead_one(store: JobStore
     assert store.get(job["id"])["state"] == "running"
     assert store.recover_stale(0.0, alive=("another job", 1))[0]["id"] == job["id"]
     assert store.get(job["id"])["state"] == "failed"  # max_attempts=1: a dead worker's job
+
+
+def test_a_nightly_submission_reports_a_refused_observation_and_submits_the_rest(
+    client: TestClient, data: Path
+) -> None:
+    """A review (2026-11-29): a truncated file in one observation stopped the whole night
+    after the first job (the submission checks raised out of the loop)."""
+    write_tiny_uvh5(data / "night" / "zen.2458117.30000.HH.uvh5")
+    later = data / "night" / "zen.2458118.30000.HH.uvh5"  # another night: its own job
+    whole = write_tiny_uvh5(later).read_bytes()
+    later.write_bytes(whole[: len(whole) // 3])  # still being copied
+    answer = client.post("/nightly", json={"folder": "night", "beam": "dipole"}, headers=AUTH)
+    assert answer.status_code == 202, answer.text
+    body = answer.json()
+    states = {Path(o["files"][0]).name: o for o in body["observations"]}
+    assert states["zen.2458117.30000.HH.uvh5"]["job_id"] and body["created"] == 1
+    refused = states["zen.2458118.30000.HH.uvh5"]
+    assert refused["job_id"] is None and refused["state"] == "refused"
+    assert "truncated" in refused["error"] or "corrupt" in refused["error"]
+    assert body["refused"] == 1
+    # an option that does nothing is the whole request's error
+    order = client.post(
+        "/nightly", json={"folder": "night", "beam": "dipole", "order": 2}, headers=AUTH
+    )
+    assert order.status_code == 422 and "legendre" in order.text
