@@ -37,6 +37,8 @@ def run(args: argparse.Namespace) -> int:
     from autocal.simulate.paper import PAPER_BEAMS, run_paper
 
     beams = tuple(parse_str_list(args.beams, "beams"))
+    if args.seed < 0:
+        raise CliError(f"--seed {args.seed}: a noise seed is an integer >= 0")
     unknown = [b for b in beams if b not in PAPER_BEAMS]
     if unknown:
         raise CliError(f"--beams: unknown {unknown}; choose from {list(PAPER_BEAMS)}")

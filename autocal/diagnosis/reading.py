@@ -68,7 +68,11 @@ def read_observation(
     ):
         arrays.add(block)
     if arrays.first is None:
-        raise DiagnoseError(f"no integrations in LST range {lst_range} h in {paths}")
+        spans = ", ".join(f"{f.lsts.min():.3f}-{f.lsts.max():.3f}" for f in files[:4])
+        raise DiagnoseError(
+            f"no integrations in LST range {tuple(lst_range or ())} h: the data cover LST "
+            f"{spans}{' ...' if len(files) > 4 else ''} h; choose LSTs inside them"
+        )
     obs = arrays.observation()
     logger.info(
         "read %d file(s): %d antennas, pols %s, %d times, %d channels",

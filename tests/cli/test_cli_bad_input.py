@@ -222,3 +222,11 @@ def test_a_killed_runs_staging_folder_is_removed_by_the_next_run(tmp_path) -> No
     finally:
         alive.kill()
         alive.wait()
+
+
+def test_paper_seed_and_diagnose_lst_range_messages(hera, tmp_path, capsys) -> None:
+    out = tmp_path / "paper"
+    assert "integer >= 0" in _error(capsys, ["paper", "--seed=-1", "--quick", "--out", str(out)])
+    assert not out.exists()  # refused before the folder was made
+    err = _error(capsys, ["diagnose", str(hera), "--lst-range", "10:11", "--out", str(out)])
+    assert "the data cover LST" in err and "PosixPath" not in err
