@@ -174,7 +174,12 @@ def test_a_run_interrupted_while_writing_says_so_and_leaves_no_staging_folder(
     argv = ["autocal", "calibrate", str(hera), "--out", str(out), "--nside", "32"]
     monkeypatch.setattr(sys, "argv", argv)
     before = signal.getsignal(signal.SIGTERM)
-    assert main() == EXIT_INTERRUPTED
+    # a pytest-xdist worker ignores SIGINT: the command's process has Python's default
+    interrupt = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        assert main() == EXIT_INTERRUPTED
+    finally:
+        signal.signal(signal.SIGINT, interrupt)
     err = capsys.readouterr().err
     assert "interrupted" in err and "Traceback" not in err
     assert out.is_dir() and not list(out.iterdir())  # no staging folder, no product
