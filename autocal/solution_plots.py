@@ -240,7 +240,8 @@ def delay_figure(solution: Any, title: str | None = None, stems: tuple[str, ...]
         if finite.size:
             ax.set_ylim(max(np.percentile(finite, 1) - 5, -120), 5)
         ax.set_xlim(0, spec.delays_ns.max())
-        ax.legend(fontsize=7, ncol=2, loc="upper right")
+        if ax.get_legend_handles_labels()[1]:  # nothing drawn when every spectrum is flagged
+            ax.legend(fontsize=7, ncol=2, loc="upper right")
     showing_note(fig, int(np.count_nonzero(usable)), total)
     head = run_title(solution.jds, solution.antennas, solution.pols, stems)
     fig.suptitle(title or f"{head}\ndelay spectra, Blackman-Harris window", fontsize=9)

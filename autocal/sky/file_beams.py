@@ -212,6 +212,11 @@ class HealpixFileBeam(GriddedFileBeam):
         self.path = Path(path)
         self.pol = check_pol(pol)
         self.name = self.path.name
+        if self.path.is_dir():
+            raise BeamFileError(
+                f"beam {self.path} is a folder: give a beam file (UVBeam beamfits, FEKO .txt) "
+                "or a named beam (dipole, airy, hera, edges-low, ...)"
+            )
         if not self.path.is_file():
             raise BeamFileError(f"beam file {self.path} does not exist")
         # The file is read (through pyuvdata, ~1 s with its import) when its values are

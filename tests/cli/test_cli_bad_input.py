@@ -235,3 +235,19 @@ def test_paper_seed_and_diagnose_lst_range_messages(hera, tmp_path, capsys) -> N
     assert not out.exists()  # refused before the folder was made
     err = _error(capsys, ["diagnose", str(hera), "--lst-range", "10:11", "--out", str(out)])
     assert "the data cover LST" in err and "PosixPath" not in err
+
+
+def test_a_beam_folder_and_the_figures_of_an_all_flagged_solution(hera, tmp_path, capsys) -> None:
+    import warnings
+
+    table = str(tmp_path / "t.h5")
+    err = _error(capsys, ["tsky", "--beam", str(tmp_path), "--nside", "8", "--out", table])
+    assert "is a folder" in err and "named beam" in err
+    zero = tmp_path / HH
+    zero.write_bytes(hera.read_bytes())
+    with h5py.File(zero, "r+") as h5:
+        h5["Data/visdata"][...] = 0
+    with warnings.catch_warnings():  # matplotlib's "No artists with labels" for the legend
+        warnings.simplefilter("error", UserWarning)
+        status = main(["calibrate", str(zero), "--out", str(tmp_path / "o"), "--nside", "32"])
+    assert status == 3 and "no usable data" in capsys.readouterr().err
