@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from autocal.cli.args import (
@@ -75,6 +76,12 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--smooth-mhz must be positive (MHz), got {args.smooth_mhz}")
     if args.nside is not None and (not 2 <= args.nside <= 8192 or args.nside & (args.nside - 1)):
         raise CliError(f"--nside {args.nside}: a power of two from 2 to 8192")
+    omega = [f"--{n}" for n in ("beam", "nside") if getattr(args, n) is not None]
+    if args.mode == "relative" and omega:
+        raise CliError(
+            f"{', '.join(omega)}: the beam's solid angle converts units in an absolute "
+            "comparison; a relative (shape) one does not use it: drop it or use --mode absolute"
+        )
     if args.out.exists() and not args.out.is_dir():
         raise CliError(f"--out {args.out} exists and is not a folder")
     if not args.overwrite:
@@ -101,6 +108,12 @@ def run(args: argparse.Namespace) -> int:
         nside=args.nside,
     )
     paths = write_comparison(result, args.out, overwrite=args.overwrite)
+    if result.mode == "relative" and omega:  # --mode auto found a relative reference
+        print(
+            f"autocal compare: note: {', '.join(omega)} not used: the reference is relative "
+            "(a shape comparison needs no beam solid angle)",
+            file=sys.stderr,
+        )
     print(
         f"{result.mode} comparison of {len(result.antennas)} antenna(s) x {len(result.pols)} pol(s)"
     )

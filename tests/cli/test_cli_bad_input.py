@@ -251,3 +251,11 @@ def test_a_beam_folder_and_the_figures_of_an_all_flagged_solution(hera, tmp_path
         warnings.simplefilter("error", UserWarning)
         status = main(["calibrate", str(zero), "--out", str(tmp_path / "o"), "--nside", "32"])
     assert status == 3 and "no usable data" in capsys.readouterr().err
+
+
+def test_compare_refuses_a_beam_a_relative_comparison_does_not_use(tmp_path, capsys) -> None:
+    """The audit: ``compare --mode relative --beam nope.fits`` ignored the beam silently."""
+    out = str(tmp_path / "cmp")
+    argv = ["compare", "solution.h5", "ref.calfits", "--mode", "relative", "--out", out]
+    err = _error(capsys, [*argv, "--beam", "nope.fits"])
+    assert "--beam" in err and "--mode absolute" in err
