@@ -150,17 +150,7 @@ def build_config(
         the data's band, a sky that would flag every channel or a reference file that is
         not a calibration.
     """
-    from autocal.pipeline.option_rules import calibration_refusals
-    from autocal.service.submission_checks import SubmissionError
-
-    for name, why in calibration_refusals(dict(options or {})):
-        raise SubmissionError(name, why)
-    if options is not None and options.get("products") == []:
-        raise SubmissionError(
-            "products",
-            "products is empty: name at least one of calh5, calfits, hdf5, png (the hdf5 "
-            "product is always written), or leave it out for calh5, hdf5 and png",
-        )
+    check_options(options)
     opts = checked_options(CalibrationConfig, settings, inputs, options)
     if opts.get("reference"):
         opts["reference"] = [
@@ -176,6 +166,28 @@ def build_config(
     resolved = [resolve_input(str(p), settings) for p in inputs]
     check_submission(resolved, opts)
     return CalibrationConfig(inputs=[str(p) for p in resolved], **opts)
+
+
+def check_options(options: Mapping[str, Any] | None) -> None:
+    """Refuse calibration options that do nothing with the others given, or no products.
+
+    Raises
+    ------
+    autocal.service.submission_checks.SubmissionError
+        Naming the field (:func:`autocal.pipeline.option_rules.calibration_refusals`, or an
+        empty ``products``).
+    """
+    from autocal.pipeline.option_rules import calibration_refusals
+    from autocal.service.submission_checks import SubmissionError
+
+    for name, why in calibration_refusals(dict(options or {})):
+        raise SubmissionError(name, why)
+    if options is not None and options.get("products") == []:
+        raise SubmissionError(
+            "products",
+            "products is empty: name at least one of calh5, calfits, hdf5, png (the hdf5 "
+            "product is always written), or leave it out for calh5, hdf5 and png",
+        )
 
 
 def check_submission(inputs: Sequence[Path], opts: Mapping[str, Any]) -> None:
@@ -498,11 +510,9 @@ def submit_nightly(
     autocal.service.submission_checks.SubmissionError
         An option that does nothing with the others given (for the whole request).
     """
-    from autocal.pipeline.option_rules import calibration_refusals
     from autocal.service.submission_checks import SubmissionError
 
-    for name, why in calibration_refusals(dict(options or {})):  # the whole request's
-        raise SubmissionError(name, why)
+    check_options(options)  # the whole request's: refused before any observation
     observations = find_observations(settings, night=night, folder=folder)
     entries = []
     for group in observations:

@@ -232,7 +232,13 @@ def check_uvh5_inputs(paths: Sequence[Path], opts: Mapping[str, Any]) -> None:
             meta = read_file_meta(Path(path))
         except (UVH5FormatError, ObservationError) as err:
             raise SubmissionError("inputs", str(err)) from None
-        except (OSError, KeyError, ValueError, TypeError) as err:  # a header HDF5 cannot read
+        except (
+            OSError,
+            RuntimeError,
+            KeyError,
+            ValueError,
+            TypeError,
+        ) as err:  # a header h5py cannot read
             raise SubmissionError(
                 "inputs",
                 f"{Path(path).name}: its header cannot be read ({type(err).__name__}: {err}); "
