@@ -168,6 +168,12 @@ def build_config(
     return CalibrationConfig(inputs=[str(p) for p in resolved], **opts)
 
 
+#: Submission checks about one observation's files: a nightly submission reports an
+#: observation refused for these and submits the others; any other refusal (the sky, a
+#: reference, an option) is the whole request's.
+OBSERVATION_FIELDS = frozenset({"inputs", "antennas", "pols", "lst_range_h", "freq_range_mhz"})
+
+
 def check_options(options: Mapping[str, Any] | None) -> None:
     """Refuse calibration options that do nothing with the others given, or no products.
 
@@ -495,9 +501,9 @@ def submit_nightly(
     -------
     dict
         ``night``, ``observations`` (each ``night``, ``kind``, ``files``, ``job_id``,
-        ``state``, ``created``, ``error``; an observation whose files the submission checks
-        refuse has no job, state ``refused`` and the reason in ``error``), ``created``,
-        ``existing`` and ``refused`` counts.
+        ``state``, ``created``, ``error``; an observation whose own files the submission
+        checks refuse (:data:`OBSERVATION_FIELDS`) has no job, state ``refused`` and the
+        reason in ``error``), ``created``, ``existing`` and ``refused`` counts.
 
     Raises
     ------
@@ -508,7 +514,8 @@ def submit_nightly(
     pydantic.ValidationError
         Invalid options.
     autocal.service.submission_checks.SubmissionError
-        An option that does nothing with the others given (for the whole request).
+        For the whole request: an option that does nothing with the others, a sky or a
+        reference the checks refuse, or every observation refused.
     """
     from autocal.service.submission_checks import SubmissionError
 
@@ -522,6 +529,8 @@ def submit_nightly(
                 store, settings, group.paths, options, force=force, submitted_by=submitted_by
             )
         except SubmissionError as err:
+            if err.field not in OBSERVATION_FIELDS:  # the request's (sky, reference...)
+                raise
             # this observation's files (a truncated file, an antenna or LSTs it lacks):
             # reported with it, the night's other observations still submitted
             logger.warning("nightly: observation %s refused: %s", group.paths[0], err)
@@ -532,6 +541,12 @@ def submit_nightly(
     nights = sorted({g.night for g in observations})
     ncreated = sum(e["created"] for e in entries)
     nrefused = sum(e["job_id"] is None for e in entries)
+    if entries and nrefused == len(entries):
+        first = next(e for e in entries if e["error"])
+        raise SubmissionError(
+            "inputs",
+            f"every observation ({nrefused}) was refused; the first: {first['error']}",
+        )
     logger.info(
         "nightly %s: %d observation(s), %d new job(s)",
         night if night is not None else folder,

@@ -92,7 +92,7 @@ def header_freqs(path: Path) -> np.ndarray | None:
             return None
         with h5py.File(path, "r") as h5:
             freqs = np.asarray(h5["Header/freq_array"][()], dtype=np.float64).ravel()
-    except (OSError, KeyError, ValueError, TypeError):
+    except (OSError, RuntimeError, KeyError, ValueError, TypeError):
         return None
     return freqs if freqs.size and np.all(np.isfinite(freqs)) else None
 

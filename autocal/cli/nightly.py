@@ -273,7 +273,8 @@ def run(args: argparse.Namespace) -> int:
     _report(result, args.json)
     if result.get("night") is not None and not args.json:
         _report_outliers(int(result["night"]), result, args.wait)
-    return 0
+    # an observation refused (listed above, with why): a timer or cron job must notice
+    return 2 if result.get("refused") else 0  # 2: autocal.cli.main.EXIT_USER_ERROR
 
 
 def _report_outliers(night: int, result: dict[str, Any], wait_s: float | None) -> None:

@@ -68,7 +68,7 @@ def read_observation(
     ):
         arrays.add(block)
     if arrays.first is None:
-        spans = ", ".join(f"{f.lsts.min():.3f}-{f.lsts.max():.3f}" for f in files[:4])
+        spans = ", ".join(f"{f.lsts[0]:.3f}-{f.lsts[-1]:.3f}" for f in files[:4])  # in time
         raise DiagnoseError(
             f"no integrations in LST range {tuple(lst_range or ())} h: the data cover LST "
             f"{spans}{' ...' if len(files) > 4 else ''} h; choose LSTs inside them"

@@ -612,23 +612,23 @@ def _alias(pol: Any, names: Mapping[str, int]) -> str | None:
 
     A solution calibrated with ``pols=["xx"]`` of an ``ee``/``nn`` file names its pol
     ``xx`` (earlier versions did; the data name it ``ee``). The feeds are matched as
-    HERA's files orient them (x east: ``xx`` is ``ee``), then north; ``None`` when no name
-    matches or ``pol`` is there already.
+    HERA's files orient them, x east (``xx`` is ``ee``, ``yy`` is ``nn``), and only so: a
+    north-oriented file's old solution is refused ("not in the file") rather than matched
+    to the other feed. ``None`` when no name matches or ``pol`` is there already.
     """
     from autocal.io.polarisations import name_to_code
 
     name = str(pol).lower()
     if name in names:
         return None
-    for orientation in ("east", "north"):
+    try:
+        code = name_to_code(name, "east")
+    except KeyError:
+        return None
+    for other in names:
         try:
-            code = name_to_code(name, orientation)
+            if name_to_code(other, "east") == code:
+                return other
         except KeyError:
             continue
-        for other in names:
-            try:
-                if name_to_code(other, orientation) == code:
-                    return other
-            except KeyError:
-                continue
     return None

@@ -259,3 +259,28 @@ def test_compare_refuses_a_beam_a_relative_comparison_does_not_use(tmp_path, cap
     argv = ["compare", "solution.h5", "ref.calfits", "--mode", "relative", "--out", out]
     err = _error(capsys, [*argv, "--beam", "nope.fits"])
     assert "--beam" in err and "--mode absolute" in err
+    err = _error(capsys, [*argv, "--nside", "64"])
+    assert "--nside" in err and "--mode absolute" in err
+
+
+def test_nightly_exits_2_when_an_observation_is_refused(tmp_path, monkeypatch, capsys) -> None:
+    """A timer must notice an observation the submission refused (a truncated file)."""
+    from autocal.service.settings import get_settings
+    from tests.service.tiny_uvh5 import write_tiny_uvh5
+
+    data = tmp_path / "data"
+    write_tiny_uvh5(data / "zen.2458117.30000.HH.uvh5")  # one observation of two files,
+    write_tiny_uvh5(data / "zen.2458117.30745.HH.uvh5")  # then one much later
+    bad = write_tiny_uvh5(data / "zen.2458117.60000.HH.uvh5")
+    bad.write_bytes(bad.read_bytes()[:5000])
+    monkeypatch.setenv("AUTOCAL_STATE_DIR", str(tmp_path / "state"))
+    monkeypatch.setenv("AUTOCAL_DATA_ROOTS", str(data))
+    monkeypatch.delenv("AUTOCAL_DATABASE_URL", raising=False)
+    get_settings.cache_clear()
+    try:
+        argv = ["nightly", "--night", "2458117", "--folder", str(data), "--beam", "dipole"]
+        assert main(argv) == EXIT_USER_ERROR
+    finally:
+        get_settings.cache_clear()
+    out = capsys.readouterr().out
+    assert "1 submitted" in out and "1 refused" in out and "zen.2458117.60000" in out

@@ -396,3 +396,6 @@ def test_a_solution_of_pols_named_xx_yy_is_a_prior_for_ee_nn_data(solution_file)
         assert renamed.at(freqs, pols=[stored])[0].shape == mean.shape
     with pytest.raises(PriorError, match="not in the file"):
         dataclasses.replace(prior, pols=("xy", "yx")).at(freqs, pols=["ee"])
+    # only as HERA orients its feeds (x east): never the other feed's prior (a review)
+    with pytest.raises(PriorError, match="not in the file"):
+        dataclasses.replace(prior, pols=("xx", "ne")).at(freqs, pols=["nn"])

@@ -236,8 +236,26 @@ def test_a_nightly_submission_reports_a_refused_observation_and_submits_the_rest
     assert refused["job_id"] is None and refused["state"] == "refused"
     assert "truncated" in refused["error"] or "corrupt" in refused["error"]
     assert body["refused"] == 1
-    # an option that does nothing is the whole request's error
-    order = client.post(
-        "/nightly", json={"folder": "night", "beam": "dipole", "order": 2}, headers=AUTH
-    )
-    assert order.status_code == 422 and "legendre" in order.text
+    # what is not about one observation's files is the whole request's error (a review)
+    for extra, words in (
+        ({"order": 2}, "legendre"),
+        ({"sky": "uniform:100"}, "same in every direction"),
+        ({"reference": ["junk.calfits"]}, "corrupt or truncated"),
+    ):
+        body = {"folder": "night", "beam": "dipole", "force": True, **extra}
+        answer = client.post("/nightly", json=body, headers=AUTH)
+        assert answer.status_code == 422 and words in answer.text, (extra, answer.text)
+    # and so is a night whose every observation is refused
+    only_bad = data / "bad"
+    only_bad.mkdir()
+    (only_bad / later.name).write_bytes(later.read_bytes())
+    answer = client.post("/nightly", json={"folder": "bad", "beam": "dipole"}, headers=AUTH)
+    assert answer.status_code == 422 and "every observation (1) was refused" in answer.text
+
+
+def test_a_negative_receiver_prior_is_accepted(client: TestClient) -> None:
+    """EDGES' Q has Trxr ~ -302 K (a review of a refusal tried and reverted)."""
+    from autocal.pipeline.config import CalibrationConfig
+
+    assert CalibrationConfig(inputs=["x"], trxr_prior=-302.0).trxr_prior == -302.0
+    assert _submit(client, trxr_prior=-302.0).status_code == 202
