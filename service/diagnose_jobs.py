@@ -25,7 +25,6 @@ from autocal.service.settings import Settings
 from autocal.service.store import JobStore
 from autocal.service.submission_checks import (
     SubmissionError,
-    check_band,
     check_distinct,
     check_sky_varies,
     check_uvh5_inputs,
@@ -95,7 +94,6 @@ def build_diagnose_config(
         )
     check_distinct(resolved, "inputs")
     check_uvh5_inputs(resolved, opts)
-    check_band(resolved, opts.get("freq_range_mhz"))
     # the diagnosis fits G and Trxr too: a sky constant in time leaves them inseparable
     check_sky_varies(opts.get("sky"), opts.get("trxr_prior"))
     return DiagnoseConfig(inputs=[str(p) for p in resolved], **opts)

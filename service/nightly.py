@@ -199,7 +199,6 @@ def check_options(options: Mapping[str, Any] | None) -> None:
 def check_submission(inputs: Sequence[Path], opts: Mapping[str, Any]) -> None:
     """Run the checks of :mod:`autocal.service.submission_checks` on a calibration."""
     from autocal.service.submission_checks import (
-        check_band,
         check_distinct,
         check_input_kind,
         check_references,
@@ -212,7 +211,6 @@ def check_submission(inputs: Sequence[Path], opts: Mapping[str, Any]) -> None:
         check_distinct(opts["reference"], "reference")
     if check_input_kind(inputs, opts) == "uvh5":
         check_uvh5_inputs(inputs, opts)
-    check_band(inputs, opts.get("freq_range_mhz"))
     check_sky_varies(opts.get("sky"), opts.get("trxr_prior"))
     if opts.get("reference"):
         check_references(opts["reference"])

@@ -4,9 +4,8 @@ Run after the options are validated and the paths resolved, before the job is qu
 
 - the same file named twice in a list (``inputs``, ``reference``), after resolution: a
   relative and an absolute path, or an upload id and its file, are the same input;
-- a frequency range outside the band of the data: every UVH5 input whose header is
-  readable is asked for its channels (``Header/freq_array`` only; no data is read), and a
-  range holding no channel of some file is refused with that file's band;
+- a frequency range outside the band of the data: a range holding no channel of some UVH5
+  input is refused with that file's band (from the header :func:`check_uvh5_inputs` reads);
 - a sky that would flag every channel: a sky constant in time (``uniform:T``, or a power
   law of a uniform sky) leaves the receiver temperature and the gain inseparable, so every
   channel's normal matrix is singular, unless a receiver-temperature prior ties them;
@@ -29,7 +28,6 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import h5py
 import numpy as np
 
 from autocal.errors import AutocalError
@@ -79,53 +77,6 @@ def check_distinct(paths: Sequence[str | Path], field: str) -> None:
             f"{field}: items {', '.join(str(i) for i in where)} are the same file "
             f"({Path(path).name}); list each file once",
         )
-
-
-def header_freqs(path: Path) -> np.ndarray | None:
-    """Return a UVH5 file's channel frequencies (Hz) from its header, or ``None``.
-
-    Only ``Header/freq_array`` is read. ``None`` when the file is not readable HDF5 with
-    that data set (the worker reports such a file).
-    """
-    try:
-        if not path.is_file() or not h5py.is_hdf5(path):
-            return None
-        with h5py.File(path, "r") as h5:
-            freqs = np.asarray(h5["Header/freq_array"][()], dtype=np.float64).ravel()
-    except (OSError, RuntimeError, KeyError, ValueError, TypeError):
-        return None
-    return freqs if freqs.size and np.all(np.isfinite(freqs)) else None
-
-
-def check_band(paths: Sequence[Path], freq_range_mhz: Sequence[float] | None) -> None:
-    """Refuse a frequency range that holds no channel of one of the inputs.
-
-    Parameters
-    ----------
-    paths
-        Resolved input files.
-    freq_range_mhz
-        ``(low, high)`` MHz, or ``None`` (nothing to check).
-
-    Raises
-    ------
-    SubmissionError
-        For ``freq_range_mhz``, naming the file and its band.
-    """
-    if freq_range_mhz is None:
-        return
-    lo, hi = sorted(float(f) * 1e6 for f in freq_range_mhz)
-    for path in paths:
-        freqs = header_freqs(Path(path))
-        if freqs is None:
-            continue
-        if not np.any((freqs >= lo) & (freqs <= hi)):
-            raise SubmissionError(
-                "freq_range_mhz",
-                f"freq_range_mhz {lo / 1e6:g}-{hi / 1e6:g} MHz holds no channel of "
-                f"{Path(path).name}, whose band is {freqs.min() / 1e6:.6g}-"
-                f"{freqs.max() / 1e6:.6g} MHz ({freqs.size} channels): give a range inside it",
-            )
 
 
 def check_sky_varies(sky: str | None, trxr_prior: object) -> None:
@@ -207,13 +158,13 @@ def check_uvh5_inputs(paths: Sequence[Path], opts: Mapping[str, Any]) -> None:
     paths
         Resolved UVH5 inputs.
     opts
-        The options given (``antennas``, ``pols``, ``lst_range_h``).
+        The options given (``freq_range_mhz``, ``antennas``, ``pols``, ``lst_range_h``).
 
     Raises
     ------
     SubmissionError
         For ``inputs`` (the reader's message: not HDF5, truncated, not UVH5, no
-        auto-correlations), ``antennas``, ``pols`` or ``lst_range_h``.
+        auto-correlations), ``freq_range_mhz``, ``antennas``, ``pols`` or ``lst_range_h``.
     """
     from autocal.core.observation import ObservationError
     from autocal.io.uvh5_meta import (
@@ -244,6 +195,7 @@ def check_uvh5_inputs(paths: Sequence[Path], opts: Mapping[str, Any]) -> None:
                 f"{Path(path).name}: its header cannot be read ({type(err).__name__}: {err}); "
                 "the file is corrupt: copy or download it again",
             ) from None
+        _check_band(meta.path, meta.freqs, opts.get("freq_range_mhz"))
         for field, select in (("antennas", select_antennas), ("pols", select_pols)):
             if opts.get(field) is not None:
                 try:
@@ -282,3 +234,23 @@ def check_references(paths: Sequence[str | Path]) -> None:
             sniff_cal_file(Path(path))
         except CalsolFormatError as err:
             raise SubmissionError("reference", f"reference: {err}") from None
+
+
+def _check_band(path: Path, freqs: np.ndarray, freq_range_mhz: Sequence[float] | None) -> None:
+    """Refuse a frequency range that holds no channel of the file (its header's ``freqs``).
+
+    Raises
+    ------
+    SubmissionError
+        For ``freq_range_mhz``, naming the file and its band.
+    """
+    if freq_range_mhz is None:
+        return
+    lo, hi = sorted(float(f) * 1e6 for f in freq_range_mhz)
+    if not np.any((freqs >= lo) & (freqs <= hi)):
+        raise SubmissionError(
+            "freq_range_mhz",
+            f"freq_range_mhz {lo / 1e6:g}-{hi / 1e6:g} MHz holds no channel of "
+            f"{Path(path).name}, whose band is {freqs.min() / 1e6:.6g}-"
+            f"{freqs.max() / 1e6:.6g} MHz ({freqs.size} channels): give a range inside it",
+        )

@@ -232,8 +232,11 @@ def validation_message(err: Any, what: str = "settings") -> str:
     return "; ".join(f"{where(tuple(e['loc']))}: {why(str(e['msg']))}" for e in err.errors())
 
 
-#: Configuration fields whose command-line option is not ``--`` and the field with dashes.
+#: Configuration fields whose command-line option is not ``--`` and the field with dashes
+#: (the one table: validation messages and :func:`autocal.cli.options.cli_spelling`).
 FIELD_FLAGS = {
+    "inflate_errors": "--(no-)inflate-errors",
+    "rfi_flagging": "--(no-)rfi-flagging",
     "tgnd_k": "--tgnd",
     "trxr_k": "--trxr",
     "freq_range_mhz": "--freq-range",

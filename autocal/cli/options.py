@@ -15,6 +15,7 @@ from typing import Any
 
 from autocal.cli.args import (
     BEAM_HELP,
+    FIELD_FLAGS,
     SKY_HELP,
     CliError,
     parse_freq_pair,
@@ -252,18 +253,13 @@ def _prior_value(text: str) -> Any:
     return prior_value(text)
 
 
-#: Options whose flag is not ``--`` and the field's name with dashes.
-_FLAGS = {
-    "inflate_errors": "--(no-)inflate-errors",
-    "rfi_flagging": "--(no-)rfi-flagging",
-    "trxr_prior_sigma_k": "--trxr-prior-sigma",
-    "input_format": "--format",
-}
-
-
 def cli_spelling(field: str, value: Any = None) -> str:
-    """Return a configuration field as its command-line option (and a value of it)."""
-    flag = _FLAGS.get(field, "--" + field.replace("_", "-"))
+    """Return a configuration field as its command-line option (and a value of it).
+
+    The option is :data:`autocal.cli.args.FIELD_FLAGS`'s (the table the CLI's validation
+    messages use too), else ``--`` and the field with dashes.
+    """
+    flag = FIELD_FLAGS.get(field, "--" + field.replace("_", "-"))
     return flag if value is None else f"{flag} {value}"
 
 
